@@ -1,0 +1,39 @@
+"""Shared fixtures: the ``device`` fixture and a kernel cache owned by the test session."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import pytest
+
+
+def pytest_configure(config):
+    # Warp compiles kernels into a cache directory. The tests use their own (a fresh temporary one,
+    # or WARP_VISION_TEST_KERNEL_CACHE to reuse one between runs) so a run never depends on what
+    # some other program left in ~/.cache/warp. This must happen before Warp is initialised.
+    cache = os.environ.get("WARP_VISION_TEST_KERNEL_CACHE") or tempfile.mkdtemp(prefix="warp_vision_kernels_")
+    os.environ["WARP_VISION_KERNEL_CACHE"] = cache
+    import warp as wp
+
+    wp.config.kernel_cache_dir = cache
+
+
+def _devices() -> list[str]:
+    from warp_vision.kernels.launch import available_devices
+
+    return available_devices()
+
+
+@pytest.fixture(params=_devices())
+def device(request) -> str:
+    """A torch device string: "cpu", plus "cuda:0" when Warp and torch see a GPU."""
+    return request.param
+
+
+@pytest.fixture
+def cuda_device() -> str:
+    """"cuda:0" for GPU-only tests; skips (never fails) where there is no GPU."""
+    if "cuda:0" not in _devices():
+        pytest.skip("no CUDA device visible to Warp and torch")
+    return "cuda:0"

@@ -1,0 +1,218 @@
+"""The locally-connected Warp kernels against the plain-torch reference (kernels/linet_ref.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from warp_vision.kernels import launch
+from warp_vision.kernels.linet import LinetPlan, build_plan, locally_connected, plan_for
+from warp_vision.kernels.linet_ref import locally_connected_backward_ref, locally_connected_ref
+
+# Each output is a sum of R + 1 products. The kernel and the reference sum in different orders, so
+# they agree to a few ulps of the *absolute* sum: |a - b| <= RTOL * (sum of |terms|).
+RTOL = {torch.float32: 1e-5, torch.float64: 1e-12}
+
+
+def make_case(B, n_in, N, R, dtype, device, seed=0, unread=0, index_dtype=torch.int64):
+    """Random x, weight, bias and an index with repeats (and ``unread`` inputs nothing reads)."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(B, n_in, generator=g, dtype=torch.float64).to(dtype)
+    w = torch.randn(N, R, generator=g, dtype=torch.float64).to(dtype)
+    b = torch.randn(N, generator=g, dtype=torch.float64).to(dtype)
+    readable = max(1, n_in - unread)
+    index = torch.randint(0, readable, (N, R), generator=g)
+    if N and R >= 2:
+        index[0, 1] = index[0, 0]  # a repeat within one receptive field
+    return x.to(device), w.to(device), b.to(device), index.to(index_dtype).to(device)
+
+
+def abs_bound_forward(x, w, b, index):
+    """Elementwise sum of |terms| of each output, for the summation-order tolerance."""
+    xa = x.abs().double()
+    return b.abs().double() + (xa[:, index.long()] * w.abs().double()).sum(-1)
+
+
+def assert_close_abs(got, want, scale, dtype, what):
+    err = (got.double() - want.double()).abs()
+    bound = RTOL[dtype] * (scale + 1e-30)
+    worst = (err / bound).max().item() if err.numel() else 0.0
+    assert worst <= 1.0, f"{what}: error {err.max().item():.3e} exceeds tolerance (worst ratio {worst:.2f})"
+
+
+def check_against_reference(B, n_in, N, R, dtype, device, relu=False, seed=0, unread=0, index_dtype=torch.int64):
+    x, w, b, index = make_case(B, n_in, N, R, dtype, device, seed, unread, index_dtype)
+    x.requires_grad_(True)
+    w.requires_grad_(True)
+    b.requires_grad_(True)
+    y = locally_connected(x, w, b, index, relu=relu)
+    with torch.no_grad():
+        pre = locally_connected_ref(x.double(), w.double(), b.double(), index)
+        y_ref = torch.relu(pre) if relu else pre
+    assert y.shape == (B, N) and y.dtype == dtype and y.device == x.device
+    assert_close_abs(y, y_ref, abs_bound_forward(x, w, b, index), dtype, "forward")
+
+    gy = torch.randn(B, N, generator=torch.Generator().manual_seed(seed + 1), dtype=torch.float64).to(dtype).to(device)
+    gx, gw, gb = torch.autograd.grad(y, (x, w, b), gy)
+    gpre = gy.double() * (pre > 0) if relu else gy.double()
+    gx_ref, gw_ref, gb_ref = locally_connected_backward_ref(x.double(), w.double(), index, gpre)
+    ga = gpre.abs()
+    gx_scale = torch.zeros(B, n_in, dtype=torch.float64, device=x.device)
+    gx_scale.index_add_(1, index.long().reshape(-1), (ga[:, :, None] * w.abs().double()[None]).reshape(B, -1))
+    assert_close_abs(gx, gx_ref, gx_scale, dtype, "grad_x")
+    gw_scale = (ga[:, :, None] * x.abs().double()[:, index.long()]).sum(0)
+    assert_close_abs(gw, gw_ref, gw_scale, dtype, "grad_weight")
+    assert_close_abs(gb, gb_ref, ga.sum(0), dtype, "grad_bias")
+    if unread:
+        assert torch.all(gx[:, n_in - unread :] == 0), "inputs that nothing reads must get zero gradient"
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("relu", [False, True])
+@pytest.mark.parametrize(
+    "B,n_in,N,R",
+    [
+        (1, 1, 1, 1),  # tiny
+        (3, 7, 5, 3),  # B and R not multiples of the kernels' blocks
+        (8, 40, 12, 4),
+        (13, 300, 61, 9),
+        (9, 2000, 400, 20),
+    ],
+)
+def test_matches_reference(B, n_in, N, R, dtype, relu, device):
+    check_against_reference(B, n_in, N, R, dtype, device, relu=relu, unread=min(3, n_in - 1))
+
+
+@pytest.mark.parametrize("index_dtype", [torch.int32, torch.int64])
+def test_large_layer_matches_reference(index_dtype, device):
+    # ~1e5 units in, 2e4 out: large enough that CPU launches are split across threads.
+    check_against_reference(4, 100_000, 20_000, 5, torch.float32, device, index_dtype=index_dtype, unread=7)
+
+
+def test_gradcheck_float64(device):
+    x, w, b, index = make_case(3, 11, 6, 4, torch.float64, device, seed=3)
+    for relu in (False, True):
+        inputs = tuple(t.clone().requires_grad_(True) for t in (x, w, b))
+        assert torch.autograd.gradcheck(
+            lambda x_, w_, b_: locally_connected(x_, w_, b_, index, relu=relu), inputs, eps=1e-6, atol=1e-8
+        )
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    B=st.integers(1, 20),
+    n_in=st.integers(1, 60),
+    N=st.integers(1, 40),
+    R=st.integers(1, 12),
+    relu=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+def test_hypothesis_shapes(B, n_in, N, R, relu, seed):
+    check_against_reference(B, n_in, N, R, torch.float32, "cpu", relu=relu, seed=seed)
+
+
+def test_split_launch_is_bit_identical_to_one_thread(monkeypatch):
+    x, w, b, index = make_case(11, 30_000, 9_000, 7, torch.float32, "cpu", seed=5)
+    for t in (x, w, b):
+        t.requires_grad_(True)
+    outs = []
+    for threads in ("1", "2", "3"):
+        monkeypatch.setenv("WARP_VISION_THREADS", threads)
+        y = locally_connected(x, w, b, index, relu=True)
+        grads = torch.autograd.grad(y, (x, w, b), torch.ones_like(y))
+        outs.append((y, *grads))
+    for other in outs[1:]:
+        for a, c in zip(outs[0], other):
+            assert torch.equal(a, c)
+
+
+def test_only_requested_gradients_are_computed():
+    x, w, b, index = make_case(4, 50, 10, 3, torch.float32, "cpu")
+    w.requires_grad_(True)
+    y = locally_connected(x, w, b, index)
+    y.sum().backward()
+    assert x.grad is None and b.grad is None and w.grad is not None
+
+
+def test_non_contiguous_input_is_accepted():
+    x, w, b, index = make_case(6, 40, 10, 3, torch.float32, "cpu")
+    xt = x.t().contiguous().t()  # same values, column-major
+    assert not xt.is_contiguous()
+    assert torch.equal(locally_connected(xt, w, b, index), locally_connected(x, w, b, index))
+
+
+def test_empty_batch():
+    x, w, b, index = make_case(0, 40, 10, 3, torch.float32, "cpu")
+    w.requires_grad_(True)
+    y = locally_connected(x, w, b, index)
+    assert y.shape == (0, 10)
+    y.sum().backward()
+    assert torch.equal(w.grad, torch.zeros_like(w))
+
+
+def test_plan_transpose_lists_every_connection_once():
+    index = torch.tensor([[2, 2, 0], [1, 2, 4]])
+    plan = build_plan(index, in_features=6)
+    assert isinstance(plan, LinetPlan)
+    offs = plan.t_offsets.tolist()
+    ents = plan.t_entries.tolist()
+    assert offs == [0, 1, 2, 5, 5, 6, 6]  # input 3 and 5 are read by nothing
+    for i in range(6):
+        for e in ents[offs[i] : offs[i + 1]]:
+            assert index.reshape(-1)[e] == i
+    assert sorted(ents) == list(range(6))
+
+
+def test_plan_cache_follows_in_place_changes():
+    x, w, b, index = make_case(2, 20, 5, 3, torch.float32, "cpu")
+    p1 = plan_for(index, 20)
+    assert plan_for(index, 20) is p1
+    y1 = locally_connected(x, w, b, index)
+    index[0, 0] = (index[0, 0] + 1) % 20  # in-place edit bumps the version: the plan is rebuilt
+    assert plan_for(index, 20) is not p1
+    y2 = locally_connected(x, w, b, index)
+    assert not torch.equal(y1[:, 0], y2[:, 0]) or x[:, index[0, 0]].eq(x[:, (index[0, 0] - 1) % 20]).all()
+    assert torch.allclose(y2, locally_connected_ref(x, w, b, index), atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "mutate,match",
+    [
+        (lambda a: a.update(x=a["x"][0]), "x: expected rank 2"),
+        (lambda a: a.update(x=a["x"].to(torch.float16)), "x: expected dtype float32 or float64"),
+        (lambda a: a.update(weight=a["weight"].double()), "weight: expected dtype torch.float32"),
+        (lambda a: a.update(bias=a["bias"].double()), "bias: expected dtype torch.float32"),
+        (lambda a: a.update(weight=a["weight"][:, :2]), r"index: expected shape \(10, 2\)"),
+        (lambda a: a.update(bias=a["bias"][:4]), r"bias: expected shape \(10,\)"),
+        (lambda a: a.update(index=a["index"].float()), "index: expected dtype int32 or int64"),
+        (lambda a: a.update(index=a["index"] + 40), r"index: expected values in \[0, 40\)"),
+        (lambda a: a["index"].__setitem__((3, 1), -1), r"got values in \[-1,"),
+        (lambda a: a["weight"].__setitem__((2, 2), float("nan")), "weight: expected finite values"),
+        (lambda a: a["bias"].__setitem__(1, float("inf")), "bias: expected finite values"),
+        (lambda a: a.update(index=a["index"].numpy()), "index: expected a torch.Tensor"),
+        (lambda a: a.update(x=a["x"].numpy()), "x: expected a torch.Tensor"),
+    ],
+)
+def test_bad_input_raises_value_error(mutate, match):
+    x, w, b, index = make_case(3, 40, 10, 3, torch.float32, "cpu")
+    args = {"x": x, "weight": w, "bias": b, "index": index}
+    mutate(args)
+    with pytest.raises(ValueError, match=match):
+        locally_connected(args["x"], args["weight"], args["bias"], args["index"])
+
+
+def test_mismatched_device_raises(cuda_device):
+    x, w, b, index = make_case(3, 40, 10, 3, torch.float32, "cpu")
+    with pytest.raises(ValueError, match="weight: expected device"):
+        locally_connected(x, w.to(cuda_device), b, index)
+
+
+def test_slices_cover_the_range_once():
+    for total, parts in [(10, 3), (7, 7), (5, 9), (100_001, 2)]:
+        sl = launch.slices(total, parts)
+        covered = np.concatenate([np.arange(s, s + n) for s, n in sl])
+        assert np.array_equal(covered, np.arange(total))
+        assert len(sl) <= parts

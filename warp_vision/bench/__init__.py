@@ -1,0 +1,1 @@
+"""Kernel microbenchmarks: ``python -m warp_vision.bench --help``."""

@@ -1,0 +1,3 @@
+from warp_vision.bench.cli import main
+
+raise SystemExit(main())

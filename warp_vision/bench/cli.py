@@ -1,0 +1,68 @@
+"""Command line of ``python -m warp_vision.bench``: kernel microbenchmarks written as JSON."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from warp_vision.bench.common import machine_info, write_json
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m warp_vision.bench",
+        description="Kernel microbenchmarks. Each writes JSON (with machine info) to --out.",
+    )
+    sub = p.add_subparsers(dest="bench", required=True)
+
+    lin = sub.add_parser("linet", help="locally-connected layer: Warp vs plain-torch gather, index_add and CSR")
+    lin.add_argument("--photoreceptors", type=int, nargs="+", default=[14_400, 144_000],
+                     help="photoreceptor counts P (N_in = 3P); default: the paper's 14,400 and 10x that")
+    lin.add_argument("--batch", type=int, default=64, help="batch size B (default 64)")
+    lin.add_argument("--reduction", type=int, default=5, help="N = N_in // reduction (default 5)")
+    lin.add_argument("--receptive-field", type=int, default=20, help="R (default 20)")
+    lin.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
+    lin.add_argument("--out", default="bench_results/linet.json", help="JSON output path")
+
+    mem = sub.add_parser("memory", help="Fig. 4: parameters and peak training-step memory vs ONV size")
+    mem.add_argument("--sizes", type=int, nargs="+", default=None, help="ONV sizes 3P (default 1e3 .. 1.28e7)")
+    mem.add_argument("--batch", type=int, default=64, help="batch size (default 64)")
+    mem.add_argument("--budget-gib", type=float, default=14.0,
+                     help="run only configurations whose memory floor fits this (GiB); estimate the rest")
+    mem.add_argument("--out", default="bench_results/memory.json", help="JSON output path (the PNG goes beside it)")
+    mem.add_argument("--worker", nargs=2, metavar=("MODEL", "ONV"), help=argparse.SUPPRESS)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.bench == "memory" and args.worker:
+        from warp_vision.bench.memory import worker
+
+        print(json.dumps(worker(args.worker[0], int(args.worker[1]), args.batch)))
+        return 0
+    t0 = time.time()
+    info = machine_info()
+    print(f"machine: {info['cpu']}, {info['cores']} cores, torch {info['torch']} ({info['torch_threads']} threads), warp {info['warp']}")
+    if args.bench == "linet":
+        from warp_vision.bench import linet
+
+        for name in ("photoreceptors",):
+            if any(v < 1 for v in getattr(args, name)):
+                raise SystemExit(f"--{name}: expected positive integers")
+        result = linet.run(args.photoreceptors, args.batch, args.reduction, args.receptive_field, args.repeats)
+    else:
+        from warp_vision.bench import memory
+
+        sizes = args.sizes or memory.DEFAULT_SIZES
+        result = memory.run(sizes, args.batch, args.budget_gib)
+        png = str(Path(args.out).with_suffix(".png"))
+        memory.plot(result, png)
+        result["figure"] = png
+        print(f"figure: {png}")
+    result = {"benchmark": args.bench, "machine": info, "seconds": time.time() - t0, **result}
+    path = write_json(args.out, result)
+    print(f"results: {path}")
+    return 0

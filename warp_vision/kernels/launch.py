@@ -1,0 +1,145 @@
+"""Device helpers and the CPU thread-split launch.
+
+Warp's CPU backend runs one launch on one thread. A kernel whose threads are independent (each
+writes only its own outputs: a *gather*) can instead be launched as several contiguous slices of its
+index range, one slice per worker thread; the native launch is a ctypes call that releases the GIL,
+so the slices run in parallel. Kernels launched this way take the index of their first thread as
+their last input (``offset: int``) and compute ``t = offset + wp.tid()``.
+
+Never split a kernel that scatters with ``wp.atomic_add``: on the CPU it is not atomic.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Sequence
+
+import torch
+import warp as wp
+
+wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
+
+_init_lock = threading.Lock()
+_initialised = False
+_pool: ThreadPoolExecutor | None = None
+_pool_threads = 0
+
+#: Below this many kernel threads a CPU launch is not split (the pool's overhead would dominate).
+MIN_THREADS_PER_SLICE = 4096
+
+
+def init() -> None:
+    """Initialise Warp once, quietly; honour ``WARP_VISION_KERNEL_CACHE`` for the kernel cache."""
+    global _initialised
+    if _initialised:
+        return
+    with _init_lock:
+        if _initialised:
+            return
+        cache = os.environ.get("WARP_VISION_KERNEL_CACHE")
+        if cache:
+            wp.config.kernel_cache_dir = cache
+        wp.init()
+        _initialised = True
+
+
+def cpu_threads() -> int:
+    """Worker threads for split CPU launches: ``WARP_VISION_THREADS`` or the usable core count."""
+    env = os.environ.get("WARP_VISION_THREADS")
+    if env:
+        n = int(env)
+        if n < 1:
+            raise ValueError(f"WARP_VISION_THREADS must be >= 1, got {env!r}")
+        return n
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _get_pool(n: int) -> ThreadPoolExecutor:
+    global _pool, _pool_threads
+    with _init_lock:
+        if _pool is None or _pool_threads != n:
+            if _pool is not None:
+                _pool.shutdown(wait=True)
+            _pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="warp_vision_launch")
+            _pool_threads = n
+        return _pool
+
+
+def warp_device(device: str | torch.device) -> str:
+    """The Warp device name ("cpu", "cuda:0", ...) for a torch device or device string."""
+    d = torch.device(device)
+    if d.type == "cpu":
+        return "cpu"
+    if d.type == "cuda":
+        return f"cuda:{d.index if d.index is not None else torch.cuda.current_device()}"
+    raise ValueError(f"device: expected a cpu or cuda device, got {device!r}")
+
+
+def available_devices() -> list[str]:
+    """Torch device names Warp can run on here: always "cpu", plus "cuda:0" when Warp sees a GPU."""
+    init()
+    devs = ["cpu"]
+    if wp.is_cuda_available() and torch.cuda.is_available():
+        devs.append("cuda:0")
+    return devs
+
+
+def slices(total: int, parts: int) -> list[tuple[int, int]]:
+    """Split ``range(total)`` into at most ``parts`` contiguous (start, length) slices of near-equal size."""
+    parts = max(1, min(parts, total))
+    base, extra = divmod(total, parts)
+    out, start = [], 0
+    for i in range(parts):
+        length = base + (1 if i < extra else 0)
+        if length:
+            out.append((start, length))
+        start += length
+    return out
+
+
+def launch_split(
+    kernel,
+    dim: int,
+    inputs: Sequence,
+    outputs: Sequence,
+    device: str,
+    threads: int | None = None,
+) -> None:
+    """Launch a 1D gather kernel over ``dim`` threads, split across CPU worker threads.
+
+    ``kernel``'s last input must be ``offset: int`` (not included in ``inputs``); thread ``t`` of the
+    full launch is ``offset + wp.tid()``. On CUDA (or with one thread, or a small ``dim``) this is one
+    ordinary launch with ``offset = 0``.
+    """
+    if dim <= 0:
+        return
+    n = 1 if device != "cpu" else (threads or cpu_threads())
+    n = min(n, max(1, dim // MIN_THREADS_PER_SLICE))
+    if n == 1:
+        wp.launch(kernel, dim=dim, inputs=[*inputs, 0], outputs=outputs, device=device, record_tape=False)
+        return
+    # Load the module on this thread first: compilation must not race across workers.
+    kernel.module.load(device)
+    cmds = [
+        wp.launch(
+            kernel,
+            dim=length,
+            inputs=[*inputs, start],
+            outputs=outputs,
+            device=device,
+            record_tape=False,
+            record_cmd=True,
+        )
+        for start, length in slices(dim, n)
+    ]
+    pool = _get_pool(n)
+    futures = [pool.submit(c.launch) for c in cmds[1:]]
+    cmds[0].launch()  # the calling thread takes the first slice
+    for f in futures:
+        f.result()

@@ -1,0 +1,254 @@
+"""liNet connectivity: unit positions and k-nearest-neighbour receptive fields per layer (paper, IV.A).
+
+All positions live in the 2D retinal domain (DESIGN.md: the azimuthal-equidistant projection of the
+retina around the fovea), in whatever units the caller's positions use; Euclidean distance there is
+the paper's (rho, theta) domain. Layer 0 is the input (the ONV: element 3p + c sits at photoreceptor
+p's position, :func:`onv_positions`); layers h = 1..H are hidden layers of N_h = floor(N_{h-1} / f)
+units, each connected to its R_h nearest units of layer h - 1.
+
+Plain numpy + scipy ``cKDTree``; deterministic for a seed (bit-identical on repeat).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "LayerConnectivity",
+    "build_connectivity",
+    "morton_order",
+    "onv_positions",
+    "receptive_field_radius",
+]
+
+#: Bits per axis of the quantised Morton (Z-order) key; two axes fill 62 bits of a uint64.
+_MORTON_BITS = 31
+
+
+@dataclass
+class LayerConnectivity:
+    """The connectivity of one hidden layer h (the paper's matrix C_h) and its units' positions.
+
+    index:     [N_h, R_h] int64; row n holds the indexes (into layer h - 1, in its stored order) of
+               unit n's receptive field, R_h distinct units, ascending.
+    positions: [N_h, 2] float64; unit n's position in the retinal domain (same units as the input
+               positions) = the mean position of its receptive field.
+    """
+
+    index: np.ndarray
+    positions: np.ndarray
+
+    @property
+    def num_units(self) -> int:
+        """N_h."""
+        return int(self.index.shape[0])
+
+    @property
+    def receptive_field(self) -> int:
+        """R_h."""
+        return int(self.index.shape[1])
+
+
+def _check_positions(name: str, positions: np.ndarray) -> np.ndarray:
+    """Validate [N, 2] finite positions (N >= 1); returns them as a float64 array."""
+    arr = np.asarray(positions)
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < 1:
+        raise ValueError(f"{name}: expected shape [N, 2] with N >= 1, got shape {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise ValueError(f"{name}: expected real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64, copy=False)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name}: expected finite values, got {int((~np.isfinite(arr)).sum())} NaN/inf entries")
+    return arr
+
+
+def onv_positions(photoreceptor_xy: np.ndarray) -> np.ndarray:
+    """Positions of the ONV elements: element 3p + c (channel c of photoreceptor p) sits at p's position.
+
+    Args:
+        photoreceptor_xy: [P, 2] photoreceptor positions in the retinal domain.
+
+    Returns:
+        [3P, 2] float64, each row of ``photoreceptor_xy`` repeated 3 times in place.
+    """
+    xy = _check_positions("photoreceptor_xy", photoreceptor_xy)
+    return np.repeat(xy, 3, axis=0)
+
+
+def _spread_bits(v: np.ndarray) -> np.ndarray:
+    """Insert a zero bit above each of the low 32 bits of uint64 ``v`` (bit i moves to bit 2i)."""
+    v = v & np.uint64(0x00000000FFFFFFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x0000FFFF0000FFFF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x00FF00FF00FF00FF)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x3333333333333333)
+    v = (v | (v << np.uint64(1))) & np.uint64(0x5555555555555555)
+    return v
+
+
+def morton_order(positions: np.ndarray) -> np.ndarray:
+    """The permutation that sorts points along a Morton (Z-order) curve.
+
+    Positions are quantised to a square grid of 2^31 cells per side over their bounding box; ties
+    (points in one cell) keep their input order.
+
+    Args:
+        positions: [N, 2] finite positions.
+
+    Returns:
+        [N] int64 permutation: ``positions[order]`` is in Z-order.
+    """
+    pos = _check_positions("positions", positions)
+    lo = pos.min(axis=0)
+    span = float((pos.max(axis=0) - lo).max())
+    top = float(2**_MORTON_BITS - 1)
+    scale = top / span if span > 0 else 0.0
+    q = np.clip(np.floor((pos - lo) * scale), 0.0, top).astype(np.uint64)
+    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1))
+    return np.argsort(code, kind="stable").astype(np.int64)
+
+
+def _jitter_duplicates(centres: np.ndarray, prev: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Move every repeat of an already-seen centre by half its nearest-distinct-neighbour distance.
+
+    The ONV repeats each photoreceptor position 3 times, so sampled centres can coincide; left as they
+    are, such units would get identical receptive fields. ``centres`` [M, 2] are rows of ``prev``
+    [N, 2]; each repeat (not the first occurrence) is moved in a uniformly random direction by 0.5 x
+    the distance from its position to the nearest *different* position in ``prev``.
+    """
+    _, first = np.unique(centres, axis=0, return_index=True)
+    repeat = np.ones(len(centres), dtype=bool)
+    repeat[first] = False
+    if not repeat.any():
+        return centres
+    distinct = np.unique(prev, axis=0)
+    if len(distinct) < 2:  # every position is the same point: nothing to move towards
+        return centres
+    # k=2: the first neighbour is the centre itself (distance 0), the second the nearest distinct one.
+    dist, _ = cKDTree(distinct).query(centres[repeat], k=2, workers=-1)
+    step = 0.5 * dist[:, 1]
+    angle = rng.uniform(0.0, 2.0 * np.pi, size=int(repeat.sum()))
+    out = centres.copy()
+    out[repeat] += step[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    return out
+
+
+def _receptive_fields(receptive_field: int | Sequence[int], layers: int) -> list[int]:
+    if isinstance(receptive_field, (int, np.integer)) and not isinstance(receptive_field, bool):
+        rfs = [int(receptive_field)] * layers
+    elif isinstance(receptive_field, Sequence) and not isinstance(receptive_field, str):
+        if len(receptive_field) != layers:
+            raise ValueError(
+                f"receptive_field: expected an int or a sequence of length layers={layers}, "
+                f"got a sequence of length {len(receptive_field)}"
+            )
+        rfs = list(receptive_field)
+    else:
+        raise ValueError(f"receptive_field: expected an int or a sequence of ints, got {receptive_field!r}")
+    for h, r in enumerate(rfs, start=1):
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
+            raise ValueError(f"receptive_field: expected R_{h} to be an int >= 1, got {r!r}")
+    return [int(r) for r in rfs]
+
+
+def build_connectivity(
+    in_positions: np.ndarray,
+    layers: int,
+    receptive_field: int | Sequence[int],
+    reduction: float,
+    seed: int = 0,
+) -> list[LayerConnectivity]:
+    """Build the H connectivity matrices of a liNet over irregular, foveated inputs.
+
+    For each hidden layer h = 1..H:
+
+    1. N_h = floor(N_{h-1} / f) unit centres are drawn without replacement from layer h - 1's units
+       (a seeded ``numpy`` Generator), so the layer keeps the foveated density in expectation; repeats
+       of one position (the ONV holds each photoreceptor's position 3 times) are jittered by half the
+       local nearest-distinct-neighbour distance in a random direction.
+    2. Each unit's receptive field = the R_h nearest (Euclidean, 2D) units of layer h - 1 to its centre
+       (``cKDTree.query``), and its position = the mean position of its receptive field (paper, IV.A).
+    3. The units are ordered along a Morton (Z-order) curve of their positions (rows of index and
+       positions permuted together), so consecutive units read nearby inputs; layer h + 1's indexes
+       refer to this order.
+
+    Args:
+        in_positions:    [N_0, 2] positions of the input units in the retinal domain (for an ONV input,
+                         :func:`onv_positions` of the photoreceptors). Any units; outputs use the same.
+        layers:          H >= 1, the number of hidden layers.
+        receptive_field: R_h, one int for every layer or a sequence of H ints; 1 <= R_h <= N_{h-1}.
+        reduction:       f >= 1, the size ratio N_{h-1} / N_h before flooring.
+        seed:            seeds the sampling and jitter; the same seed gives bit-identical results.
+
+    Returns:
+        H :class:`LayerConnectivity` objects, for layers 1..H.
+
+    Raises:
+        ValueError: naming the argument, what was expected and what came (bad shapes, non-finite
+        positions, H < 1, f < 1, a receptive field larger than its previous layer, an empty layer).
+    """
+    prev = _check_positions("in_positions", in_positions)
+    if isinstance(layers, bool) or not isinstance(layers, (int, np.integer)) or layers < 1:
+        raise ValueError(f"layers: expected an int >= 1, got {layers!r}")
+    rfs = _receptive_fields(receptive_field, int(layers))
+    if isinstance(reduction, bool) or not isinstance(reduction, (int, float, np.integer, np.floating)):
+        raise ValueError(f"reduction: expected a finite number >= 1, got {reduction!r}")
+    if not math.isfinite(reduction) or reduction < 1:
+        raise ValueError(f"reduction: expected a finite number >= 1, got {reduction!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed: expected an int, got {seed!r}")
+
+    sizes = [len(prev)]
+    for h, r in enumerate(rfs, start=1):
+        n = math.floor(sizes[-1] / reduction)
+        if n < 1:
+            raise ValueError(
+                f"layers: expected every layer to keep N_h = floor(N_(h-1) / f) >= 1, got N_{h} = "
+                f"floor({sizes[-1]} / {reduction}) = {n}"
+            )
+        if r > sizes[-1]:
+            raise ValueError(
+                f"receptive_field: expected R_{h} <= N_{h - 1} = {sizes[-1]} (units in layer {h - 1}), got {r}"
+            )
+        sizes.append(n)
+
+    rng = np.random.default_rng(int(seed))
+    out: list[LayerConnectivity] = []
+    for h, r in enumerate(rfs, start=1):
+        n = sizes[h]
+        chosen = rng.choice(len(prev), size=n, replace=False)
+        centres = _jitter_duplicates(prev[chosen], prev, rng)
+        _, index = cKDTree(prev).query(centres, k=r, workers=-1)
+        index = np.sort(index.reshape(n, r).astype(np.int64), axis=1)  # ascending: monotone gathers
+        positions = prev[index].mean(axis=1)
+        order = morton_order(positions)
+        index, positions = index[order], positions[order]
+        out.append(LayerConnectivity(index=np.ascontiguousarray(index), positions=np.ascontiguousarray(positions)))
+        prev = positions
+    return out
+
+
+def receptive_field_radius(layer_prev_positions: np.ndarray, conn: LayerConnectivity) -> np.ndarray:
+    """Radius of each unit's receptive field: the largest distance from the unit to one of its members.
+
+    Args:
+        layer_prev_positions: [N_{h-1}, 2] positions of layer h - 1's units (in their stored order).
+        conn:                 layer h's connectivity (index into ``layer_prev_positions``).
+
+    Returns:
+        [N_h] float64, in the units of the positions.
+    """
+    prev = _check_positions("layer_prev_positions", layer_prev_positions)
+    index = np.asarray(conn.index)
+    if index.size and (index.min() < 0 or index.max() >= len(prev)):
+        raise ValueError(
+            f"conn: expected index values in [0, {len(prev)}) (rows of layer_prev_positions), "
+            f"got values in [{index.min()}, {index.max()}]"
+        )
+    members = prev[index]  # [N_h, R_h, 2]
+    return np.linalg.norm(members - np.asarray(conn.positions)[:, None, :], axis=-1).max(axis=1)
