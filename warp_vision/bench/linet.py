@@ -29,7 +29,8 @@ from warp_vision.nn.connectivity import build_connectivity, onv_positions
 def log_polar_layout(P: int, seed: int = 0, rho_min: float = 0.01, rho_max: float = 1.0) -> np.ndarray:
     """A noisy log-polar photoreceptor layout in the retinal domain, ordered ring by ring: [P, 2]."""
     rng = np.random.default_rng(seed)
-    rings = max(1, int(round(np.sqrt(P / (2 * np.pi)))))
+    # Isotropic sampling: the log step between rings equals the angular step within a ring.
+    rings = max(1, int(round(np.sqrt(P * np.log(rho_max / rho_min) / (2 * np.pi)))))
     per_ring = int(np.ceil(P / rings))
     ring = np.repeat(np.arange(rings), per_ring)[:P]
     k = np.tile(np.arange(per_ring), rings)[:P]
@@ -99,7 +100,7 @@ def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int =
         with _threads(threads):
             y = fn(x_req)
             got = (y, *torch.autograd.grad(y, (x_req, weight, bias), grad_y))
-            err = max(float((a - c).abs().max() / (c.abs().max() + 1e-30)) for a, c in zip(got, ref))
+            err = max(float((a - c).detach().abs().max() / (c.detach().abs().max() + 1e-30)) for a, c in zip(got, ref))
             holder = {}
 
             def fwd_only():

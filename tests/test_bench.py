@@ -1,0 +1,78 @@
+"""Benchmark plumbing: parameter counts (the paper's Fig. 4 set-up), floors, baselines, JSON."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import torch
+
+from warp_vision.bench import memory
+from warp_vision.bench import torch_baselines as tb
+from warp_vision.bench.common import write_json
+from warp_vision.bench.linet import log_polar_layout, run_config
+from warp_vision.kernels.linet_ref import locally_connected_ref
+from warp_vision.nn import LiNet, onv_positions
+
+
+def test_fig4_parameter_counts_match_hand_count():
+    # 3P = 43,200 (P = 14,400), H = 4, f = 5, R = 5, plus the 2-output head:
+    # sizes 43200 -> 8640 -> 1728 -> 345 -> 69
+    sizes = memory.layer_sizes(43_200)
+    assert sizes == [43_200, 8_640, 1_728, 345, 69]
+    # liNet: (8640 + 1728 + 345 + 69) units x (5 weights + 1 bias) = 64,692; head 69*2 + 2 = 140
+    assert memory.param_count("linet", sizes) == 64_832
+    # FC: 43200*8640+8640 + 8640*1728+1728 + 1728*345+345 + 345*69+69 + 140
+    assert memory.param_count("fc", sizes) == 388_808_807
+
+
+def test_built_linet_has_the_counted_parameters():
+    pos = onv_positions(log_polar_layout(1_000, seed=2))
+    net = LiNet(pos, layers=4, receptive_field=5, reduction=5)
+    head = torch.nn.Linear(net.out_features, memory.OUTPUTS)
+    built = net.num_parameters() + sum(p.numel() for p in head.parameters())
+    assert built == memory.param_count("linet", net.layer_sizes)
+
+
+def test_floor_at_paper_scale():
+    # The issue's floor for 3P = 1.28e7: input 3.28 GB, ~5.1 GB in all.
+    f = memory.floor_bytes("linet", memory.layer_sizes(12_800_000), batch=64)
+    assert f["input_batch"] == 64 * 12_800_000 * 4
+    assert 5.0e9 < f["total"] < 5.2e9
+
+
+def test_torch_baselines_agree_with_reference():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(5, 60, generator=g, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(12, 4, generator=g, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(12, generator=g, dtype=torch.float64, requires_grad=True)
+    idx = torch.randint(0, 60, (12, 4), generator=g)
+    gy = torch.randn(5, 12, generator=g, dtype=torch.float64)
+    y_ref = locally_connected_ref(x, w, b, idx)
+    g_ref = torch.autograd.grad(y_ref, (x, w, b), gy)
+    for y in (
+        tb.gather_sum(x, w, b, idx),
+        tb.index_add(x, w, b, idx.reshape(-1)),
+        tb.csr_matmul(x, w, b, tb.CsrPlan(idx, 60)),
+    ):
+        assert torch.allclose(y, y_ref, atol=1e-12)
+        for a, c in zip(torch.autograd.grad(y, (x, w, b), gy), g_ref):
+            assert torch.allclose(a, c, atol=1e-12)
+
+
+def test_linet_bench_small_config_reports_agreement(tmp_path):
+    res = run_config(B=4, P=300, reduction=5, R=6, repeats=1, log=lambda *_: None)
+    assert res["N_in"] == 900 and res["N"] == 180
+    for name, impl in res["impls"].items():
+        assert impl["max_rel_err_vs_warp"] < 1e-5, name
+        assert impl["times"]["forward"]["median_ms"] > 0
+    assert set(res["speedup_of_warp"]) == {"forward", "backward", "forward_backward", "forward_backward_no_grad_x"}
+    path = write_json(tmp_path / "out.json", res)
+    assert json.loads(path.read_text())["N"] == 180
+
+
+def test_log_polar_layout_is_foveated():
+    xy = log_polar_layout(5_000, seed=0)
+    r = np.hypot(xy[:, 0], xy[:, 1])
+    # log-spaced rings: as many receptors inside the geometric-mean radius as outside it
+    assert abs(np.mean(r < np.sqrt(0.01 * 1.0)) - 0.5) < 0.05
