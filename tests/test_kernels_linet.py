@@ -216,3 +216,19 @@ def test_slices_cover_the_range_once():
         covered = np.concatenate([np.arange(s, s + n) for s, n in sl])
         assert np.array_equal(covered, np.arange(total))
         assert len(sl) <= parts
+
+
+@pytest.mark.parametrize("relu", [False, True])
+def test_first_layer_gradients_without_grad_x(relu, device):
+    # x (an ONV) needs no gradient: the weight and bias kernels then mask the ReLU on the fly.
+    x, w, b, index = make_case(10, 500, 120, 7, torch.float64, device, seed=9)
+    w.requires_grad_(True)
+    b.requires_grad_(True)
+    y = locally_connected(x, w, b, index, relu=relu)
+    gy = torch.randn(y.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64).to(device)
+    gw, gb = torch.autograd.grad(y, (w, b), gy)
+    pre = locally_connected_ref(x, w.detach(), b.detach(), index)
+    gpre = gy * (pre > 0) if relu else gy
+    _, gw_ref, gb_ref = locally_connected_backward_ref(x, w.detach(), index, gpre)
+    assert torch.allclose(gw, gw_ref, rtol=1e-12, atol=1e-12)
+    assert torch.allclose(gb, gb_ref, rtol=1e-12, atol=1e-12)

@@ -56,8 +56,8 @@ def linet_forward(
 ):
     """y_out[b, n] = (ReLU of) bias[n] + sum_r weight[n, r] * x[b, index[n, r]].
 
-    Thread t = blk * N + n computes rows b = 8 blk .. 8 blk + 7 of unit n (rows past B are clamped
-    to B - 1 and never stored).
+    Thread t = blk * N + n computes rows b = 8 blk .. 8 blk + 7 of unit n (rows past B read row
+    B - 1 and are never stored). The constant-length loops over the 8 rows are unrolled by Warp.
     """
     t = offset + wp.tid()
     num_units = weight.shape[0]
@@ -65,57 +65,18 @@ def linet_forward(
     n = t - blk * num_units
     last = x.shape[0] - 1
     b0 = blk * 8
-    b1 = wp.min(b0 + 1, last)
-    b2 = wp.min(b0 + 2, last)
-    b3 = wp.min(b0 + 3, last)
-    b4 = wp.min(b0 + 4, last)
-    b5 = wp.min(b0 + 5, last)
-    b6 = wp.min(b0 + 6, last)
-    b7 = wp.min(b0 + 7, last)
-    a0 = bias[n]
-    a1 = a0
-    a2 = a0
-    a3 = a0
-    a4 = a0
-    a5 = a0
-    a6 = a0
-    a7 = a0
+    acc = wp.vector(bias[n], length=8)
     for r in range(weight.shape[1]):
         i = index[n, r]
         w = weight[n, r]
-        a0 += w * x[b0, i]
-        a1 += w * x[b1, i]
-        a2 += w * x[b2, i]
-        a3 += w * x[b3, i]
-        a4 += w * x[b4, i]
-        a5 += w * x[b5, i]
-        a6 += w * x[b6, i]
-        a7 += w * x[b7, i]
-    if relu != 0:
-        zero = y_out.dtype(0.0)
-        a0 = wp.max(a0, zero)
-        a1 = wp.max(a1, zero)
-        a2 = wp.max(a2, zero)
-        a3 = wp.max(a3, zero)
-        a4 = wp.max(a4, zero)
-        a5 = wp.max(a5, zero)
-        a6 = wp.max(a6, zero)
-        a7 = wp.max(a7, zero)
-    y_out[b0, n] = a0
-    if b0 + 1 <= last:
-        y_out[b1, n] = a1
-    if b0 + 2 <= last:
-        y_out[b2, n] = a2
-    if b0 + 3 <= last:
-        y_out[b3, n] = a3
-    if b0 + 4 <= last:
-        y_out[b4, n] = a4
-    if b0 + 5 <= last:
-        y_out[b5, n] = a5
-    if b0 + 6 <= last:
-        y_out[b6, n] = a6
-    if b0 + 7 <= last:
-        y_out[b7, n] = a7
+        for k in range(8):
+            acc[k] += w * x[wp.min(b0 + k, last), i]
+    for k in range(8):
+        if b0 + k <= last:
+            v = acc[k]
+            if relu != 0:
+                v = wp.max(v, y_out.dtype(0.0))
+            y_out[b0 + k, n] = v
 
 
 @wp.kernel
@@ -139,59 +100,37 @@ def linet_grad_x(
     i = t - blk * num_in
     last = grad_y.shape[0] - 1
     b0 = blk * 8
-    b1 = wp.min(b0 + 1, last)
-    b2 = wp.min(b0 + 2, last)
-    b3 = wp.min(b0 + 3, last)
-    b4 = wp.min(b0 + 4, last)
-    b5 = wp.min(b0 + 5, last)
-    b6 = wp.min(b0 + 6, last)
-    b7 = wp.min(b0 + 7, last)
-    a0 = grad_x_out.dtype(0.0)
-    a1 = a0
-    a2 = a0
-    a3 = a0
-    a4 = a0
-    a5 = a0
-    a6 = a0
-    a7 = a0
+    acc = wp.vector(grad_x_out.dtype(0.0), length=8)
     for k in range(t_offsets[i], t_offsets[i + 1]):
         e = t_entries[k]
         n = e // receptive_field
         w = weight_flat[e]
-        a0 += w * grad_y[b0, n]
-        a1 += w * grad_y[b1, n]
-        a2 += w * grad_y[b2, n]
-        a3 += w * grad_y[b3, n]
-        a4 += w * grad_y[b4, n]
-        a5 += w * grad_y[b5, n]
-        a6 += w * grad_y[b6, n]
-        a7 += w * grad_y[b7, n]
-    grad_x_out[b0, i] = a0
-    if b0 + 1 <= last:
-        grad_x_out[b1, i] = a1
-    if b0 + 2 <= last:
-        grad_x_out[b2, i] = a2
-    if b0 + 3 <= last:
-        grad_x_out[b3, i] = a3
-    if b0 + 4 <= last:
-        grad_x_out[b4, i] = a4
-    if b0 + 5 <= last:
-        grad_x_out[b5, i] = a5
-    if b0 + 6 <= last:
-        grad_x_out[b6, i] = a6
-    if b0 + 7 <= last:
-        grad_x_out[b7, i] = a7
+        for j in range(8):
+            acc[j] += w * grad_y[wp.min(b0 + j, last), n]
+    for j in range(8):
+        if b0 + j <= last:
+            grad_x_out[b0 + j, i] = acc[j]
+
+
+@wp.func
+def _masked(g: Any, y: Any, relu: int):
+    """The upstream gradient g, zeroed where a fused ReLU clamped the output y to zero."""
+    if relu != 0 and y <= type(y)(0.0):
+        return type(y)(0.0)
+    return g
 
 
 @wp.kernel
 def linet_grad_weight(
     x: wp.array2d(dtype=Any),
     grad_y: wp.array2d(dtype=Any),
+    y: wp.array2d(dtype=Any),
     index: wp.array2d(dtype=wp.int32),
+    relu: int,
     offset: int,
     grad_weight_out: wp.array2d(dtype=Any),
 ):
-    """grad_weight[n, r] = sum_b grad_y[b, n] * x[b, index[n, r]].
+    """grad_weight[n, r] = sum_b g[b, n] * x[b, index[n, r]], g = grad_y masked by y > 0 if ``relu``.
 
     Thread t = n * ceil(R / 4) + q computes connections r = 4 q .. 4 q + 3 of unit n (clamped to
     R - 1, never stored past it).
@@ -201,43 +140,32 @@ def linet_grad_weight(
     groups = (R + 3) // 4
     n = t // groups
     r0 = (t - n * groups) * 4
-    r1 = wp.min(r0 + 1, R - 1)
-    r2 = wp.min(r0 + 2, R - 1)
-    r3 = wp.min(r0 + 3, R - 1)
-    i0 = index[n, r0]
-    i1 = index[n, r1]
-    i2 = index[n, r2]
-    i3 = index[n, r3]
-    a0 = grad_weight_out.dtype(0.0)
-    a1 = a0
-    a2 = a0
-    a3 = a0
+    cols = wp.vector(index[n, r0], length=4)
+    for k in range(1, 4):
+        cols[k] = index[n, wp.min(r0 + k, R - 1)]
+    acc = wp.vector(grad_weight_out.dtype(0.0), length=4)
     for b in range(x.shape[0]):
-        g = grad_y[b, n]
-        a0 += g * x[b, i0]
-        a1 += g * x[b, i1]
-        a2 += g * x[b, i2]
-        a3 += g * x[b, i3]
-    grad_weight_out[n, r0] = a0
-    if r0 + 1 < R:
-        grad_weight_out[n, r1] = a1
-    if r0 + 2 < R:
-        grad_weight_out[n, r2] = a2
-    if r0 + 3 < R:
-        grad_weight_out[n, r3] = a3
+        g = _masked(grad_y[b, n], y[b, n], relu)
+        for k in range(4):
+            acc[k] += g * x[b, cols[k]]
+    for k in range(4):
+        if r0 + k < R:
+            grad_weight_out[n, r0 + k] = acc[k]
 
 
 @wp.kernel
 def linet_grad_bias(
     grad_y: wp.array2d(dtype=Any),
+    y: wp.array2d(dtype=Any),
+    relu: int,
     offset: int,
     grad_bias_out: wp.array(dtype=Any),
 ):
-    """grad_bias[n] = sum_b grad_y[b, n]; thread t = n."""
+    """grad_bias[n] = sum_b g[b, n], g = grad_y masked by y > 0 if ``relu``; thread t = n."""
     n = offset + wp.tid()
     acc = grad_bias_out.dtype(0.0)
     for b in range(grad_y.shape[0]):
-        acc += grad_y[b, n]
+        acc += _masked(grad_y[b, n], y[b, n], relu)
     grad_bias_out[n] = acc
 
 
@@ -247,8 +175,8 @@ def _overload_all() -> None:
         i1, i2 = wp.array(dtype=wp.int32), wp.array2d(dtype=wp.int32)
         wp.overload(linet_forward, [a2, a2, a1, i2, int, int, a2])
         wp.overload(linet_grad_x, [a2, a1, i1, i1, int, int, a2])
-        wp.overload(linet_grad_weight, [a2, a2, i2, int, a2])
-        wp.overload(linet_grad_bias, [a2, int, a1])
+        wp.overload(linet_grad_weight, [a2, a2, a2, i2, int, int, a2])
+        wp.overload(linet_grad_bias, [a2, a2, int, int, a1])
 
 
 _overload_all()
@@ -397,15 +325,26 @@ def backward(
     weight: Tensor,
     plan: LinetPlan,
     grad_y: Tensor,
+    y: Tensor | None,
     need: tuple[bool, bool, bool],
 ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
     """Kernel vector-Jacobian products (grad_x, grad_weight, grad_bias); ``need`` says which to compute.
 
-    ``grad_y`` [B, N] is the gradient at the layer's pre-activation (already masked by a fused ReLU);
-    ``x`` is needed only for grad_weight.
+    ``grad_y`` [B, N] is the gradient at the layer's output; ``y`` is the fused-ReLU output whose sign
+    masks it (None: no activation). ``x`` is needed only for grad_weight.
+
+    When grad_x is needed the masked gradient is materialised once ([B, N], smaller than grad_x) so the
+    hot grad_x kernel reads one array; otherwise (the first layer: the ONV needs no gradient, and
+    grad_y is then the largest activation gradient of the net) the weight and bias kernels mask on
+    the fly and no copy of grad_y is made.
     """
     dev = _launch.warp_device(grad_y.device)
+    relu = int(y is not None)
+    if relu and need[0]:
+        grad_y = torch.ops.aten.threshold_backward(grad_y, y, 0)
+        relu = 0
     g = _wp(grad_y)
+    yy = _wp(y) if relu else g  # unread when relu == 0
     B, N = grad_y.shape
     R = plan.receptive_field
     grad_x = grad_w = grad_b = None
@@ -420,16 +359,13 @@ def backward(
                 dev,
             )
     if need[1]:
-        if B:
-            grad_w = torch.empty(N, R, dtype=grad_y.dtype, device=grad_y.device)
-            if N and R:
-                groups = _blocks(R, CONN_BLOCK)
-                _split(linet_grad_weight, N * groups, [_wp(x), g, _wp(plan.index)], [_wp(grad_w)], dev)
-        else:
-            grad_w = torch.zeros(N, R, dtype=grad_y.dtype, device=grad_y.device)
+        grad_w = torch.zeros(N, R, dtype=grad_y.dtype, device=grad_y.device)
+        if B and N and R:
+            groups = _blocks(R, CONN_BLOCK)
+            _split(linet_grad_weight, N * groups, [_wp(x), g, yy, _wp(plan.index), relu], [_wp(grad_w)], dev)
     if need[2]:
         grad_b = torch.empty(N, dtype=grad_y.dtype, device=grad_y.device)
-        _split(linet_grad_bias, N, [g], [_wp(grad_b)], dev)
+        _split(linet_grad_bias, N, [g, yy, relu], [_wp(grad_b)], dev)
     return grad_x, grad_w, grad_b
 
 
@@ -449,10 +385,7 @@ class _LocallyConnectedFn(torch.autograd.Function):
     def backward(ctx, grad_y):
         x, weight, y = ctx.saved_tensors
         need = tuple(ctx.needs_input_grad[:3])
-        grad_y = grad_y.contiguous()
-        if y is not None:  # fused ReLU: no gradient where the output was clamped to zero
-            grad_y = torch.ops.aten.threshold_backward(grad_y, y, 0)
-        grad_x, grad_w, grad_b = backward(x, weight, ctx.plan, grad_y, need)
+        grad_x, grad_w, grad_b = backward(x, weight, ctx.plan, grad_y.contiguous(), y, need)
         return grad_x, grad_w, grad_b, None, None
 
 
