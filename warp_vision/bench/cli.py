@@ -49,9 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.bench == "linet":
         from warp_vision.bench import linet
 
-        for name in ("photoreceptors",):
-            if any(v < 1 for v in getattr(args, name)):
-                raise SystemExit(f"--{name}: expected positive integers")
+        if any(v < 1 for v in args.photoreceptors):
+            raise SystemExit(f"--photoreceptors: expected positive integers, got {args.photoreceptors}")
         result = linet.run(args.photoreceptors, args.batch, args.reduction, args.receptive_field, args.repeats)
     else:
         from warp_vision.bench import memory
