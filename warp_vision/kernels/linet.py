@@ -37,8 +37,9 @@ _INDEX_DTYPES = (torch.int32, torch.int64)
 # --------------------------------------------------------------------------------------------------
 
 
-#: Batch rows one forward / grad_x thread handles (the kernels spell it as the literal 8: keep in step) (eight independent accumulators hide the latency
-#: of the strided gathers; measured 5x faster than one row per thread on the CPU backend).
+#: Batch rows one forward / grad_x thread handles: eight independent accumulators hide the latency
+#: of the strided gathers (measured 5x faster than one row per thread on the CPU backend).
+#: The kernels spell it as the literal 8: keep the two in step.
 BATCH_BLOCK = 8
 #: Connections one grad_weight thread handles (one load of the upstream gradient serves four products).
 CONN_BLOCK = 4
