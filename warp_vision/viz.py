@@ -13,7 +13,7 @@ from matplotlib.patches import Circle
 
 from warp_vision.nn.connectivity import receptive_field_radius
 
-__all__ = ["plot_receptive_fields"]
+__all__ = ["plot_receptive_fields", "plot_retina_layout"]
 
 
 def _spread_units(positions: np.ndarray, radius: np.ndarray, count: int, seed: int) -> np.ndarray:
@@ -117,3 +117,93 @@ def plot_receptive_fields(
         f"Layer {layer} receptive fields: {len(chosen)} of {conn.num_units} units, R = {conn.receptive_field}"
     )
     return ax.get_figure()
+
+
+def plot_retina_layout(
+    retina,
+    ax: Axes | Sequence[Axes] | None = None,
+    fovea_radius_deg: float | None = None,
+    fovea_count: int = 400,
+    max_points: int = 200_000,
+    marker_size: float | None = None,
+    seed: int = 0,
+) -> Figure:
+    """Draw a retina's photoreceptors in the retinal domain (paper, Fig. 2b) and zoom on its fovea.
+
+    Left panel: every photoreceptor as a small dot at ``domain_xy`` in degrees of eccentricity (x =
+    rho cos theta, y = rho sin theta), equal aspect, the rho_max circle dashed and the zoomed region
+    outlined. Right panel: the fovea, rho < ``fovea_radius_deg``, with larger dots.
+
+    Args:
+        retina:           a :class:`warp_vision.eye.retina.Retina`.
+        ax:               None: a new ``Figure`` with the two panels side by side. A pair of axes: the two
+                          panels on them. One ``Axes``: the whole layout only, on it.
+        fovea_radius_deg: radius of the zoom [deg]; default: 1.1 x the eccentricity of the
+                          ``fovea_count``-th photoreceptor from the fovea.
+        fovea_count:      sets the default zoom (>= 1).
+        max_points:       at most this many photoreceptors in the left panel (a seeded random subset of
+                          larger retinas, said in the title), so millions of points stay drawable.
+        marker_size:      dot area [pt^2] in the left panel; default scales with 1 / P.
+        seed:             seeds the subset.
+
+    Returns:
+        The figure holding the axes.
+    """
+    if isinstance(fovea_count, bool) or not isinstance(fovea_count, (int, np.integer)) or fovea_count < 1:
+        raise ValueError(f"fovea_count: expected an int >= 1, got {fovea_count!r}")
+    if isinstance(max_points, bool) or not isinstance(max_points, (int, np.integer)) or max_points < 1:
+        raise ValueError(f"max_points: expected an int >= 1, got {max_points!r}")
+    xy = np.degrees(np.asarray(retina.domain_xy, dtype=np.float64))
+    rho_deg = np.degrees(np.asarray(retina.rho, dtype=np.float64))
+    rho_max_deg = float(np.degrees(retina.rho_max))
+    P = len(rho_deg)
+    if fovea_radius_deg is None:
+        k = min(int(fovea_count), P)
+        fovea_radius_deg = 1.1 * float(np.partition(rho_deg, k - 1)[k - 1])
+        if fovea_radius_deg <= 0.0:
+            fovea_radius_deg = rho_max_deg
+    elif not np.isfinite(fovea_radius_deg) or fovea_radius_deg <= 0:
+        raise ValueError(f"fovea_radius_deg: expected a positive number of degrees, got {fovea_radius_deg!r}")
+
+    if ax is None:
+        fig = Figure(figsize=(11.0, 5.5), layout="constrained")
+        axes = list(fig.subplots(1, 2))
+    elif isinstance(ax, Axes):
+        axes = [ax]
+    else:
+        axes = list(ax)
+        if len(axes) != 2 or not all(isinstance(a, Axes) for a in axes):
+            raise ValueError(f"ax: expected None, one Axes or a pair of Axes, got {ax!r}")
+
+    shown = np.arange(P)
+    if P > max_points:
+        shown = np.sort(np.random.default_rng(seed).choice(P, size=int(max_points), replace=False))
+    size = float(np.clip(3000.0 / len(shown), 0.02, 4.0)) if marker_size is None else float(marker_size)
+    full = axes[0]
+    full.scatter(xy[shown, 0], xy[shown, 1], s=size, c="black", linewidths=0, rasterized=True)
+    full.add_patch(Circle((0.0, 0.0), rho_max_deg, fill=False, edgecolor="0.5", linestyle="--", linewidth=0.8))
+    full.add_patch(Circle((0.0, 0.0), fovea_radius_deg, fill=False, edgecolor="C3", linewidth=0.8))
+    lim = 1.03 * rho_max_deg
+    full.set_xlim(-lim, lim)
+    full.set_ylim(-lim, lim)
+    full.set_aspect("equal")
+    full.set_xlabel("x = rho cos(theta) [deg of eccentricity]")
+    full.set_ylabel("y = rho sin(theta) [deg of eccentricity]")
+    subset = f" ({len(shown):,} drawn)" if len(shown) < P else ""
+    full.set_title(f"{retina.layout} retina: P = {P:,}{subset}, rho_max = {rho_max_deg:.1f} deg")
+
+    if len(axes) == 2:
+        zoom = axes[1]
+        near = rho_deg <= 1.05 * fovea_radius_deg
+        n_near = int(near.sum())
+        zoom_size = float(np.clip(4000.0 / max(n_near, 1), 2.0, 30.0))
+        zoom.scatter(xy[near, 0], xy[near, 1], s=zoom_size, c="black", linewidths=0)
+        zoom.add_patch(Circle((0.0, 0.0), fovea_radius_deg, fill=False, edgecolor="C3", linewidth=0.8))
+        zoom.set_xlim(-fovea_radius_deg, fovea_radius_deg)
+        zoom.set_ylim(-fovea_radius_deg, fovea_radius_deg)
+        zoom.set_aspect("equal")
+        zoom.set_xlabel("x [deg of eccentricity]")
+        zoom.set_ylabel("y [deg of eccentricity]")
+        inside = int((rho_deg < fovea_radius_deg).sum())
+        zoom.set_title(f"fovea: rho < {fovea_radius_deg:.3g} deg ({inside:,} photoreceptors)")
+    return axes[0].get_figure()
