@@ -1,0 +1,277 @@
+"""The Warp ray tracer against its numpy reference and against optics derived independently."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from warp_vision.eye import optics
+from warp_vision.eye.optics import EYE_CENTRE_MM, RETINA_RADIUS_MM, NavarroEye
+from warp_vision.kernels import raytrace as rt
+from warp_vision.kernels import raytrace_ref as ref
+from warp_vision.scene import Material, Scene, translation
+
+
+def retina_points(rho_deg, theta_deg):
+    """Optical-frame retina points (mm) at eccentricity rho and polar angle theta (eye frame, deg)."""
+    r, t = np.radians(rho_deg), np.radians(theta_deg)
+    # eye frame direction (sin r cos t, sin r sin t, -cos r); optical x = -eye x
+    return np.stack(
+        [-RETINA_RADIUS_MM * np.sin(r) * np.cos(t), RETINA_RADIUS_MM * np.sin(r) * np.sin(t), EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(r)],
+        axis=1,
+    )
+
+
+def small_scene(batch_ball=None):
+    sc = Scene(ambient=(0.08, 0.06, 0.05), background=(0.02, 0.03, 0.05))
+    sc.add_box("floor", (4, 4, 0.1), translation([0, 1.5, -0.05]), Material((0.5, 0.5, 0.4), reflectivity=0.3), static=True)
+    sc.add_box("wall", (4, 0.1, 3), translation([0, 3, 1.5]), Material((0.7, 0.3, 0.2), specular=0.2, shininess=8), static=True)
+    cube = trimesh.creation.box((0.4, 0.4, 0.4))
+    cube.visual.vertex_colors = np.tile([40, 200, 90, 255], (len(cube.vertices), 1))
+    rot = trimesh.transformations.rotation_matrix(0.5, [0, 0, 1])
+    sc.add("cube", cube, Material(vertex_colors=True), translation([0.6, 1.8, 0.2]) @ rot)
+    centre = [0.0, 1.0, 1.2] if batch_ball is None else batch_ball
+    sc.add_sphere("ball", 0.15, (0, 0, 0), Material((1, 1, 1), specular=0.5, shininess=20, smooth=True), subdivisions=2)
+    sc.set_transform("ball", translation(centre))
+    sc.add_light((0.5, -0.5, 2.5), intensity=6.0)
+    sc.add_light((-1.0, 1.0, 1.5), color=(0.9, 0.8, 0.6), intensity=2.0)
+    return sc
+
+
+EYE_POSE = rt.eye_look_at([0.0, -0.6, 1.1], [0.0, 1.0, 1.0])
+
+
+# --------------------------------------------------------------------------------------------------
+# the eye stage
+
+
+def test_eye_rays_match_the_float64_optics(device):
+    eye = NavarroEye(accommodation_D=2.0, pupil_diameter_mm=5.0)
+    rng = np.random.default_rng(0)
+    q = retina_points(rng.uniform(0, 102, 60), rng.uniform(0, 360, 60))
+    S = 4
+    rays = rt.eye_rays(q, eye, S, seed=3, device=device)
+    O, D, W = ref.eye_rays_ref(q, eye, S, seed=3)
+    o = rays.origins.numpy().reshape(O.shape)
+    d = rays.directions.numpy().reshape(D.shape)
+    w = rays.weights.numpy().reshape(W.shape)
+    valid = W > 0
+    assert valid.mean() > 0.8 and (~valid).sum() > 0  # some peripheral rays are blocked
+    assert np.array_equal(w > 0, valid)
+    assert np.abs(o[valid] - O[valid]).max() < 2e-8  # m (float32 at 24 mm: ~2e-6 mm)
+    assert np.abs(d[valid] - D[valid]).max() < 2e-6
+    np.testing.assert_allclose(w[valid], W[valid], rtol=1e-3)
+
+
+def test_one_sample_is_the_chief_ray():
+    assert np.array_equal(rt.pupil_samples(5, 1, 2.0, seed=1), np.zeros((5, 1, 2)))
+    xy = rt.pupil_samples(3, 16, 2.0, seed=1)
+    r = np.linalg.norm(xy, axis=-1)
+    assert r.max() < 2.0 and r.min() > 0
+    # equal-area strata (the concentric map of a 4 x 4 grid): the inner quarter of the disc's area
+    # holds a quarter of the samples, and each photoreceptor's pattern has its own rotation
+    assert np.sum(r < 1.0) == 3 * 4
+    assert not np.allclose(xy[0], xy[1])
+
+
+# --------------------------------------------------------------------------------------------------
+# the scene stage
+
+
+def random_rays(n, seed=0):
+    rng = np.random.default_rng(seed)
+    o = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-0.8, -0.4, n), rng.uniform(0.3, 2.0, n)])
+    tgt = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(0.5, 3.5, n), rng.uniform(-0.5, 3, n)])
+    d = tgt - o
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_closest_hit_matches_brute_force(device):
+    sc = small_scene()
+    o, d = random_rays(3000)
+    t, obj, face = rt.closest_hit(sc, o, d, device=device)
+    tr, objr, facer, _, _ = ref.closest_hit_ref(sc, o, d)
+    assert np.array_equal(np.isfinite(t), np.isfinite(tr))
+    hit = np.isfinite(tr)
+    assert hit.mean() > 0.5
+    np.testing.assert_allclose(t[hit], tr[hit], rtol=1e-5, atol=1e-6)
+    same = (obj == objr) & (face == facer)
+    assert same[hit].mean() > 0.995  # ties on shared edges may pick either face
+
+
+def test_radiance_matches_the_reference(device):
+    sc = small_scene()
+    o, d = random_rays(1500, seed=1)
+    T = rt.look_at([0.3, -1.0, 1.3], [0.0, 1.0, 0.8])
+    img = rt.render_camera(sc, T, 40, 30, fov_deg=70.0, device=device).cpu().numpy().reshape(-1, 3)
+    # the same pixels' rays, built independently
+    ys, xs = np.mgrid[0:30, 0:40]
+    th = np.tan(np.radians(35.0))
+    px = (2 * (xs + 0.5) / 40 - 1) * th * 40 / 30
+    py = (1 - 2 * (ys + 0.5) / 30) * th
+    dc = np.stack([px, py, -np.ones_like(px)], -1).reshape(-1, 3)
+    dw = dc @ T[:3, :3].T
+    L = ref.radiance_ref(sc, np.tile(T[:3, 3], (len(dw), 1)), dw)
+    close = np.isclose(img, L, rtol=2e-3, atol=1e-5).all(axis=1)
+    assert close.mean() > 0.98  # silhouette and shadow-edge pixels may flip
+    assert img.max() > 0.1 and np.std(img) > 0.01  # not a blank image
+
+
+@pytest.mark.parametrize("max_depth", [0, 2])
+def test_onv_matches_the_reference(device, max_depth):
+    rng = np.random.default_rng(2)
+    q = retina_points(rng.uniform(0, 60, 40), rng.uniform(0, 360, 40))
+    eye = NavarroEye(pupil_diameter_mm=4.0)
+    sc = small_scene()
+    poses = np.stack([EYE_POSE, rt.eye_look_at([0.2, -0.6, 1.0], [0.5, 2.0, 0.3])])
+    onv = rt.render_onv(sc, q, eye, poses, samples_per_receptor=4, seed=5, device=device, max_depth=max_depth)
+    assert onv.shape == (2, 120) and onv.dtype == torch.float32 and str(onv.device).startswith(device.split(":")[0])
+    expect = ref.render_onv_ref(sc, q, eye, poses, 4, seed=5, max_depth=max_depth)
+    got = onv.cpu().numpy()
+    rel = np.abs(got - expect) / (np.abs(expect) + 1e-3 * expect.max())
+    assert np.mean(rel < 2e-3) > 0.97
+    assert got.max() > 0
+
+
+def test_reflections_add_light():
+    q = retina_points(np.linspace(30, 60, 20), np.full(20, 90.0))  # upper retina sees the floor
+    sc = small_scene()
+    eye = NavarroEye()
+    a = rt.render_onv(sc, q, eye, EYE_POSE, 1, max_depth=0)
+    b = rt.render_onv(sc, q, eye, EYE_POSE, 1, max_depth=2)
+    assert not torch.allclose(a, b)
+
+
+def test_per_batch_transforms_equal_separate_renders():
+    centres = np.array([[0.0, 1.0, 1.2], [0.3, 1.2, 0.9], [-0.4, 0.8, 1.4]])
+    q = retina_points(np.linspace(0, 40, 50), np.linspace(0, 720, 50))
+    eye = NavarroEye()
+    sc = small_scene()
+    sc.set_transform("ball", translation(centres))
+    poses = np.repeat(EYE_POSE[None], 3, axis=0)
+    together = rt.render_onv(sc, q, eye, poses, 2)
+    for b, c in enumerate(centres):
+        alone = small_scene(batch_ball=c)
+        np.testing.assert_allclose(together[b].numpy(), rt.render_onv(alone, q, eye, EYE_POSE, 2)[0].numpy(), rtol=1e-6, atol=1e-9)
+    assert not torch.allclose(together[0], together[1])
+
+
+def test_static_merge_changes_nothing():
+    q = retina_points(np.linspace(0, 80, 80), np.linspace(0, 1440, 80))
+    eye = NavarroEye()
+    a = small_scene()
+    b = small_scene()
+    for o in b.objects:
+        o.static = False
+    b._version += 1
+    np.testing.assert_allclose(
+        rt.render_onv(a, q, eye, EYE_POSE, 2).numpy(), rt.render_onv(b, q, eye, EYE_POSE, 2).numpy(), rtol=1e-5, atol=1e-9
+    )
+
+
+def test_thread_split_is_bit_identical(monkeypatch):
+    rng = np.random.default_rng(4)
+    q = retina_points(rng.uniform(0, 90, 3000), rng.uniform(0, 360, 3000))
+    eye = NavarroEye()
+    sc = small_scene()
+    monkeypatch.setenv("WARP_VISION_THREADS", "1")
+    rt._eye_cache.clear()
+    one = rt.render_onv(sc, q, eye, np.repeat(EYE_POSE[None], 2, 0), 2)
+    monkeypatch.setenv("WARP_VISION_THREADS", "2")
+    rt._eye_cache.clear()
+    two = rt.render_onv(sc, q, eye, np.repeat(EYE_POSE[None], 2, 0), 2)
+    assert torch.equal(one, two)
+
+
+# --------------------------------------------------------------------------------------------------
+# physics of the whole eye + scene
+
+
+def uniform_sky():
+    sc = Scene(ambient=(0, 0, 0), background=(1.0, 1.0, 1.0))
+    sc.add_sphere("speck", 1e-3, (0.0, 0.0, -100.0))  # far behind the eye: the sky is all it sees
+    return sc
+
+
+def test_irradiance_is_proportional_to_pupil_area():
+    q = retina_points(np.linspace(0, 20, 30), np.linspace(0, 700, 30))
+    sc = uniform_sky()
+    per_area = []
+    for D in (2.0, 4.0, 6.0, 8.0):
+        eye = NavarroEye(pupil_diameter_mm=D)
+        onv = rt.render_onv(sc, q, eye, np.eye(4), samples_per_receptor=16).numpy().reshape(-1, 3)
+        per_area.append(onv / eye.pupil_area_mm2)
+    per_area = np.array(per_area)
+    ratio = per_area / per_area[0]
+    assert np.abs(ratio - 1).max() < 0.05
+    assert np.all(ratio[-1] < 1.0)  # and slightly less than proportional at 8 mm (aberrations, obliquity)
+
+
+def test_bright_ball_lights_its_optical_image():
+    """A small bright ball 20 degrees to the eye's right: its image is where the float64 optics put it."""
+    eye = NavarroEye(pupil_diameter_mm=3.0)
+    sc = Scene(ambient=(1.0, 1.0, 1.0), background=(0.0, 0.0, 0.0))
+    dist = 2.0
+    ang = np.radians(20.0)
+    # eye frame: +z forward, +x = y cross z; the eye at the origin, looking along world +z
+    ball_eye = np.array([dist * np.sin(ang), 0.0, dist * np.cos(ang)])
+    sc.add_sphere("ball", 0.02, ball_eye, Material((1, 1, 1)), subdivisions=3)
+    # predicted image: the retina point whose chief ray leaves toward the ball (bisection on eccentricity)
+    lo, hi = 0.0, np.radians(40.0)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        o, d, _ = eye.chief_ray(retina_points([np.degrees(mid)], [180.0]))
+        de = optics.eye_from_optical_dir(d)[0]
+        if np.arctan2(de[0], de[2]) < ang:
+            lo = mid
+        else:
+            hi = mid
+    rho_img = np.degrees(lo)
+    # a fine patch of photoreceptors around the predicted image, on both sides
+    rr, tt = np.meshgrid(np.linspace(rho_img - 2.0, rho_img + 2.0, 41), 180.0 + np.linspace(-4, 4, 31))
+    q = retina_points(rr.ravel(), tt.ravel())
+    onv = rt.render_onv(sc, q, eye, np.eye(4), samples_per_receptor=16).numpy().reshape(-1, 3)[:, 1]
+    assert onv.max() > 0
+    lit = onv > 0.5 * onv.max()
+    centroid_rho = np.average(rr.ravel()[lit], weights=onv[lit])
+    centroid_theta = np.average(tt.ravel()[lit], weights=onv[lit])
+    # inverted, on the other side; eccentricity is measured at the eyeball centre, so 20 degrees of
+    # field seen from the nodal point (~7.2 mm behind the apex) spans ~20 * (24.0 - 7.2) / 12 degrees
+    assert rho_img == pytest.approx(20.0 * (24.0 - 7.2) / 12.0, abs=1.5)
+    assert centroid_rho == pytest.approx(rho_img, abs=0.1)
+    assert centroid_theta == pytest.approx(180.0, abs=0.3)
+    # the ball subtends 1.15 deg: the lit patch spans that, magnified like the eccentricity
+    expect = np.degrees(2 * np.arcsin(0.02 / dist)) * (24.0 - 7.2) / 12.0
+    assert np.ptp(rr.ravel()[lit]) == pytest.approx(expect, rel=0.2)
+    # and a photoreceptor on the other side of the fovea sees nothing
+    far = rt.render_onv(sc, retina_points([rho_img], [0.0]), eye, np.eye(4), 16)
+    assert far.abs().max() == 0
+
+
+# --------------------------------------------------------------------------------------------------
+# validation
+
+
+def test_bad_inputs():
+    sc = small_scene()
+    q = retina_points([0.0, 10.0], [0.0, 0.0])
+    eye = NavarroEye()
+    with pytest.raises(ValueError, match="eye_poses"):
+        rt.render_onv(sc, q, eye, np.eye(3))
+    with pytest.raises(ValueError, match="rigid"):
+        rt.render_onv(sc, q, eye, np.diag([2.0, 1, 1, 1]))
+    with pytest.raises(ValueError, match="retina"):
+        rt.render_onv(sc, np.zeros((3, 2)), eye, np.eye(4))
+    with pytest.raises(ValueError, match="samples_per_receptor"):
+        rt.render_onv(sc, q, eye, np.eye(4), samples_per_receptor=0)
+    sc.set_transform("ball", translation(np.zeros((3, 3))))
+    with pytest.raises(ValueError, match="batch"):
+        rt.render_onv(sc, q, eye, np.repeat(np.eye(4)[None], 2, 0))
+    with pytest.raises(ValueError, match="no objects"):
+        rt.render_onv(Scene(), q, eye, np.eye(4))
+    with pytest.raises(ValueError, match="static"):
+        sc.set_transform("floor", translation(np.zeros((2, 3))))
+    with pytest.raises(ValueError, match="diffuse"):
+        Material(diffuse=(2, 0, 0))
+    with pytest.raises(ValueError, match="already exists"):
+        sc.add_sphere("ball", 1.0)

@@ -1,0 +1,196 @@
+"""What the eyes see: triangle meshes with materials, point lights and per-batch rigid transforms.
+
+A :class:`Scene` holds objects (a trimesh mesh in its own object frame, a :class:`Material` and a
+world-from-object rigid transform) and point lights. The meshes become ``wp.Mesh`` BVHs once, in their
+object frames; moving an object (or giving each batch element its own pose, so that one launch renders
+B different ball positions) only changes a transform. Objects added with ``static=True`` (walls, floor,
+furniture) are merged into one BVH in the world frame, so a ray pays one traversal for all of them
+instead of one per object; moving a static object rebuilds that merged BVH.
+
+Units: metres and the world frame of DESIGN.md (+z up). Radiance is linear, in arbitrary but
+consistent units: a point light of ``intensity`` I and ``color`` c gives irradiance I c / d^2 at
+distance d.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+
+@dataclass
+class Material:
+    """Phong material.
+
+    diffuse: RGB albedo in [0, 1] (ignored where ``vertex_colors`` is on and the mesh has colours).
+    specular: Phong specular coefficient (>= 0), white highlights.
+    shininess: Phong exponent (>= 1).
+    reflectivity: mirror reflectance in [0, 1]; rays recurse while it is non-zero.
+    vertex_colors: use the mesh's per-vertex colours (trimesh ``visual.vertex_colors``) as albedo.
+    smooth: interpolate vertex normals (smooth shading) instead of the flat face normal.
+    """
+
+    diffuse: tuple[float, float, float] = (0.7, 0.7, 0.7)
+    specular: float = 0.0
+    shininess: float = 32.0
+    reflectivity: float = 0.0
+    vertex_colors: bool = False
+    smooth: bool = False
+
+    def __post_init__(self):
+        d = np.asarray(self.diffuse, dtype=np.float64)
+        if d.shape != (3,) or not np.all(np.isfinite(d)) or d.min() < 0 or d.max() > 1:
+            raise ValueError(f"Material.diffuse: expected 3 values in [0, 1], got {self.diffuse}")
+        if not np.isfinite(self.specular) or self.specular < 0:
+            raise ValueError(f"Material.specular: expected >= 0, got {self.specular}")
+        if not np.isfinite(self.shininess) or self.shininess < 1:
+            raise ValueError(f"Material.shininess: expected >= 1, got {self.shininess}")
+        if not 0 <= self.reflectivity <= 1:
+            raise ValueError(f"Material.reflectivity: expected a value in [0, 1], got {self.reflectivity}")
+
+
+@dataclass
+class PointLight:
+    """A point light. position: [3] or [B, 3] m (world); color: [3] or [B, 3] RGB; intensity: scalar or [B]."""
+
+    position: np.ndarray
+    color: np.ndarray = field(default_factory=lambda: np.ones(3))
+    intensity: np.ndarray | float = 1.0
+
+
+@dataclass
+class SceneObject:
+    name: str
+    mesh: trimesh.Trimesh
+    material: Material
+    transform: np.ndarray  # [1, 4, 4] or [B, 4, 4] world-from-object, rigid
+    static: bool = False
+
+
+def _as_transforms(name: str, T) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape == (4, 4):
+        T = T[None]
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f"{name}: expected a [4, 4] or [B, 4, 4] transform, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    R = T[:, :3, :3]
+    err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max()
+    if err > 1e-4 or np.any(np.linalg.det(R) < 0) or np.abs(T[:, 3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise ValueError(
+            f"{name}: expected rigid transforms (orthonormal rotation, det +1, last row 0 0 0 1); "
+            "put scale into the mesh instead"
+        )
+    return T
+
+
+def translation(xyz) -> np.ndarray:
+    """A [4, 4] (or [B, 4, 4] for xyz [B, 3]) pure translation."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    T = np.broadcast_to(np.eye(4), xyz.shape[:-1] + (4, 4)).copy()
+    T[..., :3, 3] = xyz
+    return T
+
+
+class Scene:
+    """Meshes, materials, point lights and ambient light, rendered by :mod:`warp_vision.kernels.raytrace`.
+
+    ambient: RGB ambient irradiance (multiplies each surface's albedo).
+    background: RGB radiance of rays that escape the scene.
+    """
+
+    def __init__(self, ambient=(0.05, 0.05, 0.05), background=(0.0, 0.0, 0.0)):
+        self.objects: list[SceneObject] = []
+        self.lights: list[PointLight] = []
+        self.ambient = np.asarray(ambient, dtype=np.float64)
+        self.background = np.asarray(background, dtype=np.float64)
+        self._version = 0  # bumps when geometry changes (forces a BVH rebuild)
+        self._gpu: dict = {}
+
+    # --- building -----------------------------------------------------------------------------
+    def add(
+        self, name: str, mesh: trimesh.Trimesh, material: Material | None = None, transform=np.eye(4), static: bool = False
+    ) -> int:
+        """Add a mesh (object frame, metres). Returns the object's index.
+
+        static: the object does not move between renders and has one pose for the whole batch; static
+        objects share one merged BVH (faster), and moving one rebuilds it.
+        """
+        if any(o.name == name for o in self.objects):
+            raise ValueError(f"name: an object called {name!r} already exists")
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise ValueError(f"mesh: expected a non-empty trimesh.Trimesh, got {type(mesh).__name__}")
+        if not np.all(np.isfinite(mesh.vertices)):
+            raise ValueError(f"mesh {name!r}: vertices must be finite")
+        T = _as_transforms(f"transform of {name!r}", transform)
+        if static and T.shape[0] != 1:
+            raise ValueError(f"transform of {name!r}: a static object has one [4, 4] pose, got {T.shape[0]}")
+        self.objects.append(SceneObject(name, mesh, material or Material(), T, bool(static)))
+        self._version += 1
+        return len(self.objects) - 1
+
+    def add_sphere(self, name, radius, centre=(0, 0, 0), material=None, subdivisions: int = 3, static=False) -> int:
+        """An icosphere of ``radius`` m at ``centre``; smooth-shaded unless the material says otherwise."""
+        if not radius > 0:
+            raise ValueError(f"radius: expected > 0, got {radius}")
+        m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+        mat = material or Material(smooth=True)
+        return self.add(name, m, mat, translation(centre), static)
+
+    def add_box(self, name, extents, transform=np.eye(4), material=None, static=False) -> int:
+        """An axis-aligned box of ``extents`` (m) in its object frame, placed by ``transform``."""
+        return self.add(name, trimesh.creation.box(extents=extents), material, transform, static)
+
+    def add_plane(self, name, size, transform=np.eye(4), material=None, static=False) -> int:
+        """A two-triangle rectangle of ``size`` (w, h) m in the object's xy plane, normal +z."""
+        w, h = 0.5 * float(size[0]), 0.5 * float(size[1])
+        v = np.array([[-w, -h, 0], [w, -h, 0], [w, h, 0], [-w, h, 0]], dtype=np.float64)
+        m = trimesh.Trimesh(v, np.array([[0, 1, 2], [0, 2, 3]]), process=False)
+        return self.add(name, m, material, transform, static)
+
+    def add_light(self, position, color=(1.0, 1.0, 1.0), intensity=1.0) -> int:
+        """A point light at ``position`` m; position [3] or [B, 3], color [3] or [B, 3], intensity scalar or [B]."""
+        self.lights.append(PointLight(np.asarray(position, float), np.asarray(color, float), np.asarray(intensity, float)))
+        return len(self.lights) - 1
+
+    def index(self, name: str) -> int:
+        for i, o in enumerate(self.objects):
+            if o.name == name:
+                return i
+        raise KeyError(f"no object called {name!r}; have {[o.name for o in self.objects]}")
+
+    def set_transform(self, name: str, transform) -> None:
+        """Move an object: a [4, 4] world-from-object transform, or [B, 4, 4], one per batch element."""
+        i = self.index(name)
+        T = _as_transforms(f"transform of {name!r}", transform)
+        if self.objects[i].static:
+            if T.shape[0] != 1:
+                raise ValueError(f"transform of {name!r}: a static object has one [4, 4] pose; add it with static=False")
+            self._version += 1  # the merged static BVH must be rebuilt
+        self.objects[i].transform = T
+
+    # --- queries --------------------------------------------------------------------------------
+    @property
+    def num_triangles(self) -> int:
+        return sum(len(o.mesh.faces) for o in self.objects)
+
+    def batch_size(self) -> int:
+        """The batch implied by per-batch transforms and lights (1 when everything is shared)."""
+        sizes = {o.transform.shape[0] for o in self.objects}
+        for li in self.lights:
+            sizes |= {np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0], np.atleast_1d(li.intensity).shape[0]}
+        sizes.discard(1)
+        if len(sizes) > 1:
+            raise ValueError(f"scene: per-batch transforms and lights disagree on the batch size: {sorted(sizes)}")
+        return sizes.pop() if sizes else 1
+
+    def world_mesh(self, batch: int = 0) -> trimesh.Trimesh:
+        """All objects merged in the world frame for batch element ``batch`` (for references and export)."""
+        parts = []
+        for o in self.objects:
+            T = o.transform[batch if o.transform.shape[0] > 1 else 0]
+            parts.append(o.mesh.copy().apply_transform(T))
+        return trimesh.util.concatenate(parts)
