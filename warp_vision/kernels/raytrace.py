@@ -1,230 +1,54 @@
-"""Ray tracing through the eye and into the scene: the ONV renderer, in Warp.
+"""Stage 2 of the ONV renderer: rays into the scene, closest hits, Phong shading, in Warp.
 
-Two stages, one kernel each:
+``render_onv`` takes the eye-frame rays of :mod:`warp_vision.kernels.eye_rays` (each photoreceptor's
+3 S rays through the pupil, one set per RGB channel), moves them into the world with each batch
+element's eye pose, and traces them in packets of 8 (``kernels/packet.py``): closest hit over every
+instance's BVH (per-batch rigid transforms), Phong local illumination with shadow rays to every point
+light plus ambient light, and mirror reflections followed to ``max_depth`` bounces. One Warp thread
+per (batch element, photoreceptor) sums its rays' weighted radiances into the ONV, so there are no
+atomics and CPU launches split over threads (bit-identical results).
 
-1. :func:`eye_rays` (kernel ``eye_rays_kernel``): for every photoreceptor p, colour channel c and pupil
-   sample s, the ray from the photoreceptor through the s-th point of the pupil, refracted out through
-   the lens and the cornea with channel c's refractive indices (exact conic surfaces and vector Snell
-   in float32, the same maths as :class:`warp_vision.eye.optics.NavarroEye`). Each ray carries the
-   irradiance weight ``A_pupil / S * n_v^2 cos(theta_retina) d(omega)/dA_pupil`` (sr), so that a
-   photoreceptor's value, the weighted sum of its rays' radiances, is its irradiance: it grows with the
-   pupil area and a blocked ray carries nothing. The rays depend only on the retina and the eye's
-   state, not on the scene, so they are cached.
-2. ``render_onv_kernel``: one thread per (batch element, photoreceptor) moves its 3 S rays into the world
-   with that batch element's eye pose, finds the closest hit over every object's ``wp.Mesh`` BVH (each
-   object in its own frame, per-batch rigid transforms), shades it (Phong with shadow rays, point lights
-   and ambient) and follows mirror reflections to ``max_depth`` bounces.
+A pinhole camera (``render_camera``) shares the tracing for third-person images, and
+``closest_hit`` exposes bare closest-hit queries (tests, benchmarks). ``raytrace_ref.py`` is the numpy
+reference for all of it.
 
-A pinhole camera (``camera_kernel``) shares the scene tracing for third-person images; ``closest_hit``
-exposes bare closest-hit queries (tests, benchmarks). ``raytrace_ref.py`` is the numpy reference.
-
-Shapes and units: eye poses are world-from-eye rigid transforms in metres (eye frame of DESIGN.md); the
-ONV is ``[B, 3P]`` float32, element ``3p + c`` = channel c of photoreceptor p, linear irradiance.
+Shapes and units: eye poses are world-from-eye rigid transforms in metres (the eye frame of
+DESIGN.md). The ONV is ``[B, 3P]`` float32 and element ``3p + c`` is channel c of photoreceptor p, as
+linear irradiance.
 """
 
 from __future__ import annotations
 
 import math
-import threading
-from collections import OrderedDict
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 import warp as wp
 
-from warp_vision.eye.optics import CHANNEL_WAVELENGTHS_NM, EYE_CENTRE_MM, NavarroEye
+from warp_vision.eye.optics import NavarroEye
 from warp_vision.kernels import launch as _launch
+from warp_vision.kernels.bvh import build_bvh
+from warp_vision.kernels.eye_rays import EyeRays, _eye_cache, eye_rays, pupil_samples, surface_table  # noqa: F401
+from warp_vision.kernels.packet import (
+    DEAD,
+    FAR,
+    BvhData,
+    all_negative,
+    barycentric,
+    concat_bvhs,
+    packet_closest,
+    packet_occluded,
+    vec8,
+)
 
-wp.set_module_options({"enable_backward": False})
+# Per-lane shading loops stay loops (unrolling 8 copies of the shading code only bloats the build).
+wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 #: Offset (m) along the normal for secondary rays, so they do not hit the surface they leave.
 RAY_EPSILON_M = wp.constant(1e-5)
 #: Object flags
 FLAG_VERTEX_COLORS = wp.constant(1)
 FLAG_SMOOTH = wp.constant(2)
-#: Newton iterations of the ray aiming through the lens (quadratic convergence: 6 is plenty in float32)
-AIM_ITERATIONS = wp.constant(6)
-#: Central-difference step (mm) for the aiming Jacobian
-AIM_STEP_MM = wp.constant(0.01)
-#: A ray is valid if aiming lands within this distance (mm) of its pupil point
-AIM_TOLERANCE_MM = wp.constant(1e-3)
-_EYE_CENTRE_MM = wp.constant(EYE_CENTRE_MM)
-
-
-# --------------------------------------------------------------------------------------------------
-# The eye: conic surfaces, Snell, aiming through the lens
-# --------------------------------------------------------------------------------------------------
-
-
-@wp.func
-def conic_hit(o: wp.vec3, d: wp.vec3, z0: float, R: float, Q: float, semi: float):
-    """Closest forward hit of o + t d with the vertex sheet of a conicoid; returns (ok, t, unit normal)."""
-    k = 1.0 + Q
-    oz = o[2] - z0
-    a = d[0] * d[0] + d[1] * d[1] + k * d[2] * d[2]
-    b = 2.0 * (o[0] * d[0] + o[1] * d[1] + k * oz * d[2] - R * d[2])
-    c = o[0] * o[0] + o[1] * o[1] + k * oz * oz - 2.0 * R * oz
-    disc = b * b - 4.0 * a * c
-    best = float(1.0e30)
-    if disc >= 0.0:
-        sq = wp.sqrt(disc)
-        sgn = float(1.0)
-        if b < 0.0:
-            sgn = -1.0
-        q = -0.5 * (b + sgn * sq)  # stable roots: q / a and c / q
-        for i in range(2):
-            t = float(1.0e30)
-            if i == 0:
-                if a != 0.0:
-                    t = q / a
-            else:
-                if q != 0.0:
-                    t = c / q
-            if t > 1.0e-5 and t < best:
-                px = o[0] + t * d[0]
-                py = o[1] + t * d[1]
-                ps = o[2] + t * d[2] - z0
-                if (k * ps - R) * R < 0.0 and px * px + py * py <= semi * semi:
-                    best = t
-    ok = best < 1.0e29
-    t = float(0.0)
-    if ok:
-        t = best
-    p = o + t * d
-    n = wp.normalize(wp.vec3(-p[0], -p[1], R - k * (p[2] - z0)))
-    return ok, t, n
-
-
-@wp.func
-def refract_dir(d: wp.vec3, n: wp.vec3, eta: float):
-    """Vector Snell (eta = n1 / n2); returns (ok, refracted unit direction); ok is False on TIR."""
-    cos_i = -wp.dot(d, n)
-    nn = n
-    if cos_i < 0.0:
-        nn = -n
-        cos_i = -cos_i
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    out = d
-    ok = k >= 0.0
-    if ok:
-        out = wp.normalize(eta * d + (eta * cos_i - wp.sqrt(k)) * nn)
-    return ok, out
-
-
-@wp.func
-def through_surface(
-    o: wp.vec3, d: wp.vec3, surf: wp.array3d(dtype=float), c: int, j: int, backwards: int
-):
-    """Hit surface j of channel c and refract (front->back medium, or back->front if ``backwards``)."""
-    ok, t, n = conic_hit(o, d, surf[c, j, 0], surf[c, j, 1], surf[c, j, 2], surf[c, j, 5])
-    p = o + t * d
-    eta = surf[c, j, 3] / surf[c, j, 4]
-    if backwards != 0:
-        eta = surf[c, j, 4] / surf[c, j, 3]
-    ok2, d2 = refract_dir(d, n, eta)
-    return ok and ok2, p, d2
-
-
-@wp.func
-def retina_to_stop(q: wp.vec3, aim: wp.vec2, surf: wp.array3d(dtype=float), c: int, pupil_z: float):
-    """From retina point q toward ``aim`` on the lens-back vertex plane, out through the lens to the stop.
-
-    Returns (ok, point on the stop plane, direction in the aqueous).
-    """
-    d = wp.normalize(wp.vec3(aim[0], aim[1], surf[c, 3, 0]) - q)
-    ok1, p1, d1 = through_surface(q, d, surf, c, 3, 1)
-    ok2, p2, d2 = through_surface(p1, d1, surf, c, 2, 1)
-    ok = ok1 and ok2 and d2[2] < 0.0
-    t = float(0.0)
-    if ok:
-        t = (pupil_z - p2[2]) / d2[2]
-    return ok, p2 + t * d2, d2
-
-
-@wp.kernel
-def eye_rays_kernel(
-    retina_mm: wp.array(dtype=wp.vec3),
-    pupil_xy_mm: wp.array(dtype=wp.vec2),
-    surf: wp.array3d(dtype=float),
-    pupil_z: float,
-    pupil_r: float,
-    weight_scale: float,
-    S: int,
-    offset: int,
-    origin_out: wp.array(dtype=wp.vec3),
-    dir_out: wp.array(dtype=wp.vec3),
-    weight_out: wp.array(dtype=float),
-):
-    """Ray k = (p * 3 + c) * S + s: photoreceptor p, channel c, pupil sample s -> eye-frame ray and weight.
-
-    surf[c, j, :] = (z0, R, Q, n_front, n_back, semi_diameter) of surface j (cornea front, cornea back,
-    lens front, lens back) at channel c's wavelength, mm; weight_scale = pupil area / S (mm^2).
-    """
-    k = offset + wp.tid()
-    p = k / (3 * S)
-    c = (k / S) % 3
-    q = retina_mm[p]
-    target = pupil_xy_mm[p * S + k % S]
-    z_aim = surf[c, 3, 0]
-    f = (z_aim - q[2]) / (pupil_z - q[2])
-    aim = wp.vec2(q[0] + (target[0] - q[0]) * f, q[1] + (target[1] - q[1]) * f)
-    h = AIM_STEP_MM
-    ok = bool(True)
-    j00 = float(1.0)
-    j01 = float(0.0)
-    j10 = float(0.0)
-    j11 = float(1.0)
-    for it in range(AIM_ITERATIONS + 1):
-        ok0, s0, d0 = retina_to_stop(q, aim, surf, c, pupil_z)
-        okx1, sx1, dx1 = retina_to_stop(q, aim + wp.vec2(h, 0.0), surf, c, pupil_z)
-        okx0, sx0, dx0 = retina_to_stop(q, aim - wp.vec2(h, 0.0), surf, c, pupil_z)
-        oky1, sy1, dy1 = retina_to_stop(q, aim + wp.vec2(0.0, h), surf, c, pupil_z)
-        oky0, sy0, dy0 = retina_to_stop(q, aim - wp.vec2(0.0, h), surf, c, pupil_z)
-        ok = ok0 and okx1 and okx0 and oky1 and oky0
-        if not ok:
-            break
-        j00 = (sx1[0] - sx0[0]) / (2.0 * h)
-        j10 = (sx1[1] - sx0[1]) / (2.0 * h)
-        j01 = (sy1[0] - sy0[0]) / (2.0 * h)
-        j11 = (sy1[1] - sy0[1]) / (2.0 * h)
-        if it == AIM_ITERATIONS:
-            break  # the last pass only refreshes the Jacobian at the converged aim
-        ex = s0[0] - target[0]
-        ey = s0[1] - target[1]
-        det = j00 * j11 - j01 * j10
-        if det == 0.0:
-            ok = False
-            break
-        aim = aim - wp.vec2((j11 * ex - j01 * ey) / det, (-j10 * ex + j00 * ey) / det)
-    w = float(0.0)
-    o = wp.vec3(0.0)
-    dout = wp.vec3(0.0, 0.0, 1.0)
-    if ok:
-        okf, sp, dd = retina_to_stop(q, aim, surf, c, pupil_z)
-        miss = wp.length(wp.vec2(sp[0] - target[0], sp[1] - target[1]))
-        inside = target[0] * target[0] + target[1] * target[1] <= pupil_r * pupil_r
-        ok1, p1, d1 = through_surface(sp, dd, surf, c, 1, 1)
-        ok2, p2, d2 = through_surface(p1, d1, surf, c, 0, 1)
-        if okf and ok1 and ok2 and inside and miss < AIM_TOLERANCE_MM:
-            v = wp.vec3(aim[0], aim[1], z_aim) - q
-            dist = wp.length(v)
-            u = v / dist
-            n_in = wp.normalize(wp.vec3(0.0, 0.0, _EYE_CENTRE_MM) - q)
-            nv = surf[c, 3, 4]
-            det = wp.abs(j00 * j11 - j01 * j10)
-            w = weight_scale * nv * nv * wp.abs(wp.dot(u, n_in)) * wp.abs(u[2]) / (dist * dist * det)
-            # optical frame (mm, +z into the eye) -> eye frame (m, +z out of the pupil)
-            o = wp.vec3(-p2[0] * 0.001, p2[1] * 0.001, (_EYE_CENTRE_MM - p2[2]) * 0.001)
-            dout = wp.vec3(-d2[0], d2[1], -d2[2])
-    origin_out[k] = o
-    dir_out[k] = dout
-    weight_out[k] = w
-
-
-# --------------------------------------------------------------------------------------------------
-# The scene: closest hit over objects, shadows, Phong, reflections
-# --------------------------------------------------------------------------------------------------
 
 
 @wp.struct
@@ -233,7 +57,7 @@ class SceneData:
     dynamic object, or all static objects merged in the world frame. Materials belong to objects; each
     face knows its object."""
 
-    mesh_ids: wp.array(dtype=wp.uint64)  # [n_inst]
+    bv: BvhData
     faces: wp.array(dtype=wp.vec3i)  # all instances' triangles (instance-local vertex indices)
     face_offset: wp.array(dtype=int)  # [n_inst]
     face_object: wp.array(dtype=int)  # [n_faces] the object (material) of each face
@@ -241,15 +65,11 @@ class SceneData:
     normals: wp.array(dtype=wp.vec3)  # per-vertex normals (instance frame), all instances
     colors: wp.array(dtype=wp.vec3)  # per-vertex albedo, all instances
     vert_offset: wp.array(dtype=int)  # [n_inst]
-    bound_centre: wp.array(dtype=wp.vec3)  # instance-frame bounding sphere
-    bound_radius: wp.array(dtype=float)
     diffuse: wp.array(dtype=wp.vec3)  # [n_obj] materials
     specular: wp.array(dtype=float)
     shininess: wp.array(dtype=float)
     reflectivity: wp.array(dtype=float)
     flags: wp.array(dtype=int)
-    world_from_inst: wp.array2d(dtype=wp.transform)  # [B or 1, n_inst]
-    inst_from_world: wp.array2d(dtype=wp.transform)
     light_pos: wp.array2d(dtype=wp.vec3)  # [B or 1, n_lights], m
     light_rad: wp.array2d(dtype=wp.vec3)  # colour * intensity
     ambient: wp.vec3
@@ -258,131 +78,157 @@ class SceneData:
 
 
 @wp.func
-def scene_closest_hit(sc: SceneData, b: int, o: wp.vec3, d: wp.vec3, t_max: float):
-    """Closest hit over all instances; returns (instance or -1, t, face, u, v, face normal in its frame)."""
+def packet_radiance(
+    sc: SceneData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, live: vec8
+):
+    """RGB radiance arriving along a packet of world rays (unit directions) in batch element b's scene.
+
+    ``live``: FAR for a live lane, DEAD for an unused one. Returns (R, G, B) vec8.
+    """
     bt = b
-    if sc.world_from_inst.shape[0] == 1:
-        bt = 0
-    best_obj = int(-1)
-    best_t = t_max
-    best_face = int(-1)
-    best_u = float(0.0)
-    best_v = float(0.0)
-    best_n = wp.vec3(0.0, 0.0, 1.0)
-    for i in range(sc.mesh_ids.shape[0]):
-        X = sc.inst_from_world[bt, i]
-        ol = wp.transform_point(X, o)
-        dl = wp.transform_vector(X, d)
-        # bounding-sphere rejection
-        oc = ol - sc.bound_centre[i]
-        r = sc.bound_radius[i]
-        bb = wp.dot(oc, dl)
-        cc = wp.dot(oc, oc) - r * r
-        disc = bb * bb - cc
-        if disc < 0.0:
-            continue
-        sq = wp.sqrt(disc)
-        if -bb + sq < 0.0 or -bb - sq > best_t:
-            continue
-        qr = wp.mesh_query_ray(sc.mesh_ids[i], ol, dl, best_t)
-        if qr.result:
-            best_obj = i
-            best_t = qr.t
-            best_face = qr.face
-            best_u = qr.u
-            best_v = qr.v
-            best_n = qr.normal
-    return best_obj, best_t, best_face, best_u, best_v, best_n
-
-
-@wp.func
-def scene_occluded(sc: SceneData, bt: int, o: wp.vec3, d: wp.vec3, t_max: float):
-    """True if anything lies on o + t d for 0 < t < t_max."""
-    hit = bool(False)
-    for i in range(sc.mesh_ids.shape[0]):
-        X = sc.inst_from_world[bt, i]
-        ol = wp.transform_point(X, o)
-        dl = wp.transform_vector(X, d)
-        oc = ol - sc.bound_centre[i]
-        r = sc.bound_radius[i]
-        bb = wp.dot(oc, dl)
-        cc = wp.dot(oc, oc) - r * r
-        disc = bb * bb - cc
-        if disc < 0.0:
-            continue
-        sq = wp.sqrt(disc)
-        if -bb + sq < 0.0 or -bb - sq > t_max:
-            continue
-        if wp.mesh_query_ray_anyhit(sc.mesh_ids[i], ol, dl, t_max):
-            hit = True
-            break
-    return hit
-
-
-@wp.func
-def scene_radiance(sc: SceneData, b: int, o_in: wp.vec3, d_in: wp.vec3):
-    """RGB radiance arriving along the ray o + t d (world frame, d unit) from batch element b's scene."""
-    bt = b
-    if sc.world_from_inst.shape[0] == 1:
+    if sc.bv.world_from_inst.shape[0] == 1:
         bt = 0
     bl = b
     if sc.light_pos.shape[0] == 1:
         bl = 0
-    o = o_in
-    d = d_in
-    result = wp.vec3(0.0)
-    throughput = wp.vec3(1.0)
+    R = vec8()
+    G = vec8()
+    Bc = vec8()
+    thr = vec8(1.0)
+    thg = vec8(1.0)
+    thb = vec8(1.0)
+    lim = live
     for depth in range(sc.max_depth + 1):
-        inst, t, face, u, v, n_face = scene_closest_hit(sc, b, o, d, 1.0e30)
-        if inst < 0:
-            result = result + wp.cw_mul(throughput, sc.background)
-            break
-        X = sc.world_from_inst[bt, inst]
-        p = o + t * d
-        f = sc.face_offset[inst] + face
-        tri = sc.faces[f]
-        obj = sc.face_object[f]
-        vo = sc.vert_offset[inst]
-        flags = sc.flags[obj]
-        n_l = n_face
-        if (flags & FLAG_SMOOTH) != 0:
-            n_l = wp.normalize(
-                u * sc.normals[vo + tri[0]] + v * sc.normals[vo + tri[1]] + (1.0 - u - v) * sc.normals[vo + tri[2]]
-            )
-        n = wp.transform_vector(X, n_l)
-        if wp.dot(n, d) > 0.0:
-            n = -n
-        base = sc.diffuse[obj]
-        if (flags & FLAG_VERTEX_COLORS) != 0:
-            base = u * sc.colors[vo + tri[0]] + v * sc.colors[vo + tri[1]] + (1.0 - u - v) * sc.colors[vo + tri[2]]
-        local = wp.cw_mul(sc.ambient, base)
-        ks = sc.specular[obj]
-        shin = sc.shininess[obj]
-        p_off = p + RAY_EPSILON_M * n
+        t, tri = packet_closest(sc.bv, bt, ox, oy, oz, dx, dy, dz, lim)
+        # per-lane surface: offset point, normal, albedo and material
+        px = vec8()
+        py = vec8()
+        pz = vec8()
+        nx = vec8()
+        ny = vec8()
+        nz = vec8()
+        lr = vec8()
+        lg = vec8()
+        lb = vec8()
+        cr = vec8()
+        cg = vec8()
+        cb = vec8()
+        ks = vec8()
+        shin = vec8(1.0)
+        refl = vec8()
+        hit = vec8(DEAD)
+        for l in range(8):
+            if lim[l] < 0.0:
+                continue
+            k = tri[l]
+            if k < 0:
+                R[l] = R[l] + thr[l] * sc.background[0]
+                G[l] = G[l] + thg[l] * sc.background[1]
+                Bc[l] = Bc[l] + thb[l] * sc.background[2]
+                continue
+            o = wp.vec3(ox[l], oy[l], oz[l])
+            d = wp.vec3(dx[l], dy[l], dz[l])
+            inst = sc.bv.tri_inst[k]
+            X = sc.bv.world_from_inst[bt, inst]
+            f = sc.face_offset[inst] + sc.bv.tri_face[k]
+            obj = sc.face_object[f]
+            flags = sc.flags[obj]
+            n_i = wp.normalize(wp.cross(sc.bv.tri_e1[k], sc.bv.tri_e2[k]))
+            base = sc.diffuse[obj]
+            if flags != 0:
+                Xi = sc.bv.inst_from_world[bt, inst]
+                u, v = barycentric(sc.bv, k, wp.transform_point(Xi, o), wp.transform_vector(Xi, d))
+                w2 = 1.0 - u - v
+                tv = sc.faces[f]
+                vo = sc.vert_offset[inst]
+                if (flags & FLAG_SMOOTH) != 0:
+                    n_i = wp.normalize(u * sc.normals[vo + tv[0]] + v * sc.normals[vo + tv[1]] + w2 * sc.normals[vo + tv[2]])
+                if (flags & FLAG_VERTEX_COLORS) != 0:
+                    base = u * sc.colors[vo + tv[0]] + v * sc.colors[vo + tv[1]] + w2 * sc.colors[vo + tv[2]]
+            n = wp.transform_vector(X, n_i)
+            if wp.dot(n, d) > 0.0:
+                n = -n
+            p = o + t[l] * d + RAY_EPSILON_M * n
+            px[l] = p[0]
+            py[l] = p[1]
+            pz[l] = p[2]
+            nx[l] = n[0]
+            ny[l] = n[1]
+            nz[l] = n[2]
+            cr[l] = base[0]
+            cg[l] = base[1]
+            cb[l] = base[2]
+            lr[l] = sc.ambient[0] * base[0]
+            lg[l] = sc.ambient[1] * base[1]
+            lb[l] = sc.ambient[2] * base[2]
+            ks[l] = sc.specular[obj]
+            shin[l] = sc.shininess[obj]
+            refl[l] = sc.reflectivity[obj]
+            hit[l] = 1.0
+        # one shadow packet per light
         for li in range(sc.light_pos.shape[1]):
-            lv = sc.light_pos[bl, li] - p_off
-            dist = wp.length(lv)
-            l = lv / dist
-            ndl = wp.dot(n, l)
-            if ndl <= 0.0:
+            lpos = sc.light_pos[bl, li]
+            sx = vec8()
+            sy = vec8()
+            sz = vec8()
+            slim = vec8(DEAD)
+            for l in range(8):
+                if hit[l] < 0.0:
+                    continue
+                lv = lpos - wp.vec3(px[l], py[l], pz[l])
+                dist = wp.length(lv)
+                ld = lv / dist
+                if wp.dot(wp.vec3(nx[l], ny[l], nz[l]), ld) > 0.0:
+                    sx[l] = ld[0]
+                    sy[l] = ld[1]
+                    sz[l] = ld[2]
+                    slim[l] = dist
+            if all_negative(slim):
                 continue
-            if scene_occluded(sc, bt, p_off, l, dist):
+            vis = packet_occluded(sc.bv, bt, px, py, pz, sx, sy, sz, slim)
+            E0 = sc.light_rad[bl, li]
+            for l in range(8):
+                if slim[l] < 0.0 or vis[l] < 0.0:
+                    continue
+                n = wp.vec3(nx[l], ny[l], nz[l])
+                ld = wp.vec3(sx[l], sy[l], sz[l])
+                ndl = wp.dot(n, ld)
+                E = E0 / (slim[l] * slim[l])
+                shade = wp.vec3(cr[l], cg[l], cb[l]) * (ndl / wp.pi)
+                if ks[l] > 0.0:
+                    rr = 2.0 * ndl * n - ld
+                    rv = wp.max(-wp.dot(rr, wp.vec3(dx[l], dy[l], dz[l])), 0.0)
+                    shade = shade + wp.vec3(ks[l] * wp.pow(rv, shin[l]) / wp.pi)
+                lr[l] = lr[l] + E[0] * shade[0]
+                lg[l] = lg[l] + E[1] * shade[1]
+                lb[l] = lb[l] + E[2] * shade[2]
+        # accumulate; mirror lanes continue
+        nxt = vec8(DEAD)
+        for l in range(8):
+            if hit[l] < 0.0:
                 continue
-            E = sc.light_rad[bl, li] / (dist * dist)
-            shade = base * (ndl / wp.pi)
-            if ks > 0.0:
-                r = 2.0 * ndl * n - l
-                rv = wp.max(-wp.dot(r, d), 0.0)
-                shade = shade + wp.vec3(ks * wp.pow(rv, shin) / wp.pi)
-            local = local + wp.cw_mul(E, shade)
-        refl = sc.reflectivity[obj]
-        result = result + wp.cw_mul(throughput, local) * (1.0 - refl)
-        if refl <= 0.0:
+            keep = 1.0 - refl[l]
+            R[l] = R[l] + thr[l] * lr[l] * keep
+            G[l] = G[l] + thg[l] * lg[l] * keep
+            Bc[l] = Bc[l] + thb[l] * lb[l] * keep
+            if refl[l] > 0.0:
+                thr[l] = thr[l] * refl[l]
+                thg[l] = thg[l] * refl[l]
+                thb[l] = thb[l] * refl[l]
+                n = wp.vec3(nx[l], ny[l], nz[l])
+                d = wp.vec3(dx[l], dy[l], dz[l])
+                d = d - 2.0 * wp.dot(d, n) * n
+                dx[l] = d[0]
+                dy[l] = d[1]
+                dz[l] = d[2]
+                ox[l] = px[l]
+                oy[l] = py[l]
+                oz[l] = pz[l]
+                nxt[l] = FAR
+        if all_negative(nxt):
             break
-        throughput = throughput * refl
-        d = d - 2.0 * wp.dot(d, n) * n
-        o = p_off
-    return result
+        lim = nxt
+    return R, G, Bc
 
 
 @wp.kernel
@@ -397,22 +243,49 @@ def render_onv_kernel(
     offset: int,
     onv_out: wp.array2d(dtype=float),
 ):
-    """Thread (b, p): onv_out[b, 3p + c] = sum_s weight * radiance_c of photoreceptor p's rays."""
+    """Thread (b, p): onv_out[b, 3p + c] = sum_s weight * radiance_c over photoreceptor p's rays, 8 at a time."""
     k = offset + wp.tid()
     b = k / P
     p = k - b * P
     T = world_from_eye[b]
     for c in range(3):
         acc = float(0.0)
-        for s in range(S):
-            r = (p * 3 + c) * S + s
-            w = ray_weight[r]
-            if w == 0.0:
+        for j in range((S + 7) / 8):
+            ox = vec8()
+            oy = vec8()
+            oz = vec8()
+            dx = vec8()
+            dy = vec8()
+            dz = vec8()
+            w = vec8()
+            live = vec8(DEAD)
+            for l in range(8):
+                s = j * 8 + l
+                if s >= S:
+                    continue
+                r = (p * 3 + c) * S + s
+                wr = ray_weight[r]
+                if wr == 0.0:
+                    continue
+                o = wp.transform_point(T, ray_origin[r])
+                d = wp.transform_vector(T, ray_dir[r])
+                ox[l] = o[0]
+                oy[l] = o[1]
+                oz[l] = o[2]
+                dx[l] = d[0]
+                dy[l] = d[1]
+                dz[l] = d[2]
+                w[l] = wr
+                live[l] = FAR
+            if all_negative(live):
                 continue
-            o = wp.transform_point(T, ray_origin[r])
-            d = wp.transform_vector(T, ray_dir[r])
-            L = scene_radiance(sc, b, o, d)
-            acc = acc + w * L[c]
+            R, G, Bc = packet_radiance(sc, b, ox, oy, oz, dx, dy, dz, live)
+            if c == 0:
+                acc = acc + wp.dot(w, R)
+            elif c == 1:
+                acc = acc + wp.dot(w, G)
+            else:
+                acc = acc + wp.dot(w, Bc)
         onv_out[b, p * 3 + c] = acc
 
 
@@ -427,19 +300,42 @@ def camera_kernel(
     offset: int,
     image_out: wp.array3d(dtype=float),
 ):
-    """Pinhole camera (looks along its -z, +y up, +x right; vertical field of view), one pixel a thread."""
+    """Pinhole camera (looks along its -z, +y up, +x right; vertical field of view); a thread traces a
+    4 x 2 pixel tile as one packet."""
     k = offset + wp.tid()
-    y = k / width
-    x = k - y * width
+    tiles_x = (width + 3) / 4
+    ty = k / tiles_x
+    tx = k - ty * tiles_x
     aspect = float(width) / float(height)
-    px = (2.0 * (float(x) + 0.5) / float(width) - 1.0) * tan_half_fov * aspect
-    py = (1.0 - 2.0 * (float(y) + 0.5) / float(height)) * tan_half_fov
     o = wp.transform_point(world_from_camera, wp.vec3(0.0))
-    d = wp.normalize(wp.transform_vector(world_from_camera, wp.vec3(px, py, -1.0)))
-    L = scene_radiance(sc, b, o, d)
-    image_out[y, x, 0] = L[0]
-    image_out[y, x, 1] = L[1]
-    image_out[y, x, 2] = L[2]
+    ox = vec8(o[0])
+    oy = vec8(o[1])
+    oz = vec8(o[2])
+    dx = vec8()
+    dy = vec8()
+    dz = vec8()
+    live = vec8(DEAD)
+    for l in range(8):
+        x = tx * 4 + l % 4
+        y = ty * 2 + l / 4
+        if x >= width or y >= height:
+            continue
+        px = (2.0 * (float(x) + 0.5) / float(width) - 1.0) * tan_half_fov * aspect
+        py = (1.0 - 2.0 * (float(y) + 0.5) / float(height)) * tan_half_fov
+        d = wp.normalize(wp.transform_vector(world_from_camera, wp.vec3(px, py, -1.0)))
+        dx[l] = d[0]
+        dy[l] = d[1]
+        dz[l] = d[2]
+        live[l] = FAR
+    R, G, Bc = packet_radiance(sc, b, ox, oy, oz, dx, dy, dz, live)
+    for l in range(8):
+        if live[l] < 0.0:
+            continue
+        x = tx * 4 + l % 4
+        y = ty * 2 + l / 4
+        image_out[y, x, 0] = R[l]
+        image_out[y, x, 1] = G[l]
+        image_out[y, x, 2] = Bc[l]
 
 
 @wp.kernel
@@ -453,20 +349,46 @@ def closest_hit_kernel(
     obj_out: wp.array(dtype=int),
     face_out: wp.array(dtype=int),
 ):
-    """Bare closest-hit queries: t (inf on a miss), object index and its face (-1 on a miss)."""
+    """Bare closest-hit queries, 8 consecutive rays per thread: t (inf on a miss), object and its face (-1)."""
     k = offset + wp.tid()
-    inst, t, face, u, v, n = scene_closest_hit(sc, b, origins[k], wp.normalize(dirs[k]), 1.0e30)
-    obj = int(-1)
-    if inst < 0:
-        t = wp.inf
-        face = -1
-    else:
-        f = sc.face_offset[inst] + face
-        obj = sc.face_object[f]
-        face = sc.face_local[f]
-    t_out[k] = t
-    obj_out[k] = obj
-    face_out[k] = face
+    n = origins.shape[0]
+    bt = b
+    if sc.bv.world_from_inst.shape[0] == 1:
+        bt = 0
+    ox = vec8()
+    oy = vec8()
+    oz = vec8()
+    dx = vec8()
+    dy = vec8()
+    dz = vec8()
+    live = vec8(DEAD)
+    for l in range(8):
+        i = k * 8 + l
+        if i < n:
+            o = origins[i]
+            d = wp.normalize(dirs[i])
+            ox[l] = o[0]
+            oy[l] = o[1]
+            oz[l] = o[2]
+            dx[l] = d[0]
+            dy[l] = d[1]
+            dz[l] = d[2]
+            live[l] = FAR
+    t, tri = packet_closest(sc.bv, bt, ox, oy, oz, dx, dy, dz, live)
+    for l in range(8):
+        i = k * 8 + l
+        if i >= n:
+            continue
+        kk = tri[l]
+        if kk < 0:
+            t_out[i] = wp.inf
+            obj_out[i] = -1
+            face_out[i] = -1
+        else:
+            f = sc.face_offset[sc.bv.tri_inst[kk]] + sc.bv.tri_face[kk]
+            t_out[i] = t[l]
+            obj_out[i] = sc.face_object[f]
+            face_out[i] = sc.face_local[f]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -494,6 +416,19 @@ def _inverse_rigid(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def _cached_bvh(scene, group, V, F):
+    """Dynamic objects' BVHs outlive geometry changes elsewhere in the scene (keyed by mesh identity)."""
+    cache = scene.__dict__.setdefault("_bvh_cache", {})
+    obj = scene.objects[group[0]]
+    if obj.static:
+        return build_bvh(V, F)
+    key = (id(obj.mesh), len(V), len(F))
+    hit = cache.get(key)
+    if hit is None or hit[0] is not obj.mesh:
+        cache[key] = hit = (obj.mesh, build_bvh(V, F))
+    return hit[1]
+
+
 class _SceneGeometry:
     """The device-side, transform-independent part of a scene: instances' BVHs, faces, normals, materials.
 
@@ -506,8 +441,8 @@ class _SceneGeometry:
         dynamic = [i for i, o in enumerate(scene.objects) if not o.static]
         groups = ([static] if static else []) + [[i] for i in dynamic]
         self.instance_objects = [g[0] if len(g) == 1 and not scene.objects[g[0]].static else -1 for g in groups]
-        self.meshes = []
-        faces, f_obj, f_loc, normals, colors, f_off, v_off, centres, radii = [], [], [], [], [], [], [], [], []
+        self.bvhs = []
+        faces, f_obj, f_loc, normals, colors, f_off, v_off, = [], [], [], [], [], [], []
         nf = nv = 0
         for g in groups:
             Vs, Fs, Ns, Cs, vbase = [], [], [], [], 0
@@ -534,9 +469,7 @@ class _SceneGeometry:
                 vbase += len(V)
             V = np.ascontiguousarray(np.concatenate(Vs), dtype=np.float32)
             F = np.ascontiguousarray(np.concatenate(Fs), dtype=np.int32)
-            self.meshes.append(
-                wp.Mesh(points=wp.array(V, dtype=wp.vec3, device=device), indices=wp.array(F.ravel(), dtype=wp.int32, device=device))
-            )
+            self.bvhs.append(_cached_bvh(scene, g, V, F))
             faces.append(F)
             normals.append(np.concatenate(Ns))
             colors.append(np.concatenate(Cs))
@@ -544,13 +477,11 @@ class _SceneGeometry:
             v_off.append(nv)
             nf += len(F)
             nv += len(V)
-            c = 0.5 * (V.min(axis=0) + V.max(axis=0))
-            centres.append(c)
-            radii.append(float(np.linalg.norm(V - c, axis=1).max()) * 1.0001 + 1e-6)
         self.groups = groups
         mats = [o.material for o in scene.objects]
         arr = lambda x, dt: wp.array(np.ascontiguousarray(x), dtype=dt, device=device)  # noqa: E731
-        self.mesh_ids = arr(np.array([m.id for m in self.meshes], dtype=np.uint64), wp.uint64)
+        packed = concat_bvhs(self.bvhs)
+        self.bvh = {k: arr(v, wp.vec3 if v.ndim == 2 else wp.int32) for k, v in packed.items()}
         self.faces = arr(np.concatenate(faces), wp.vec3i)
         self.face_offset = arr(np.array(f_off, np.int32), wp.int32)
         self.face_object = arr(np.concatenate(f_obj), wp.int32)
@@ -558,8 +489,6 @@ class _SceneGeometry:
         self.normals = arr(np.concatenate(normals).astype(np.float32), wp.vec3)
         self.colors = arr(np.concatenate(colors).astype(np.float32), wp.vec3)
         self.vert_offset = arr(np.array(v_off, np.int32), wp.int32)
-        self.bound_centre = arr(np.array(centres, np.float32), wp.vec3)
-        self.bound_radius = arr(np.array(radii, np.float32), wp.float32)
         self.diffuse = arr(np.array([m.diffuse for m in mats], np.float32), wp.vec3)
         self.specular = arr(np.array([m.specular for m in mats], np.float32), wp.float32)
         self.shininess = arr(np.array([m.shininess for m in mats], np.float32), wp.float32)
@@ -587,14 +516,17 @@ def scene_data(scene, device: str = "cpu", max_depth: int = 2) -> SceneData:
     T = np.stack([np.broadcast_to(t, (B, 4, 4)) for t in per_inst], axis=1)  # [B, n_inst, 4, 4]
     if all(t.shape[0] == 1 for t in per_inst):
         T = T[:1]
+    bv = BvhData()
+    for name, a in geo.bvh.items():
+        setattr(bv, name, a)
+    bv.world_from_inst = wp.array(_transforms_to_wp(T), dtype=wp.transform, device=device)
+    bv.inst_from_world = wp.array(_transforms_to_wp(_inverse_rigid(T)), dtype=wp.transform, device=device)
     sc = SceneData()
+    sc.bv = bv
     for name in (
-        "mesh_ids faces face_offset face_object face_local normals colors vert_offset bound_centre bound_radius "
-        "diffuse specular shininess reflectivity flags"
+        "faces face_offset face_object face_local normals colors vert_offset diffuse specular shininess reflectivity flags"
     ).split():
         setattr(sc, name, getattr(geo, name))
-    sc.world_from_inst = wp.array(_transforms_to_wp(T), dtype=wp.transform, device=device)
-    sc.inst_from_world = wp.array(_transforms_to_wp(_inverse_rigid(T)), dtype=wp.transform, device=device)
     if scene.lights:
         Bl = max(
             max(np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0], np.atleast_1d(li.intensity).shape[0])
@@ -619,119 +551,6 @@ def scene_data(scene, device: str = "cpu", max_depth: int = 2) -> SceneData:
     sc.background = wp.vec3(*[float(x) for x in scene.background])
     sc.max_depth = int(max_depth)
     return sc
-
-
-def pupil_samples(P: int, S: int, radius_mm: float, seed: int = 0) -> np.ndarray:
-    """Stratified points of the pupil disc for each photoreceptor: [P, S, 2] mm.
-
-    The S strata are the cells of an nx x ny grid (nx the largest divisor of S not above sqrt(S)) mapped
-    to the disc by Shirley and Chiu's equal-area concentric map; each photoreceptor takes the cells'
-    centres, rotated by its own random angle (seeded). S = 1 gives the pupil centre (the chief ray).
-    """
-    if S < 1:
-        raise ValueError(f"samples_per_receptor: expected >= 1, got {S}")
-    nx = max(d for d in range(1, int(math.isqrt(S)) + 1) if S % d == 0)
-    ny = S // nx
-    a = (np.arange(nx) + 0.5) / nx * 2 - 1
-    b = (np.arange(ny) + 0.5) / ny * 2 - 1
-    A, Bm = np.meshgrid(a, b, indexing="ij")
-    A, Bm = A.ravel(), Bm.ravel()
-    with np.errstate(divide="ignore", invalid="ignore"):
-        use_a = np.abs(A) > np.abs(Bm)
-        r = np.where(use_a, A, Bm)
-        phi = np.where(use_a, (np.pi / 4) * Bm / A, np.pi / 2 - (np.pi / 4) * A / Bm)
-    phi = np.where(r == 0, 0.0, phi)
-    rot = np.random.default_rng(seed).uniform(0, 2 * np.pi, size=(P, 1))
-    ang = phi[None, :] + rot
-    xy = np.stack([r * np.cos(ang), r * np.sin(ang)], axis=-1) * radius_mm
-    return xy
-
-
-@dataclass
-class EyeRays:
-    """Eye-frame rays of a retina seen through one eye state: each [P * 3 * S], ray k = (p * 3 + c) * S + s."""
-
-    origins: wp.array  # vec3, m, on the cornea
-    directions: wp.array  # vec3, unit, out of the eye
-    weights: wp.array  # float, sr (irradiance per unit radiance)
-    P: int
-    S: int
-
-
-_eye_cache: OrderedDict = OrderedDict()
-_eye_cache_lock = threading.Lock()
-_EYE_CACHE_SIZE = 8
-
-
-def _retina_positions(retina) -> np.ndarray:
-    pos = getattr(retina, "positions_optical_mm", retina)
-    pos = np.asarray(pos, dtype=np.float64)
-    if pos.ndim != 2 or pos.shape[1] != 3 or len(pos) == 0:
-        raise ValueError(f"retina: expected photoreceptor positions [P, 3] mm (optical frame), got shape {pos.shape}")
-    if not np.all(np.isfinite(pos)):
-        raise ValueError("retina: photoreceptor positions must be finite")
-    return pos
-
-
-def surface_table(eye: NavarroEye) -> np.ndarray:
-    """[3, 4, 6] float32: per RGB channel and surface, (z0, R, Q, n_front, n_back, semi_diameter)."""
-    return np.array(
-        [[[s.z0, s.R, s.Q, s.n_front, s.n_back, s.semi_diameter] for s in eye.surfaces(wl)] for wl in CHANNEL_WAVELENGTHS_NM],
-        dtype=np.float32,
-    )
-
-
-def eye_rays(retina, eye: NavarroEye, samples_per_receptor: int = 16, seed: int = 0, device: str = "cpu") -> EyeRays:
-    """The rays each photoreceptor casts into the world through ``eye`` (cached; see the module doc)."""
-    _launch.init()
-    pos = _retina_positions(retina)
-    S = int(samples_per_receptor)
-    key = (
-        hash(pos.tobytes()),
-        pos.shape,
-        eye.accommodation_D,
-        eye.pupil_diameter_mm,
-        eye.cornea_semi_diameter_mm,
-        eye.lens_semi_diameter_mm,
-        S,
-        seed,
-        device,
-    )
-    with _eye_cache_lock:
-        hit = _eye_cache.get(key)
-        if hit is not None:
-            _eye_cache.move_to_end(key)
-            return hit
-    P = len(pos)
-    pxy = pupil_samples(P, S, eye.pupil_radius_mm, seed).reshape(-1, 2)
-    n = P * 3 * S
-    out = EyeRays(
-        wp.empty(n, dtype=wp.vec3, device=device),
-        wp.empty(n, dtype=wp.vec3, device=device),
-        wp.empty(n, dtype=wp.float32, device=device),
-        P,
-        S,
-    )
-    _launch.launch_split(
-        eye_rays_kernel,
-        n,
-        inputs=[
-            wp.array(pos.astype(np.float32), dtype=wp.vec3, device=device),
-            wp.array(pxy.astype(np.float32), dtype=wp.vec2, device=device),
-            wp.array(surface_table(eye), dtype=wp.float32, device=device),
-            float(eye.pupil_z_mm),
-            float(eye.pupil_radius_mm),
-            float(eye.pupil_area_mm2 / S),
-            S,
-        ],
-        outputs=[out.origins, out.directions, out.weights],
-        device=device,
-    )
-    with _eye_cache_lock:
-        _eye_cache[key] = out
-        while len(_eye_cache) > _EYE_CACHE_SIZE:
-            _eye_cache.popitem(last=False)
-    return out
 
 
 def _poses(name: str, T, B: int | None = None) -> np.ndarray:
@@ -850,7 +669,7 @@ def render_camera(
     tf = _transforms_to_wp(T)[0]
     _launch.launch_split(
         camera_kernel,
-        width * height,
+        ((width + 3) // 4) * ((height + 1) // 2),
         inputs=[sc, wp.transform(tf[:3], tf[3:]), width, height, math.tan(math.radians(fov_deg) / 2), batch],
         outputs=[wp.from_torch(img)],
         device=device,
@@ -871,7 +690,7 @@ def closest_hit(scene, origins, directions, batch: int = 0, device: str = "cpu",
     face = wp.empty(n, dtype=wp.int32, device=device)
     _launch.launch_split(
         closest_hit_kernel,
-        n,
+        (n + 7) // 8,
         inputs=[sc, wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device), batch],
         outputs=[t, obj, face],
         device=device,
