@@ -76,3 +76,24 @@ def test_log_polar_layout_is_foveated():
     r = np.hypot(xy[:, 0], xy[:, 1])
     # log-spaced rings: as many receptors inside the geometric-mean radius as outside it
     assert abs(np.mean(r < np.sqrt(0.01 * 1.0)) - 0.5) < 0.05
+
+
+def test_raytrace_bench_runs_small_and_agrees():
+    from warp_vision.bench import raytrace as br
+
+    out = br.closest_hit_rates(repeats=1, P=60, S=2, detail=2, log=lambda *a: None)
+    for name in ("eye", "random"):
+        res = out["rays"][name]
+        assert res["rays"] == 60 * 3 * 2 if name == "eye" else res["rays"] > 0
+        assert res["agree_with_warp_mesh"] > 0.99
+        assert res["warp_packet_1thread"]["mrays_per_s"] > 0
+    onv = br.onv_rate(P=50, S=2, batch=1, repeats=1, log=lambda *a: None)
+    assert onv["onv_per_s"] > 0 and onv["P"] == 50
+
+
+def test_agreement_metric():
+    from warp_vision.bench.raytrace import _agree
+
+    inf = np.inf
+    assert _agree(np.array([1.0, inf, 2.0]), np.array([1.00001, inf, 2.0])) == 1.0
+    assert _agree(np.array([1.0, inf]), np.array([1.1, 3.0])) == 0.0

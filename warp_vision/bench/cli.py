@@ -33,6 +33,13 @@ def _parser() -> argparse.ArgumentParser:
                      help="run only configurations whose memory floor fits this (GiB); estimate the rest")
     mem.add_argument("--out", default="bench_results/memory.json", help="JSON output path (the PNG goes beside it)")
     mem.add_argument("--worker", nargs=2, metavar=("MODEL", "ONV"), help=argparse.SUPPRESS)
+
+    rtp = sub.add_parser("raytrace", help="closest-hit rays/s (Warp packets vs wp.Mesh vs Embree) and ONVs/s")
+    rtp.add_argument("--photoreceptors", type=int, default=14_400, help="P per retina (default 14,400)")
+    rtp.add_argument("--samples", type=int, default=16, help="S rays per photoreceptor and channel (default 16)")
+    rtp.add_argument("--batch", type=int, default=4, help="ONVs rendered per launch (default 4)")
+    rtp.add_argument("--repeats", type=int, default=5, help="timed repeats per measurement (median reported)")
+    rtp.add_argument("--out", default="bench_results/raytrace.json", help="JSON output path")
     return p
 
 
@@ -52,6 +59,13 @@ def main(argv: list[str] | None = None) -> int:
         if any(v < 1 for v in args.photoreceptors):
             raise SystemExit(f"--photoreceptors: expected positive integers, got {args.photoreceptors}")
         result = linet.run(args.photoreceptors, args.batch, args.reduction, args.receptive_field, args.repeats)
+    elif args.bench == "raytrace":
+        from warp_vision.bench import raytrace
+
+        for name in ("photoreceptors", "samples", "batch", "repeats"):
+            if getattr(args, name) < 1:
+                raise SystemExit(f"--{name}: expected a positive integer, got {getattr(args, name)}")
+        result = raytrace.run(args.repeats, args.photoreceptors, args.samples, args.batch)
     else:
         from warp_vision.bench import memory
 

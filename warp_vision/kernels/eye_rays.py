@@ -314,6 +314,7 @@ def eye_rays(retina, eye: NavarroEye, samples_per_receptor: int = 16, seed: int 
         ],
         outputs=[out.origins, out.directions, out.weights],
         device=device,
+        chunks_per_thread=16,  # rays differ in cost (Newton steps, blocked rays): balance the workers
     )
     with _eye_cache_lock:
         _eye_cache[key] = out

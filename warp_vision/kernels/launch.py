@@ -110,17 +110,23 @@ def launch_split(
     outputs: Sequence,
     device: str,
     threads: int | None = None,
+    min_per_slice: int = MIN_THREADS_PER_SLICE,
+    chunks_per_thread: int = 1,
 ) -> None:
     """Launch a 1D gather kernel over ``dim`` threads, split across CPU worker threads.
 
     ``kernel``'s last input must be ``offset: int`` (not included in ``inputs``); thread ``t`` of the
     full launch is ``offset + wp.tid()``. On CUDA (or with one thread, or a small ``dim``) this is one
     ordinary launch with ``offset = 0``.
+
+    min_per_slice: the fewest kernel threads worth a slice (lower it for heavy kernel threads).
+    chunks_per_thread: cut the range into this many slices per worker, handed out as workers free up,
+        which balances kernels whose threads cost unequal time (ray tracing).
     """
     if dim <= 0:
         return
     n = 1 if device != "cpu" else (threads or cpu_threads())
-    n = min(n, max(1, dim // MIN_THREADS_PER_SLICE))
+    n = min(n, max(1, dim // max(1, min_per_slice)))
     if n == 1:
         wp.launch(kernel, dim=dim, inputs=[*inputs, 0], outputs=outputs, device=device, record_tape=False)
         return
@@ -136,10 +142,29 @@ def launch_split(
             record_tape=False,
             record_cmd=True,
         )
-        for start, length in slices(dim, n)
+        for start, length in slices(dim, n * max(1, min(chunks_per_thread, dim // (n * max(1, min_per_slice)))))
     ]
+    if len(cmds) == n:
+        pool = _get_pool(n)
+        futures = [pool.submit(c.launch) for c in cmds[1:]]
+        cmds[0].launch()  # the calling thread takes the first slice
+        for f in futures:
+            f.result()
+        return
+    # more slices than workers: the workers (and this thread) pull the next slice from a shared queue
+    queue = iter(cmds)
+    lock = threading.Lock()
+
+    def drain():
+        while True:
+            with lock:
+                c = next(queue, None)
+            if c is None:
+                return
+            c.launch()
+
     pool = _get_pool(n)
-    futures = [pool.submit(c.launch) for c in cmds[1:]]
-    cmds[0].launch()  # the calling thread takes the first slice
+    futures = [pool.submit(drain) for _ in range(n - 1)]
+    drain()
     for f in futures:
         f.result()

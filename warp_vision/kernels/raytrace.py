@@ -46,6 +46,9 @@ wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
 #: Offset (m) along the normal for secondary rays, so they do not hit the surface they leave.
 RAY_EPSILON_M = wp.constant(1e-5)
+#: CPU launch splitting for tracing kernels: threads are heavy and unequal (a ray that reaches the
+#: periphery of a BVH costs more than one that hits a wall), so hand out many small slices.
+_SPLIT = {"min_per_slice": 64, "chunks_per_thread": 16}
 #: Object flags
 FLAG_VERTEX_COLORS = wp.constant(1)
 FLAG_SMOOTH = wp.constant(2)
@@ -612,6 +615,7 @@ def render_onv(
         ],
         outputs=[wp.from_torch(onv)],
         device=device,
+        **_SPLIT,
     )
     return onv
 
@@ -673,6 +677,7 @@ def render_camera(
         inputs=[sc, wp.transform(tf[:3], tf[3:]), width, height, math.tan(math.radians(fov_deg) / 2), batch],
         outputs=[wp.from_torch(img)],
         device=device,
+        **_SPLIT,
     )
     return img
 
@@ -695,5 +700,6 @@ def closest_hit(scene, origins, directions, batch: int = 0, device: str = "cpu",
         outputs=[t, obj, face],
         device=device,
         threads=threads,
+        **_SPLIT,
     )
     return t.numpy(), obj.numpy(), face.numpy()
