@@ -275,3 +275,40 @@ def test_bad_inputs():
         Material(diffuse=(2, 0, 0))
     with pytest.raises(ValueError, match="already exists"):
         sc.add_sphere("ball", 1.0)
+
+
+def _convergence(o, d):
+    """Least-squares point closest to all lines o + t d, and the RMS distance of the lines from it."""
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)  # nearly parallel lines: the projectors must be exact
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for oi, di in zip(o, d):
+        M = np.eye(3) - np.outer(di, di)
+        A += M
+        b += M @ oi
+    x = np.linalg.solve(A, b)
+    dist = [np.linalg.norm((np.eye(3) - np.outer(di, di)) @ (x - oi)) for oi, di in zip(o, d)]
+    return x, float(np.sqrt(np.mean(np.square(dist))))
+
+
+@pytest.mark.parametrize("A", [1.0, 2.0, 4.0])
+def test_foveal_rays_converge_at_the_focus_distance(A):
+    """A foveal photoreceptor's rays leave the eye converging on the point the eye focuses on (~1/A m)."""
+    eye = NavarroEye(accommodation_D=A, pupil_diameter_mm=1.0)  # small: little spherical aberration
+    q = retina_points([0.0], [0.0])
+    rays = rt.eye_rays(q, eye, 16, seed=1)
+    O, D, W = ref.eye_rays_ref(q, eye, 16, seed=1)
+    for c in range(3):
+        o = rays.origins.numpy().reshape(1, 3, 16, 3)[0, c]
+        d = rays.directions.numpy().reshape(1, 3, 16, 3)[0, c]
+        x, spot = _convergence(o.astype(np.float64), d.astype(np.float64))
+        xr, spot_r = _convergence(O[0, c], D[0, c])
+        assert np.linalg.norm(x - xr) < 1e-3 * np.linalg.norm(xr)  # the kernel's focus = the reference's
+        assert spot == pytest.approx(spot_r, rel=0.02, abs=1e-6)  # and its spot size
+        assert abs(x[0]) < 1e-6 and abs(x[1]) < 1e-6  # on the axis
+        assert spot < 0.01 * x[2]  # a tight spot (spherical aberration only)
+    # the eye focuses ~1/A metres away (green, near the 589 nm design wavelength), and longitudinal
+    # chromatic aberration puts blue's focus nearer than red's by the eye's ~1.2 D
+    vergence = [1.0 / _convergence(O[0, c], D[0, c])[0][2] for c in range(3)]  # dioptres, R G B
+    assert vergence[1] == pytest.approx(A, abs=0.6)
+    assert 1.0 < vergence[2] - vergence[0] < 1.5

@@ -13,7 +13,7 @@ from matplotlib.patches import Circle
 
 from warp_vision.nn.connectivity import receptive_field_radius
 
-__all__ = ["plot_receptive_fields", "plot_retina_layout"]
+__all__ = ["plot_receptive_fields", "plot_retina_layout", "tone_map", "plot_onv", "plot_eye_rays", "plot_image"]
 
 
 def _spread_units(positions: np.ndarray, radius: np.ndarray, count: int, seed: int) -> np.ndarray:
@@ -207,3 +207,105 @@ def plot_retina_layout(
         inside = int((rho_deg < fovea_radius_deg).sum())
         zoom.set_title(f"fovea: rho < {fovea_radius_deg:.3g} deg ({inside:,} photoreceptors)")
     return axes[0].get_figure()
+
+
+# --------------------------------------------------------------------------------------------------
+# ONVs, ray diagrams, images
+
+
+def tone_map(rgb: np.ndarray, white: float | None = None) -> np.ndarray:
+    """Linear radiance/irradiance [..., 3] -> displayable sRGB-ish values in [0, 1].
+
+    Scales so the 99th percentile maps to 1 (or by ``white``), clips, applies a 1/2.2 gamma.
+    """
+    rgb = np.asarray(rgb, dtype=np.float64)
+    if white is None:
+        white = float(np.percentile(rgb, 99)) if rgb.size else 1.0
+    white = white if white > 0 else 1.0
+    return np.clip(rgb / white, 0.0, 1.0) ** (1 / 2.2)
+
+
+def plot_onv(retina, onv, ax: Axes | None = None, white: float | None = None, marker_size: float | None = None,
+             mark: Sequence | None = None, title: str | None = None) -> Figure:
+    """The ONV as a retina image (paper, Figs. 7 and 11): each photoreceptor a dot of its RGB response.
+
+    retina: a :class:`warp_vision.eye.retina.Retina`; onv: [3P] (one ONV; a torch tensor or array).
+    Drawn in the retinal domain (degrees of eccentricity; the optical image is inverted, as on a real
+    retina). mark: optional (x_deg, y_deg) points to mark (e.g. the predicted and the true fovea).
+    """
+    v = onv.detach().cpu().numpy() if hasattr(onv, "detach") else np.asarray(onv)
+    if v.size != 3 * retina.P:
+        raise ValueError(f"onv: expected {3 * retina.P} values for this retina (P={retina.P}), got {v.size}")
+    v = v.reshape(-1, 3)
+    if ax is None:
+        fig = Figure(figsize=(5.5, 5.5))
+        ax = fig.add_subplot(1, 1, 1)
+    else:
+        fig = ax.figure
+    xy = np.degrees(retina.domain_xy)
+    size = marker_size if marker_size is not None else max(0.3, min(8.0, 3.0e4 / retina.P))
+    ax.set_facecolor("black")
+    ax.scatter(xy[:, 0], xy[:, 1], c=tone_map(v, white), s=size, linewidths=0)
+    for i, m in enumerate(mark or []):
+        ax.plot([m[0]], [m[1]], marker="+x"[i % 2], color="cyan" if i == 0 else "magenta", markersize=12, mew=2)
+    ax.set_aspect("equal")
+    ax.set_xlabel("retinal x (deg)")
+    ax.set_ylabel("retinal y (deg)")
+    ax.set_title(title or f"ONV, P = {retina.P:,}")
+    return fig
+
+
+def plot_eye_rays(eye, eccentricities_deg: Sequence[float] = (0.0, 30.0), samples: int = 5, ax: Axes | None = None,
+                  world_length_mm: float = 8.0) -> Figure:
+    """A photoreceptor's rays through the eye (paper, Fig. 2c): a meridional section of the optics.
+
+    For each eccentricity (deg, in the section's plane), rays from that retina point through
+    ``samples`` points across the pupil, refracted by the lens and cornea, in red, green and blue
+    (their channel's wavelength), drawn from the float64 optics (:meth:`NavarroEye.trace_path`).
+    """
+    from warp_vision.eye.optics import CHANNEL_WAVELENGTHS_NM, EYE_CENTRE_MM, RETINA_RADIUS_MM, sag
+
+    if ax is None:
+        fig = Figure(figsize=(9, 5))
+        ax = fig.add_subplot(1, 1, 1)
+    else:
+        fig = ax.figure
+    # surfaces (z horizontal, y vertical, the world to the left)
+    for surf in eye.surfaces():
+        y = np.linspace(-surf.semi_diameter, surf.semi_diameter, 200)
+        ax.plot(surf.z0 + sag(y, surf.R, surf.Q), y, color="0.3", lw=1)
+    a = np.linspace(np.radians(-110), np.radians(110), 300)
+    ax.plot(EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(a), RETINA_RADIUS_MM * np.sin(a), color="0.5", lw=2)
+    r = eye.pupil_radius_mm
+    for sgn in (-1, 1):  # the iris
+        ax.plot([eye.pupil_z_mm, eye.pupil_z_mm], [sgn * r, sgn * 6.0], color="saddlebrown", lw=3)
+    colors = {633.0: "red", 543.0: "green", 458.0: "blue"}
+    py = np.linspace(-0.9, 0.9, samples) * r
+    for rho in eccentricities_deg:
+        q = np.array([0.0, -RETINA_RADIUS_MM * np.sin(np.radians(rho)), EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(np.radians(rho))])
+        for wl in CHANNEL_WAVELENGTHS_NM:
+            path = eye.trace_path(np.repeat(q[None], samples, 0), np.stack([np.zeros(samples), py], 1), wl, world_length_mm)
+            for ray in path:
+                if np.all(np.isfinite(ray)):
+                    ax.plot(ray[:, 2], ray[:, 1], color=colors[wl], lw=0.6, alpha=0.8)
+        ax.plot([q[2]], [q[1]], "ko", ms=4)
+    ax.set_aspect("equal")
+    ax.set_xlabel("z (mm, optical axis; the world is to the left)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"{eye!r}: rays of photoreceptors at {', '.join(f'{e:g}' for e in eccentricities_deg)} deg")
+    return fig
+
+
+def plot_image(image, ax: Axes | None = None, white: float | None = None, title: str | None = None) -> Figure:
+    """A rendered camera image [H, W, 3] (linear radiance), tone-mapped."""
+    img = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
+    if ax is None:
+        fig = Figure(figsize=(img.shape[1] / 80 + 0.5, img.shape[0] / 80 + 0.5))
+        ax = fig.add_subplot(1, 1, 1)
+    else:
+        fig = ax.figure
+    ax.imshow(tone_map(img, white))
+    ax.set_axis_off()
+    if title:
+        ax.set_title(title)
+    return fig

@@ -322,6 +322,70 @@ class NavarroEye:
         valid &= d[:, 2] < 0
         return o + t[:, None] * d, d, valid
 
+    def _aim(self, q, pxy, wavelength_nm, tol_mm=1e-10, max_iter=30):
+        """Newton's method on the aim point (lens-back vertex plane) so that the ray from retina point q
+        passes through stop point pxy. Returns (aim [N,2], Jacobian d stop / d aim [N,2,2], converged [N])."""
+        N = len(q)
+        z_aim = self.surfaces(wavelength_nm)[3].z0
+        # initial guess: the straight line from q through the pupil point
+        f = (z_aim - q[:, 2]) / (self.pupil_z_mm - q[:, 2])
+        aim = q[:, :2] + (pxy - q[:, :2]) * f[:, None]
+        h = 1e-6
+        converged = np.zeros(N, dtype=bool)
+        J = np.zeros((N, 2, 2))
+        for _ in range(max_iter):
+            p0, _, ok0 = self._retina_to_stop(q, aim, wavelength_nm)
+            err = p0[:, :2] - pxy
+            for j in range(2):
+                da = np.zeros(2)
+                da[j] = h
+                pp, _, okp = self._retina_to_stop(q, aim + da, wavelength_nm)
+                pm, _, okm = self._retina_to_stop(q, aim - da, wavelength_nm)
+                J[:, :, j] = (pp[:, :2] - pm[:, :2]) / (2 * h)
+                ok0 &= okp & okm
+            converged = ok0 & (np.max(np.abs(err), axis=1) < tol_mm)
+            if np.all(converged | ~ok0):
+                break
+            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+            det = np.where(ok0 & (np.abs(det) > 1e-30), det, 1.0)
+            step0 = (J[:, 1, 1] * err[:, 0] - J[:, 0, 1] * err[:, 1]) / det
+            step1 = (-J[:, 1, 0] * err[:, 0] + J[:, 0, 0] * err[:, 1]) / det
+            move = ok0 & ~converged
+            aim[move, 0] -= step0[move]
+            aim[move, 1] -= step1[move]
+        return aim, J, converged
+
+    def trace_path(self, retina_mm, pupil_xy_mm, wavelength_nm: float = 589.0, world_length_mm: float = 10.0):
+        """The polyline of each ray of :meth:`trace_to_world`, for drawings: [N, 7, 3] mm (optical frame).
+
+        Points: retina, lens back, lens front, stop, cornea back, cornea front, and ``world_length_mm``
+        further out into the world. Rows of invalid rays are NaN.
+        """
+        q = np.asarray(retina_mm, dtype=np.float64)
+        pxy = np.asarray(pupil_xy_mm, dtype=np.float64)
+        s = self.surfaces(wavelength_nm)
+        aim, _, converged = self._aim(q, pxy, wavelength_nm)
+        pts = [q]
+        d = _normalize(np.concatenate([aim, np.full((len(q), 1), s[3].z0)], axis=1) - q)
+        o, valid = q, converged.copy()
+        for surf in (s[3], s[2]):
+            o, n, valid = _intersect_conic(o, d, surf, valid)
+            d, ok = refract(d, n, surf.n_back / surf.n_front)
+            valid &= ok
+            pts.append(o)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (self.pupil_z_mm - o[:, 2]) / d[:, 2]
+        pts.append(o + t[:, None] * d)
+        for surf in (s[1], s[0]):
+            o, n, valid = _intersect_conic(o, d, surf, valid)
+            d, ok = refract(d, n, surf.n_back / surf.n_front)
+            valid &= ok
+            pts.append(o)
+        pts.append(o + world_length_mm * d)
+        path = np.stack(pts, axis=1)
+        path[~valid] = np.nan
+        return path
+
     def trace_to_world(
         self,
         retina_mm,
@@ -355,32 +419,7 @@ class NavarroEye:
         N = len(q)
         s = self.surfaces(wavelength_nm)
         z_aim = s[3].z0
-        # initial guess: the straight line from q through the pupil point
-        f = (z_aim - q[:, 2]) / (self.pupil_z_mm - q[:, 2])
-        aim = q[:, :2] + (pxy - q[:, :2]) * f[:, None]
-        h = 1e-6
-        converged = np.zeros(N, dtype=bool)
-        J = np.zeros((N, 2, 2))
-        for _ in range(max_iter):
-            p0, _, ok0 = self._retina_to_stop(q, aim, wavelength_nm)
-            err = p0[:, :2] - pxy
-            for j in range(2):
-                da = np.zeros(2)
-                da[j] = h
-                pp, _, okp = self._retina_to_stop(q, aim + da, wavelength_nm)
-                pm, _, okm = self._retina_to_stop(q, aim - da, wavelength_nm)
-                J[:, :, j] = (pp[:, :2] - pm[:, :2]) / (2 * h)
-                ok0 &= okp & okm
-            converged = ok0 & (np.max(np.abs(err), axis=1) < tol_mm)
-            if np.all(converged | ~ok0):
-                break
-            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-            det = np.where(ok0 & (np.abs(det) > 1e-30), det, 1.0)
-            step0 = (J[:, 1, 1] * err[:, 0] - J[:, 0, 1] * err[:, 1]) / det
-            step1 = (-J[:, 1, 0] * err[:, 0] + J[:, 0, 0] * err[:, 1]) / det
-            move = ok0 & ~converged
-            aim[move, 0] -= step0[move]
-            aim[move, 1] -= step1[move]
+        aim, J, converged = self._aim(q, pxy, wavelength_nm, tol_mm, max_iter)
         p, d, valid = self._retina_to_stop(q, aim, wavelength_nm)
         valid &= converged & (pxy[:, 0] ** 2 + pxy[:, 1] ** 2 <= self.pupil_radius_mm**2 * (1 + 1e-12))
         o = p

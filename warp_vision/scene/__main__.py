@@ -1,0 +1,3 @@
+from warp_vision.scene.cli import main
+
+raise SystemExit(main())
