@@ -312,3 +312,29 @@ def test_foveal_rays_converge_at_the_focus_distance(A):
     vergence = [1.0 / _convergence(O[0, c], D[0, c])[0][2] for c in range(3)]  # dioptres, R G B
     assert vergence[1] == pytest.approx(A, abs=0.6)
     assert 1.0 < vergence[2] - vergence[0] < 1.5
+
+
+def test_radiance_matches_reference_on_random_rays(device):
+    sc = small_scene()
+    o, d = random_rays(2000, seed=7)
+    got = rt.radiance(sc, o, d, device=device).cpu().numpy()
+    expect = ref.radiance_ref(sc, o, d)
+    close = np.isclose(got, expect, rtol=2e-3, atol=1e-6).all(axis=1)
+    assert close.mean() > 0.995
+
+
+def test_shadows_and_lambert_shading_by_hand():
+    """A box hangs under a point light over a grey floor: the floor below it gets only ambient light."""
+    albedo, amb, I = 0.5, 0.1, 4.0
+    sc = Scene(ambient=(amb, amb, amb))
+    sc.add_plane("floor", (10, 10), material=Material((albedo,) * 3), static=True)
+    sc.add_box("blocker", (0.4, 0.4, 0.05), translation([0, 0, 1.0]))
+    sc.add_light((0.0, 0.0, 2.0), intensity=I)
+    o = np.array([[0.0, 0.0, 0.5], [1.5, 0.0, 0.5], [0.1, 0.1, 0.5]])
+    d = np.tile([0.0, 0.0, -1.0], (3, 1))
+    L = rt.radiance(sc, o, d).numpy()[:, 0]
+    assert L[0] == pytest.approx(amb * albedo, rel=1e-5)  # in the shadow
+    assert L[2] == pytest.approx(amb * albedo, rel=1e-5)
+    r2 = 1.5**2 + 2.0**2
+    cos = 2.0 / np.sqrt(r2)
+    assert L[1] == pytest.approx(amb * albedo + I / r2 * cos * albedo / np.pi, rel=1e-4)  # lit: Lambert

@@ -342,6 +342,46 @@ def camera_kernel(
 
 
 @wp.kernel
+def radiance_kernel(
+    sc: SceneData,
+    origins: wp.array(dtype=wp.vec3),
+    dirs: wp.array(dtype=wp.vec3),
+    b: int,
+    offset: int,
+    rgb_out: wp.array2d(dtype=float),
+):
+    """RGB radiance along world rays, 8 consecutive rays per thread."""
+    k = offset + wp.tid()
+    n = origins.shape[0]
+    ox = vec8()
+    oy = vec8()
+    oz = vec8()
+    dx = vec8()
+    dy = vec8()
+    dz = vec8()
+    live = vec8(DEAD)
+    for l in range(8):
+        i = k * 8 + l
+        if i < n:
+            o = origins[i]
+            d = wp.normalize(dirs[i])
+            ox[l] = o[0]
+            oy[l] = o[1]
+            oz[l] = o[2]
+            dx[l] = d[0]
+            dy[l] = d[1]
+            dz[l] = d[2]
+            live[l] = FAR
+    R, G, Bc = packet_radiance(sc, b, ox, oy, oz, dx, dy, dz, live)
+    for l in range(8):
+        i = k * 8 + l
+        if i < n:
+            rgb_out[i, 0] = R[l]
+            rgb_out[i, 1] = G[l]
+            rgb_out[i, 2] = Bc[l]
+
+
+@wp.kernel
 def closest_hit_kernel(
     sc: SceneData,
     origins: wp.array(dtype=wp.vec3),
@@ -703,3 +743,25 @@ def closest_hit(scene, origins, directions, batch: int = 0, device: str = "cpu",
         **_SPLIT,
     )
     return t.numpy(), obj.numpy(), face.numpy()
+
+
+def radiance(scene, origins, directions, batch: int = 0, device: str = "cpu", max_depth: int = 2) -> torch.Tensor:
+    """RGB radiance [N, 3] (float32) arriving along world rays origins/directions [N, 3] (m)."""
+    o = np.ascontiguousarray(origins, dtype=np.float32)
+    d = np.ascontiguousarray(directions, dtype=np.float32)
+    if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
+        raise ValueError(f"origins, directions: expected matching [N, 3], got {o.shape} and {d.shape}")
+    Bs = scene.batch_size()
+    if not 0 <= batch < Bs:
+        raise ValueError(f"batch: expected 0 to {Bs - 1}, got {batch}")
+    sc = scene_data(scene, device, max_depth)
+    out = torch.zeros((len(o), 3), dtype=torch.float32, device=device)
+    _launch.launch_split(
+        radiance_kernel,
+        (len(o) + 7) // 8,
+        inputs=[sc, wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device), batch],
+        outputs=[wp.from_torch(out)],
+        device=device,
+        **_SPLIT,
+    )
+    return out
