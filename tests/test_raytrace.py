@@ -48,7 +48,7 @@ EYE_POSE = rt.eye_look_at([0.0, -0.6, 1.1], [0.0, 1.0, 1.0])
 def test_eye_rays_match_the_float64_optics(device):
     eye = NavarroEye(accommodation_D=2.0, pupil_diameter_mm=5.0)
     rng = np.random.default_rng(0)
-    q = retina_points(rng.uniform(0, 102, 60), rng.uniform(0, 360, 60))
+    q = retina_points(rng.uniform(0, 102, 200), rng.uniform(0, 360, 200))  # out to the vignetted edge
     S = 4
     rays = rt.eye_rays(q, eye, S, seed=3, device=device)
     O, D, W = ref.eye_rays_ref(q, eye, S, seed=3)

@@ -19,7 +19,7 @@ this module.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -302,12 +302,15 @@ class NavarroEye:
         pts[~valid] = np.nan
         return pts, valid
 
-    def _retina_to_stop(self, q, aim_xy, wavelength_nm):
+    def _retina_to_stop(self, q, aim_xy, wavelength_nm, clip: bool = True):
         """From retina points q [N,3] toward aim points on the lens-back vertex plane, out to the stop.
 
-        Returns (stop points [N,3], directions in the aqueous [N,3], valid [N]).
+        Returns (stop points [N,3], directions in the aqueous [N,3], valid [N]). With ``clip`` False
+        the lens surfaces continue past their apertures (the aiming's Newton steps use that).
         """
         s = self.surfaces(wavelength_nm)
+        if not clip:
+            s = [replace(x, semi_diameter=np.inf) for x in s]
         z_aim = s[3].z0
         a = np.concatenate([aim_xy, np.full((len(q), 1), z_aim)], axis=1)
         d = _normalize(a - q)
@@ -334,13 +337,13 @@ class NavarroEye:
         converged = np.zeros(N, dtype=bool)
         J = np.zeros((N, 2, 2))
         for _ in range(max_iter):
-            p0, _, ok0 = self._retina_to_stop(q, aim, wavelength_nm)
+            p0, _, ok0 = self._retina_to_stop(q, aim, wavelength_nm, clip=False)
             err = p0[:, :2] - pxy
             for j in range(2):
                 da = np.zeros(2)
                 da[j] = h
-                pp, _, okp = self._retina_to_stop(q, aim + da, wavelength_nm)
-                pm, _, okm = self._retina_to_stop(q, aim - da, wavelength_nm)
+                pp, _, okp = self._retina_to_stop(q, aim + da, wavelength_nm, clip=False)
+                pm, _, okm = self._retina_to_stop(q, aim - da, wavelength_nm, clip=False)
                 J[:, :, j] = (pp[:, :2] - pm[:, :2]) / (2 * h)
                 ok0 &= okp & okm
             converged = ok0 & (np.max(np.abs(err), axis=1) < tol_mm)

@@ -30,7 +30,7 @@ from warp_vision.kernels import launch as _launch
 wp.set_module_options({"enable_backward": False})
 
 #: Most Newton iterations of the ray aiming through the lens (it converges quadratically: usually 2-3)
-AIM_ITERATIONS = wp.constant(6)
+AIM_ITERATIONS = wp.constant(8)
 #: Central-difference step (mm) for the aiming Jacobian
 AIM_STEP_MM = wp.constant(0.01)
 #: Newton stops once the ray passes this close (mm) to its pupil point (float32 noise is ~1e-6 mm)
@@ -101,10 +101,14 @@ def refract_dir(d: wp.vec3, n: wp.vec3, eta: float):
 
 @wp.func
 def through_surface(
-    o: wp.vec3, d: wp.vec3, surf: wp.array3d(dtype=float), c: int, j: int, backwards: int
+    o: wp.vec3, d: wp.vec3, surf: wp.array3d(dtype=float), c: int, j: int, backwards: int, clip: int
 ):
-    """Hit surface j of channel c and refract (front->back medium, or back->front if ``backwards``)."""
-    ok, t, n = conic_hit(o, d, surf[c, j, 0], surf[c, j, 1], surf[c, j, 2], surf[c, j, 5])
+    """Hit surface j of channel c and refract (front->back medium, or back->front if ``backwards``);
+    with ``clip`` 0 the surface continues past its aperture (for the aiming's derivatives)."""
+    semi = surf[c, j, 5]
+    if clip == 0:
+        semi = 1.0e30
+    ok, t, n = conic_hit(o, d, surf[c, j, 0], surf[c, j, 1], surf[c, j, 2], semi)
     p = o + t * d
     eta = surf[c, j, 3] / surf[c, j, 4]
     if backwards != 0:
@@ -114,14 +118,15 @@ def through_surface(
 
 
 @wp.func
-def retina_to_stop(q: wp.vec3, aim: wp.vec2, surf: wp.array3d(dtype=float), c: int, pupil_z: float):
+def retina_to_stop(q: wp.vec3, aim: wp.vec2, surf: wp.array3d(dtype=float), c: int, pupil_z: float, clip: int):
     """From retina point q toward ``aim`` on the lens-back vertex plane, out through the lens to the stop.
 
-    Returns (ok, point on the stop plane, direction in the aqueous).
+    Returns (ok, point on the stop plane, direction in the aqueous). The Newton iterations run with
+    ``clip`` 0 (apertures ignored: the map is smooth there); the final ray is checked with ``clip`` 1.
     """
     d = wp.normalize(wp.vec3(aim[0], aim[1], surf[c, 3, 0]) - q)
-    ok1, p1, d1 = through_surface(q, d, surf, c, 3, 1)
-    ok2, p2, d2 = through_surface(p1, d1, surf, c, 2, 1)
+    ok1, p1, d1 = through_surface(q, d, surf, c, 3, 1, clip)
+    ok2, p2, d2 = through_surface(p1, d1, surf, c, 2, 1, clip)
     ok = ok1 and ok2 and d2[2] < 0.0
     t = float(0.0)
     if ok:
@@ -163,11 +168,11 @@ def eye_rays_kernel(
     j10 = float(0.0)
     j11 = float(1.0)
     for it in range(AIM_ITERATIONS + 1):
-        ok0, s0, d0 = retina_to_stop(q, aim, surf, c, pupil_z)
-        okx1, sx1, dx1 = retina_to_stop(q, aim + wp.vec2(h, 0.0), surf, c, pupil_z)
-        okx0, sx0, dx0 = retina_to_stop(q, aim - wp.vec2(h, 0.0), surf, c, pupil_z)
-        oky1, sy1, dy1 = retina_to_stop(q, aim + wp.vec2(0.0, h), surf, c, pupil_z)
-        oky0, sy0, dy0 = retina_to_stop(q, aim - wp.vec2(0.0, h), surf, c, pupil_z)
+        ok0, s0, d0 = retina_to_stop(q, aim, surf, c, pupil_z, 0)
+        okx1, sx1, dx1 = retina_to_stop(q, aim + wp.vec2(h, 0.0), surf, c, pupil_z, 0)
+        okx0, sx0, dx0 = retina_to_stop(q, aim - wp.vec2(h, 0.0), surf, c, pupil_z, 0)
+        oky1, sy1, dy1 = retina_to_stop(q, aim + wp.vec2(0.0, h), surf, c, pupil_z, 0)
+        oky0, sy0, dy0 = retina_to_stop(q, aim - wp.vec2(0.0, h), surf, c, pupil_z, 0)
         ok = ok0 and okx1 and okx0 and oky1 and oky0
         if not ok:
             break
@@ -188,11 +193,11 @@ def eye_rays_kernel(
     o = wp.vec3(0.0)
     dout = wp.vec3(0.0, 0.0, 1.0)
     if ok:
-        okf, sp, dd = retina_to_stop(q, aim, surf, c, pupil_z)
+        okf, sp, dd = retina_to_stop(q, aim, surf, c, pupil_z, 1)
         miss = wp.length(wp.vec2(sp[0] - target[0], sp[1] - target[1]))
         inside = target[0] * target[0] + target[1] * target[1] <= pupil_r * pupil_r
-        ok1, p1, d1 = through_surface(sp, dd, surf, c, 1, 1)
-        ok2, p2, d2 = through_surface(p1, d1, surf, c, 0, 1)
+        ok1, p1, d1 = through_surface(sp, dd, surf, c, 1, 1, 1)
+        ok2, p2, d2 = through_surface(p1, d1, surf, c, 0, 1, 1)
         if okf and ok1 and ok2 and inside and miss < AIM_TOLERANCE_MM:
             v = wp.vec3(aim[0], aim[1], z_aim) - q
             dist = wp.length(v)
