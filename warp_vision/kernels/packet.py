@@ -202,6 +202,14 @@ def _inverse_dirs(dx: vec8, dy: vec8, dz: vec8):
 
 
 @wp.func
+def _packet_in_instance(X: wp.transform, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8):
+    """The packet in an instance's frame: origins, directions, inverse directions, origin * inverse."""
+    lx, ly, lz, mx, my, mz = _to_instance(X, ox, oy, oz, dx, dy, dz)
+    ix, iy, iz = _inverse_dirs(mx, my, mz)
+    return lx, ly, lz, mx, my, mz, ix, iy, iz, wp.cw_mul(lx, ix), wp.cw_mul(ly, iy), wp.cw_mul(lz, iz)
+
+
+@wp.func
 def packet_closest(bv: BvhData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
     """Closest hits of a packet (world frame, unit directions) over every instance for batch row bt.
 
@@ -214,11 +222,7 @@ def packet_closest(bv: BvhData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
         tri[l] = -1
     stack = stack64()
     for inst in range(bv.inst_root.shape[0]):
-        lx, ly, lz, mx, my, mz = _to_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
-        ix, iy, iz = _inverse_dirs(mx, my, mz)
-        oix = wp.cw_mul(lx, ix)
-        oiy = wp.cw_mul(ly, iy)
-        oiz = wp.cw_mul(lz, iz)
+        lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz = _packet_in_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
         node = bv.inst_root[inst]
         if not box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[node], bv.node_hi[node], tb):
             continue
@@ -279,11 +283,7 @@ def packet_occluded(bv: BvhData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8
     for inst in range(bv.inst_root.shape[0]):
         if all_negative(tb):
             break
-        lx, ly, lz, mx, my, mz = _to_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
-        ix, iy, iz = _inverse_dirs(mx, my, mz)
-        oix = wp.cw_mul(lx, ix)
-        oiy = wp.cw_mul(ly, iy)
-        oiz = wp.cw_mul(lz, iz)
+        lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz = _packet_in_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
         node = bv.inst_root[inst]
         if not box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[node], bv.node_hi[node], tb):
             continue

@@ -341,17 +341,9 @@ def camera_kernel(
         image_out[y, x, 2] = Bc[l]
 
 
-@wp.kernel
-def radiance_kernel(
-    sc: SceneData,
-    origins: wp.array(dtype=wp.vec3),
-    dirs: wp.array(dtype=wp.vec3),
-    b: int,
-    offset: int,
-    rgb_out: wp.array2d(dtype=float),
-):
-    """RGB radiance along world rays, 8 consecutive rays per thread."""
-    k = offset + wp.tid()
+@wp.func
+def load_packet(origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), k: int):
+    """Rays 8k .. 8k + 7 as a packet (directions normalised); lanes past the end are dead."""
     n = origins.shape[0]
     ox = vec8()
     oy = vec8()
@@ -372,6 +364,22 @@ def radiance_kernel(
             dy[l] = d[1]
             dz[l] = d[2]
             live[l] = FAR
+    return ox, oy, oz, dx, dy, dz, live
+
+
+@wp.kernel
+def radiance_kernel(
+    sc: SceneData,
+    origins: wp.array(dtype=wp.vec3),
+    dirs: wp.array(dtype=wp.vec3),
+    b: int,
+    offset: int,
+    rgb_out: wp.array2d(dtype=float),
+):
+    """RGB radiance along world rays, 8 consecutive rays per thread."""
+    k = offset + wp.tid()
+    n = origins.shape[0]
+    ox, oy, oz, dx, dy, dz, live = load_packet(origins, dirs, k)
     R, G, Bc = packet_radiance(sc, b, ox, oy, oz, dx, dy, dz, live)
     for l in range(8):
         i = k * 8 + l
@@ -398,25 +406,7 @@ def closest_hit_kernel(
     bt = b
     if sc.bv.world_from_inst.shape[0] == 1:
         bt = 0
-    ox = vec8()
-    oy = vec8()
-    oz = vec8()
-    dx = vec8()
-    dy = vec8()
-    dz = vec8()
-    live = vec8(DEAD)
-    for l in range(8):
-        i = k * 8 + l
-        if i < n:
-            o = origins[i]
-            d = wp.normalize(dirs[i])
-            ox[l] = o[0]
-            oy[l] = o[1]
-            oz[l] = o[2]
-            dx[l] = d[0]
-            dy[l] = d[1]
-            dz[l] = d[2]
-            live[l] = FAR
+    ox, oy, oz, dx, dy, dz, live = load_packet(origins, dirs, k)
     t, tri = packet_closest(sc.bv, bt, ox, oy, oz, dx, dy, dz, live)
     for l in range(8):
         i = k * 8 + l
