@@ -338,3 +338,22 @@ def test_shadows_and_lambert_shading_by_hand():
     r2 = 1.5**2 + 2.0**2
     cos = 2.0 / np.sqrt(r2)
     assert L[1] == pytest.approx(amb * albedo + I / r2 * cos * albedo / np.pi, rel=1e-4)  # lit: Lambert
+
+
+def test_hidden_objects_are_skipped_per_batch_element():
+    q = retina_points(np.linspace(0, 30, 40), np.linspace(0, 720, 40))
+    eye = NavarroEye()
+    sc = small_scene()
+    poses = np.repeat(EYE_POSE[None], 2, 0)
+    sc.set_visible("ball", [True, False])
+    both = rt.render_onv(sc, q, eye, poses, 2).numpy()
+    gone = small_scene()
+    gone.objects = [o for o in gone.objects if o.name != "ball"]
+    gone._version += 1
+    np.testing.assert_allclose(both[1], rt.render_onv(gone, q, eye, EYE_POSE, 2)[0].numpy(), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(both[0], rt.render_onv(small_scene(), q, eye, EYE_POSE, 2)[0].numpy(), rtol=1e-6, atol=1e-9)
+    expect = ref.render_onv_ref(sc, q[:10], eye, poses, 2, seed=0)
+    got = rt.render_onv(sc, q[:10], eye, poses, 2).numpy()
+    np.testing.assert_allclose(got, expect, rtol=2e-3, atol=1e-6)
+    with pytest.raises(ValueError, match="static"):
+        sc.set_visible("floor", False)

@@ -51,6 +51,7 @@ class BvhData:
     inst_root: wp.array(dtype=int)  # [n_inst] root node
     world_from_inst: wp.array2d(dtype=wp.transform)  # [B or 1, n_inst]
     inst_from_world: wp.array2d(dtype=wp.transform)
+    inst_visible: wp.array2d(dtype=int)  # [B or 1, n_inst]: 0 = hidden (skipped)
 
 
 def concat_bvhs(bvhs: list[BVH]) -> dict:
@@ -210,8 +211,8 @@ def _packet_in_instance(X: wp.transform, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
 
 
 @wp.func
-def packet_closest(bv: BvhData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
-    """Closest hits of a packet (world frame, unit directions) over every instance for batch row bt.
+def packet_closest(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
+    """Closest hits of a packet (world frame, unit directions) over every visible instance of batch element b.
 
     Returns (t vec8: the hit distance, or t_in where nothing is closer; tri ivec8: global triangle
     index or -1).
@@ -221,7 +222,15 @@ def packet_closest(bv: BvhData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
     for l in range(8):
         tri[l] = -1
     stack = stack64()
+    bt = b  # batch row of the transforms and of the visibility (either may be shared: 1 row)
+    if bv.world_from_inst.shape[0] == 1:
+        bt = 0
+    bv_ = b
+    if bv.inst_visible.shape[0] == 1:
+        bv_ = 0
     for inst in range(bv.inst_root.shape[0]):
+        if bv.inst_visible[bv_, inst] == 0:
+            continue
         lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz = _packet_in_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
         node = bv.inst_root[inst]
         if not box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[node], bv.node_hi[node], tb):
@@ -273,16 +282,24 @@ def packet_closest(bv: BvhData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
 
 
 @wp.func
-def packet_occluded(bv: BvhData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
+def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
     """Any-hit (shadow) queries: returns t where occluded lanes (anything on (0, t_in)) are set to -1.
 
     Dead lanes (t_in < 0) stay dead; the traversal stops once every lane is dead or occluded.
     """
     tb = t_in
     stack = stack64()
+    bt = b  # batch row of the transforms and of the visibility (either may be shared: 1 row)
+    if bv.world_from_inst.shape[0] == 1:
+        bt = 0
+    bv_ = b
+    if bv.inst_visible.shape[0] == 1:
+        bv_ = 0
     for inst in range(bv.inst_root.shape[0]):
         if all_negative(tb):
             break
+        if bv.inst_visible[bv_, inst] == 0:
+            continue
         lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz = _packet_in_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
         node = bv.inst_root[inst]
         if not box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[node], bv.node_hi[node], tb):

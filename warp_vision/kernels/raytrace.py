@@ -102,7 +102,7 @@ def packet_radiance(
     thb = vec8(1.0)
     lim = live
     for depth in range(sc.max_depth + 1):
-        t, tri = packet_closest(sc.bv, bt, ox, oy, oz, dx, dy, dz, lim)
+        t, tri = packet_closest(sc.bv, b, ox, oy, oz, dx, dy, dz, lim)
         # per-lane surface: offset point, normal, albedo and material
         px = vec8()
         py = vec8()
@@ -188,7 +188,7 @@ def packet_radiance(
                     slim[l] = dist
             if all_negative(slim):
                 continue
-            vis = packet_occluded(sc.bv, bt, px, py, pz, sx, sy, sz, slim)
+            vis = packet_occluded(sc.bv, b, px, py, pz, sx, sy, sz, slim)
             E0 = sc.light_rad[bl, li]
             for l in range(8):
                 if slim[l] < 0.0 or vis[l] < 0.0:
@@ -403,11 +403,8 @@ def closest_hit_kernel(
     """Bare closest-hit queries, 8 consecutive rays per thread: t (inf on a miss), object and its face (-1)."""
     k = offset + wp.tid()
     n = origins.shape[0]
-    bt = b
-    if sc.bv.world_from_inst.shape[0] == 1:
-        bt = 0
     ox, oy, oz, dx, dy, dz, live = load_packet(origins, dirs, k)
-    t, tri = packet_closest(sc.bv, bt, ox, oy, oz, dx, dy, dz, live)
+    t, tri = packet_closest(sc.bv, b, ox, oy, oz, dx, dy, dz, live)
     for l in range(8):
         i = k * 8 + l
         if i >= n:
@@ -554,6 +551,11 @@ def scene_data(scene, device: str = "cpu", max_depth: int = 2) -> SceneData:
         setattr(bv, name, a)
     bv.world_from_inst = wp.array(_transforms_to_wp(T), dtype=wp.transform, device=device)
     bv.inst_from_world = wp.array(_transforms_to_wp(_inverse_rigid(T)), dtype=wp.transform, device=device)
+    per_vis = [np.ones(1, dtype=bool) if k < 0 else scene.objects[k].visible for k in geo.instance_objects]
+    vis = np.stack([np.broadcast_to(v, (B,)) for v in per_vis], axis=1)  # [B, n_inst]
+    if all(len(v) == 1 for v in per_vis):
+        vis = vis[:1]
+    bv.inst_visible = wp.array(np.ascontiguousarray(vis, dtype=np.int32), dtype=wp.int32, device=device)
     sc = SceneData()
     sc.bv = bv
     for name in (

@@ -88,6 +88,8 @@ def closest_hit_ref(scene, origins, directions, batch: int = 0, t_max=np.inf):
     N = len(o)
     best = (np.full(N, np.inf), np.full(N, -1), np.full(N, -1), np.zeros(N), np.zeros(N))
     for i, ob in enumerate(scene.objects):
+        if not ob.visible[batch if len(ob.visible) > 1 else 0]:
+            continue
         V = np.asarray(ob.mesh.vertices, dtype=np.float64)
         V = V @ _transform(ob, batch)[:3, :3].T + _transform(ob, batch)[:3, 3]
         F = np.asarray(ob.mesh.faces)

@@ -67,6 +67,7 @@ class SceneObject:
     material: Material
     transform: np.ndarray  # [1, 4, 4] or [B, 4, 4] world-from-object, rigid
     static: bool = False
+    visible: np.ndarray = field(default_factory=lambda: np.ones(1, dtype=bool))  # [1] or [B]
 
 
 def _as_transforms(name: str, T) -> np.ndarray:
@@ -172,6 +173,17 @@ class Scene:
             self._version += 1  # the merged static BVH must be rebuilt
         self.objects[i].transform = T
 
+    def set_visible(self, name: str, visible) -> None:
+        """Show or hide a dynamic object: a bool, or [B] bools (one per batch element). Hidden objects
+        cost the tracer nothing (it skips them before any traversal)."""
+        i = self.index(name)
+        v = np.atleast_1d(np.asarray(visible, dtype=bool))
+        if v.ndim != 1 or len(v) == 0:
+            raise ValueError(f"visible: expected a bool or [B] bools, got shape {v.shape}")
+        if self.objects[i].static and not v.all():
+            raise ValueError(f"{name!r} is static: static objects cannot be hidden; add it with static=False")
+        self.objects[i].visible = v
+
     # --- queries --------------------------------------------------------------------------------
     @property
     def num_triangles(self) -> int:
@@ -179,7 +191,7 @@ class Scene:
 
     def batch_size(self) -> int:
         """The batch implied by per-batch transforms and lights (1 when everything is shared)."""
-        sizes = {o.transform.shape[0] for o in self.objects}
+        sizes = {o.transform.shape[0] for o in self.objects} | {len(o.visible) for o in self.objects}
         for li in self.lights:
             sizes |= {np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0], np.atleast_1d(li.intensity).shape[0]}
         sizes.discard(1)
@@ -191,6 +203,8 @@ class Scene:
         """All objects merged in the world frame for batch element ``batch`` (for references and export)."""
         parts = []
         for o in self.objects:
+            if not o.visible[batch if len(o.visible) > 1 else 0]:
+                continue
             T = o.transform[batch if o.transform.shape[0] > 1 else 0]
             parts.append(o.mesh.copy().apply_transform(T))
         return trimesh.util.concatenate(parts)

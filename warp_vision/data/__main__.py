@@ -1,0 +1,3 @@
+from warp_vision.data.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,3 @@
+from warp_vision.train.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,62 @@
+"""Command line of ``python -m warp_vision.train``.
+
+    python -m warp_vision.train [--preset smoke|default|paper] [--flag value ...]   train (the default)
+    python -m warp_vision.train --resume RUN_DIR                                       continue a stopped run
+    python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from warp_vision.train import config as C
+
+
+def _train_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m warp_vision.train",
+        description=(
+            "Train the foveation liNet: synthesise (or reuse) a dataset of ONVs of a white ball in a room, "
+            "train the net to predict the eye rotation (yaw, pitch) that foveates the ball, evaluate, and "
+            "write config, checkpoints, metrics and figures to --out. "
+            "Also: 'python -m warp_vision.train evaluate RUN_DIR'. Runs under torchrun unchanged."
+        ),
+    )
+    C.add_arguments(p)
+    p.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the stopped run in RUN_DIR exactly")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return p
+
+
+def _eval_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m warp_vision.train evaluate",
+                                description="Re-evaluate a run's best checkpoint: angular error (median, 90th percentile) in degrees.")
+    p.add_argument("run_dir", help="a training run directory (with best.pt)")
+    p.add_argument("--split", choices=["test", "val", "train"], default="test", help="which split (default test)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    from warp_vision.train import loop
+
+    if argv and argv[0] == "evaluate":
+        a = _eval_parser().parse_args(argv[1:])
+        loop.evaluate_run(a.run_dir, a.split)
+        return 0
+    a = _train_parser().parse_args(argv)
+    try:
+        if a.resume:
+            loop.run(resume=a.resume, progress=not a.no_progress)
+        else:
+            loop.run(C.from_args(a), progress=not a.no_progress)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except loop.NonFiniteLoss as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        return 130
+    return 0

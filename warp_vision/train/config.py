@@ -1,0 +1,124 @@
+"""Training configuration: one dataclass, three presets, and the command line generated from them."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from dataclasses import dataclass, fields
+
+from warp_vision.data.foveation import FoveationDataConfig
+
+
+@dataclass
+class TrainConfig:
+    """Everything a foveation training run depends on (written to RUN_DIR/config.json)."""
+
+    preset: str = "default"  # smoke | default | paper: sets the defaults of everything below
+    out: str = "runs/foveation"  # output directory (config, checkpoints, metrics, figures)
+    data_dir: str = ""  # dataset directory; default: runs/datasets/foveation-<config hash>
+    # the dataset
+    samples: int = 4000  # ONVs in the dataset (train + validation + test)
+    photoreceptors: int = 14_400  # P per retina
+    eye: str = "left"  # left or right: each eye has its own retina, hence its own net
+    samples_per_receptor: int = 4  # S rays per photoreceptor and channel
+    max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
+    data_seed: int = 0
+    # the model
+    model: str = "linet"  # linet, or fc: the fully-connected baseline with the same hidden sizes
+    layers: int = 4  # liNet hidden layers H
+    receptive_field: int = 20  # R, connections per unit
+    reduction: int = 5  # f, each layer has 1/f of the previous layer's units
+    # optimisation
+    batch: int = 64
+    lr: float = 1e-3  # Adam learning rate
+    epochs: int = 40  # at most
+    patience: int = 8  # early stopping: epochs without a better validation MSE
+    val_fraction: float = 0.1
+    test_fraction: float = 0.1
+    seed: int = 0  # initialisation and shuffling
+    device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
+
+    def data_config(self) -> FoveationDataConfig:
+        return FoveationDataConfig(
+            samples=self.samples,
+            photoreceptors=self.photoreceptors,
+            eye=self.eye,
+            samples_per_receptor=self.samples_per_receptor,
+            max_field_deg=self.max_field_deg,
+            seed=self.data_seed,
+        )
+
+    def validate(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {self.preset!r}")
+        if self.model not in ("linet", "fc"):
+            raise ValueError(f"model: expected linet or fc, got {self.model!r}")
+        for name in ("samples", "photoreceptors", "samples_per_receptor", "layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+        if not (0 < self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
+            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
+        if not self.lr > 0:
+            raise ValueError(f"lr: expected > 0, got {self.lr}")
+        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ValueError(f"device: expected cpu, cuda or auto, got {self.device!r}")
+        self.data_config().validate()
+
+
+PRESETS: dict[str, dict] = {
+    # end to end in well under a minute (tests)
+    "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1, layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
+    # the default run: about 10 minutes on a 2-core CPU
+    "default": {},
+    # the paper's set-up: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
+    "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10),
+}
+
+
+def resolve(preset: str, overrides: dict) -> TrainConfig:
+    """The preset's config with ``overrides`` (only keys whose value is not None) applied."""
+    if preset not in PRESETS:
+        raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {preset!r}")
+    cfg = TrainConfig(preset=preset, **PRESETS[preset])
+    for k, v in overrides.items():
+        if v is not None and k != "preset":
+            setattr(cfg, k, v)
+    cfg.validate()
+    return cfg
+
+
+def _help(name: str) -> str:
+    import inspect
+
+    src = inspect.getsource(TrainConfig)
+    for line in src.splitlines():
+        s = line.strip()
+        if s.startswith(f"{name}:") and "#" in s:
+            return s.split("#", 1)[1].strip()
+    return ""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """One ``--flag`` per TrainConfig field (default None: the preset decides)."""
+    defaults = TrainConfig()
+    for f in fields(TrainConfig):
+        if f.name == "preset":
+            p.add_argument("--preset", choices=sorted(PRESETS), default="default", help=_help("preset"))
+            continue
+        kind = type(getattr(defaults, f.name))
+        extra = {"choices": ["linet", "fc"]} if f.name == "model" else {"choices": ["left", "right"]} if f.name == "eye" else {}
+        p.add_argument(
+            f"--{f.name.replace('_', '-')}",
+            type=kind,
+            default=None,
+            help=f"{_help(f.name)} (default: {getattr(defaults, f.name)!r}; presets may change it)",
+            **extra,
+        )
+
+
+def from_args(args: argparse.Namespace) -> TrainConfig:
+    return resolve(args.preset, {f.name: getattr(args, f.name, None) for f in fields(TrainConfig)})
+
+
+def asdict(cfg: TrainConfig) -> dict:
+    return dataclasses.asdict(cfg)
