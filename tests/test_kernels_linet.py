@@ -232,3 +232,19 @@ def test_first_layer_gradients_without_grad_x(relu, device):
     _, gw_ref, gb_ref = locally_connected_backward_ref(x, w.detach(), index, gpre)
     assert torch.allclose(gw, gw_ref, rtol=1e-12, atol=1e-12)
     assert torch.allclose(gb, gb_ref, rtol=1e-12, atol=1e-12)
+
+
+def test_fused_relu_propagates_nan_like_torch():
+    from warp_vision.kernels.linet import locally_connected
+    from warp_vision.kernels.linet_ref import locally_connected_ref
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(9, 30, generator=g)
+    x[2, 5] = float("nan")
+    w = torch.randn(12, 4, generator=g)
+    b = torch.randn(12, generator=g)
+    idx = torch.randint(0, 30, (12, 4), generator=g)
+    y = locally_connected(x, w, b, idx, relu=True)
+    ref = torch.relu(locally_connected_ref(x, w, b, idx))
+    assert torch.equal(torch.isnan(y), torch.isnan(ref)) and torch.isnan(y).any()
+    assert torch.allclose(y.nan_to_num(), ref.nan_to_num(), atol=1e-5)

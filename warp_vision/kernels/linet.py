@@ -75,8 +75,8 @@ def linet_forward(
     for k in range(8):
         if b0 + k <= last:
             v = acc[k]
-            if relu != 0:
-                v = wp.max(v, y_out.dtype(0.0))
+            if relu != 0 and v < y_out.dtype(0.0):
+                v = y_out.dtype(0.0)  # not wp.max: NaN must stay NaN, as in torch.relu
             y_out[b0 + k, n] = v
 
 

@@ -222,6 +222,12 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
                     )
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf"))
+                if not torch.isfinite(grad_norm):
+                    raise NonFiniteLoss(
+                        f"epoch {epoch + 1}, step {s // cfg.batch}: the gradient is {grad_norm.item()}; stopping. "
+                        f"The last good checkpoint ({out / 'latest.pt'}) is untouched; try a lower --lr."
+                    )
                 opt.step()
                 total += float(loss.detach()) * len(idx)
                 count += len(idx)

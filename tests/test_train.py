@@ -1,0 +1,135 @@
+"""The foveation job end to end: data synthesis, the smoke preset, resume, corruption, NaN, torchrun."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from warp_vision.data.foveation import FoveationDataConfig, sample_params, synthesize
+from warp_vision.data.store import ChunkedStore, CorruptChunkError
+from warp_vision.train import loop
+from warp_vision.train.cli import main as train_main
+from warp_vision.train.config import resolve
+
+
+@pytest.fixture(scope="module")
+def smoke_data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("data")
+    cfg = resolve("smoke", {"data_dir": str(d)})
+    synthesize(d, cfg.data_config(), progress=False, log=lambda *a: None)
+    return d
+
+
+def smoke(tmp_path, data, **kw):
+    return resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(data), **kw})
+
+
+def test_targets_point_the_axis_at_the_ball():
+    cfg = FoveationDataConfig(samples=10)
+    for i in range(10):
+        p = sample_params(cfg, i)
+        T = p["eye_pose"]
+        u = T[:3, :3].T @ (p["ball"] - T[:3, 3])
+        u /= np.linalg.norm(u)
+        g = loop.directions(torch.tensor(p["target"][None], dtype=torch.float64))[0].numpy()
+        assert np.allclose(u, g, atol=1e-6)
+        assert np.degrees(np.arccos(u[2])) <= cfg.max_field_deg + 1e-6
+        assert 0.3 <= p["meta"][0] <= 5.0
+    assert not np.allclose(sample_params(cfg, 0)["target"], sample_params(cfg, 1)["target"])
+    assert np.array_equal(sample_params(cfg, 3)["target"], sample_params(cfg, 3)["target"])
+
+
+def test_smoke_preset_end_to_end(tmp_path, smoke_data, capsys):
+    summary = loop.run(smoke(tmp_path, smoke_data), progress=False)
+    run = tmp_path / "run"
+    for name in ("config.json", "latest.pt", "best.pt", "metrics.jsonl", "summary.json",
+                 "figures/loss_curves.png", "figures/predicted_vs_true.png", "figures/retina_images.png"):
+        assert (run / name).exists(), name
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [1, 2, 3]
+    assert all(np.isfinite(r["train_mse"]) and np.isfinite(r["val_mse"]) for r in rows)
+    ck = torch.load(run / "best.pt", weights_only=True)
+    assert {"model", "optimizer", "epoch", "norm", "config"} <= set(ck)
+    assert summary["epochs"] == 3 and np.isfinite(summary["test_median_deg"])
+    assert json.loads((run / "config.json").read_text())["preset"] == "smoke"
+    assert train_main(["evaluate", str(run)]) == 0
+    assert "angular error median" in capsys.readouterr().out
+
+
+def test_resume_equals_an_uninterrupted_run(tmp_path, smoke_data):
+    full = loop.run(smoke(tmp_path / "a", smoke_data), progress=False, log=lambda *a: None)
+    cfg_b = smoke(tmp_path / "b", smoke_data)
+    assert loop.run(cfg_b, progress=False, log=lambda *a: None, stop_after_epoch=1) == {"interrupted": True}
+    assert torch.load(tmp_path / "b/run/latest.pt", weights_only=True)["epoch"] == 0
+    resumed = loop.run(resume=str(tmp_path / "b/run"), progress=False, log=lambda *a: None)
+    a = torch.load(tmp_path / "a/run/latest.pt", weights_only=True)
+    b = torch.load(tmp_path / "b/run/latest.pt", weights_only=True)
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    assert [h["train_mse"] for h in a["history"]] == [h["train_mse"] for h in b["history"]]
+    assert resumed["test_mse"] == full["test_mse"]
+
+
+def test_a_corrupted_chunk_is_detected(tmp_path, smoke_data):
+    import shutil
+
+    d = tmp_path / "data"
+    shutil.copytree(smoke_data, d)
+    victim = sorted(d.glob("chunk_*.onv.npy"))[0]
+    raw = bytearray(victim.read_bytes())
+    raw[-7] ^= 0xFF
+    victim.write_bytes(bytes(raw))
+    with pytest.raises(CorruptChunkError, match=victim.name):
+        loop.run(smoke(tmp_path, d), progress=False, log=lambda *a: None)
+
+
+def test_nan_loss_stops_with_the_last_good_checkpoint(tmp_path, smoke_data, monkeypatch):
+    real = loop.net_input
+    calls = {"n": 0}
+
+    def poisoned(onv, norm, device):
+        calls["n"] += 1
+        x = real(onv, norm, device)
+        return x * float("nan") if calls["n"] > 12 else x  # epoch 1 has 8 steps + 1 validation batch
+
+    monkeypatch.setattr(loop, "net_input", poisoned)
+    with pytest.raises(loop.NonFiniteLoss, match="latest.pt"):
+        loop.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)
+    ck = torch.load(tmp_path / "run/latest.pt", weights_only=True)
+    assert ck["epoch"] == 0 and all(torch.isfinite(v).all() for v in ck["model"].values() if v.is_floating_point())
+
+
+def test_shards_build_one_dataset(tmp_path):
+    cfg = FoveationDataConfig(samples=24, photoreceptors=60, samples_per_receptor=1, chunk_size=4)
+    one = synthesize(tmp_path / "one", cfg, progress=False, log=lambda *a: None).load()
+    for i in range(3):
+        synthesize(tmp_path / "three", cfg, shard=(i, 3), progress=False, log=lambda *a: None)
+    three = ChunkedStore.open(tmp_path / "three")
+    assert three.complete
+    got = three.load()
+    for k in one:
+        assert np.array_equal(one[k], got[k]), k
+
+
+def test_bad_config_is_refused():
+    with pytest.raises(ValueError, match="model"):
+        resolve("smoke", {"model": "cnn"})
+    with pytest.raises(ValueError, match="val_fraction"):
+        resolve("smoke", {"val_fraction": 0.95})
+    assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
+
+
+def test_torchrun_two_processes(tmp_path, smoke_data):
+    env = dict(os.environ, WARP_VISION_THREADS="1", OMP_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29517",
+           "-m", "warp_vision.train", "--preset", "smoke", "--out", str(tmp_path / "ddp"), "--data-dir", str(smoke_data), "--no-progress"]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    summary = json.loads((tmp_path / "ddp/summary.json").read_text())
+    assert summary["epochs"] == 3 and np.isfinite(summary["test_mse"])
+    rows = (tmp_path / "ddp/metrics.jsonl").read_text().splitlines()
+    assert len(rows) == 3  # rank 0 alone writes
