@@ -133,3 +133,11 @@ def test_torchrun_two_processes(tmp_path, smoke_data):
     assert summary["epochs"] == 3 and np.isfinite(summary["test_mse"])
     rows = (tmp_path / "ddp/metrics.jsonl").read_text().splitlines()
     assert len(rows) == 3  # rank 0 alone writes
+
+
+def test_compare_figure(tmp_path, smoke_data):
+    loop.run(smoke(tmp_path, smoke_data, epochs=2), progress=False, log=lambda *a: None)
+    fig = tmp_path / "cmp.png"
+    assert train_main(["compare", str(tmp_path / "run"), "--out", str(fig)]) == 0
+    assert fig.stat().st_size > 1000
+    assert train_main(["compare", str(tmp_path / "nope"), "--out", str(fig)]) == 2

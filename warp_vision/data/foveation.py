@@ -27,12 +27,17 @@ import numpy as np
 
 from warp_vision.data.store import ChunkedStore
 
+#: Bump when the scene generator changes what a config renders (datasets are cached by config + version).
+GENERATOR_VERSION = 2
 #: Seeds of the two eyes' retinas: each eye has its own photoreceptor layout, hence its own net.
 RETINA_SEEDS = {"left": 1, "right": 2}
 ROOM_SIZE = (10.0, 10.0, 4.0)
 #: Ball radii (m). Transforms are rigid, so each size is its own sphere; a sample shows one of them and
 #: parks the others under the floor.
-BALL_RADII = tuple(float(r) for r in np.geomspace(0.03, 0.15, 8))
+BALL_RADII = tuple(float(r) for r in np.geomspace(0.04, 0.2, 8))
+#: The room's surfaces are dimmed to this fraction of make_room's albedos, so the white ball is the
+#: brightest thing in view (as in the paper's set-up) rather than one grey among many.
+ROOM_ALBEDO = 0.35
 _HIDDEN = np.array([0.0, 0.0, -10.0])
 
 
@@ -63,7 +68,11 @@ class FoveationDataConfig:
 
     def key(self) -> str:
         """A short hash of the config (dataset cache directory names)."""
-        return hashlib.sha256(json.dumps(dataclasses.asdict(self), sort_keys=True).encode()).hexdigest()[:12]
+        return hashlib.sha256(json.dumps(self.manifest(), sort_keys=True).encode()).hexdigest()[:12]
+
+    def manifest(self) -> dict:
+        """The config as the dataset store records it (with the generator's version)."""
+        return {"generator_version": GENERATOR_VERSION, **dataclasses.asdict(self)}
 
 
 def make_retina(cfg: FoveationDataConfig):
@@ -81,6 +90,10 @@ def make_scene(seed: int):
     from warp_vision.scene.room import make_room
 
     sc = make_room(size=ROOM_SIZE, n_objects=6, seed=seed, ball_centre=_HIDDEN)
+    for o in sc.objects:
+        if o.static:
+            o.material.diffuse = tuple(ROOM_ALBEDO * np.asarray(o.material.diffuse))
+            o.material.reflectivity = 0.0
     for k, r in enumerate(BALL_RADII):
         sc.add_sphere(f"ball_{k}", r, _HIDDEN, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True))
     sc.set_visible("ball", False)  # the room's own ball: the sized ones above replace it
@@ -202,7 +215,7 @@ def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     store = ChunkedStore.create_or_resume(
-        out, dataclasses.asdict(cfg), cfg.samples, cfg.chunk_size, dataset_fields(cfg), shard=tuple(shard)
+        out, cfg.manifest(), cfg.samples, cfg.chunk_size, dataset_fields(cfg), shard=tuple(shard)
     )
     retina_path = out / "retina.npz"
     retina = make_retina(cfg)

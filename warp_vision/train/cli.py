@@ -3,6 +3,7 @@
     python -m warp_vision.train [--preset smoke|default|paper] [--flag value ...]   train (the default)
     python -m warp_vision.train --resume RUN_DIR                                       continue a stopped run
     python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run
+    python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """
 
 from __future__ import annotations
@@ -41,6 +42,28 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     from warp_vision.train import loop
 
+    if argv and argv[0] == "compare":
+        p = argparse.ArgumentParser(prog="python -m warp_vision.train compare",
+                                    description="Plot several runs' training and validation MSE curves in one figure.")
+        p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
+        p.add_argument("--out", required=True, help="figure path (.png)")
+        a = p.parse_args(argv[1:])
+        import json
+        from pathlib import Path
+
+        from warp_vision.train.figures import plot_curves
+
+        hists = {}
+        for r in a.runs:
+            m = Path(r) / "metrics.jsonl"
+            if not m.exists():
+                print(f"error: {m} not found", file=sys.stderr)
+                return 2
+            cfg = json.loads((Path(r) / "config.json").read_text())
+            hists[f"{cfg['model']} P={cfg['photoreceptors']:,}"] = [json.loads(x) for x in m.read_text().splitlines()]
+        plot_curves(hists, "liNet vs fully connected").savefig(a.out, dpi=120, bbox_inches="tight")
+        print(f"wrote {a.out}")
+        return 0
     if argv and argv[0] == "evaluate":
         a = _eval_parser().parse_args(argv[1:])
         loop.evaluate_run(a.run_dir, a.split)

@@ -17,7 +17,7 @@ class TrainConfig:
     out: str = "runs/foveation"  # output directory (config, checkpoints, metrics, figures)
     data_dir: str = ""  # dataset directory; default: runs/datasets/foveation-<config hash>
     # the dataset
-    samples: int = 4000  # ONVs in the dataset (train + validation + test)
+    samples: int = 8000  # ONVs in the dataset (train + validation + test)
     photoreceptors: int = 14_400  # P per retina
     eye: str = "left"  # left or right: each eye has its own retina, hence its own net
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
@@ -68,7 +68,7 @@ class TrainConfig:
 PRESETS: dict[str, dict] = {
     # end to end in well under a minute (tests)
     "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1, layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
-    # the default run: about 10 minutes on a 2-core CPU
+    # the default run: about 10 minutes on a 2-core CPU (8,000 ONVs of P=14,400, S=4)
     "default": {},
     # the paper's set-up: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
     "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10),

@@ -56,10 +56,19 @@ def angular_error_deg(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
 
 
 def net_input(onv: torch.Tensor, norm: dict, device) -> torch.Tensor:
-    """What the net sees: a compressive (log) photoreceptor response, log(1 + irradiance / scale), with the
-    scale the training set's mean irradiance. It keeps dim and very bright scenes (a lamp's hot spot)
-    in one range, as the retina's adaptation does."""
-    return torch.log1p(onv.to(device=device, dtype=torch.float32) / norm["input_scale"])
+    """What the net sees: a compressive (log) photoreceptor response, log(1 + irradiance / scale) with the
+    scale the training set's mean irradiance (it keeps dim scenes and a lamp's hot spot in one range),
+    then standardised per photoreceptor and channel with the training set's mean and std. Without the
+    standardisation the fixed structure of the image (vignetting, the room's usual layout) swamps the
+    ball and the net does not even fit its training set."""
+    x = torch.log1p(onv.to(device=device, dtype=torch.float32) / norm["input_scale"])
+    return (x - norm["input_mean"].to(device)) / norm["input_std"].to(device)
+
+
+def input_stats(onv16: torch.Tensor, idx, scale: float, limit: int = 2000) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-input mean and std of log(1 + onv / scale) over (at most ``limit`` of) the samples ``idx``."""
+    x = torch.log1p(onv16[torch.as_tensor(idx[:limit])].float() / scale)
+    return x.mean(0), x.std(0).clamp_min(1e-3)
 
 
 def pick_device(name: str) -> str:
@@ -175,8 +184,12 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
     onv16, target, retina, ddir = load_data(cfg, dd, progress, say)
     t_data = time.perf_counter() - t_start
     tr, va, te = splits(len(target), cfg)
+    scale = float(onv16[torch.as_tensor(tr[: min(len(tr), 2000)])].float().mean().clamp_min(1e-12))
+    in_mean, in_std = input_stats(onv16, tr, scale)
     norm = {
-        "input_scale": float(onv16[torch.as_tensor(tr[: min(len(tr), 2000)])].float().mean().clamp_min(1e-12)),
+        "input_scale": scale,
+        "input_mean": in_mean,
+        "input_std": in_std,
         "target_mean": target[torch.as_tensor(tr)].mean(0),
         "target_std": target[torch.as_tensor(tr)].std(0).clamp_min(1e-6),
     }
