@@ -21,7 +21,7 @@ def _train_parser() -> argparse.ArgumentParser:
             "Train the foveation liNet: synthesise (or reuse) a dataset of ONVs of a white ball in a room, "
             "train the net to predict the eye rotation (yaw, pitch) that foveates the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
-            "Also: 'python -m warp_vision.train evaluate RUN_DIR'. Runs under torchrun unchanged."
+            "Also: 'python -m warp_vision.train evaluate RUN_DIR' and 'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )
     C.add_arguments(p)

@@ -22,7 +22,7 @@ class TrainConfig:
     eye: str = "left"  # left or right: each eye has its own retina, hence its own net
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
-    data_seed: int = 0
+    data_seed: int = 0  # seed of the dataset (scenes) and of the train/val/test split
     # the model
     model: str = "linet"  # linet, or fc: the fully-connected baseline with the same hidden sizes
     layers: int = 4  # liNet hidden layers H
