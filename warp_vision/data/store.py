@@ -537,17 +537,8 @@ class ChunkedStore:
         shape, dtype = self.fields[name]
         start, stop = self.chunk_range(c)
         want_shape = (stop - start, *shape)
-        try:
-            f = open(path, "rb")
-        except FileNotFoundError:
-            raise CorruptChunkError(path, c, "data file missing") from None
-        except OSError as e:
-            raise CorruptChunkError(path, c, f"data file unreadable: {e}") from None
-        with f:
-            size = os.fstat(f.fileno()).st_size
-            if size != entry["bytes"]:
-                kind = "truncated" if size < entry["bytes"] else "wrong size"
-                raise CorruptChunkError(path, c, f"{kind}: {size} bytes, the record says {entry['bytes']}")
+        with self._open_checked(c, path, entry) as f:
+            size = entry["bytes"]  # checked by _open_checked
             try:
                 version = np.lib.format.read_magic(f)
                 if version == (1, 0):
@@ -589,19 +580,25 @@ class ChunkedStore:
             raise CorruptChunkError(path, c, f"sha256 mismatch: file {sha.hexdigest()}, record {entry['sha256']}")
         return out
 
-    def _hash_file(self, c: int, name: str, entry: dict) -> None:
-        path = self.data_path(c, name)
+    @staticmethod
+    def _open_checked(c: int, path: Path, entry: dict):
+        """Open a chunk's data file for reading after checking it exists and has the recorded size."""
         try:
             f = open(path, "rb")
         except FileNotFoundError:
             raise CorruptChunkError(path, c, "data file missing") from None
         except OSError as e:
             raise CorruptChunkError(path, c, f"data file unreadable: {e}") from None
-        with f:
-            size = os.fstat(f.fileno()).st_size
-            if size != entry["bytes"]:
-                kind = "truncated" if size < entry["bytes"] else "wrong size"
-                raise CorruptChunkError(path, c, f"{kind}: {size} bytes, the record says {entry['bytes']}")
+        size = os.fstat(f.fileno()).st_size
+        if size != entry["bytes"]:
+            f.close()
+            kind = "truncated" if size < entry["bytes"] else "wrong size"
+            raise CorruptChunkError(path, c, f"{kind}: {size} bytes, the record says {entry['bytes']}")
+        return f
+
+    def _hash_file(self, c: int, name: str, entry: dict) -> None:
+        path = self.data_path(c, name)
+        with self._open_checked(c, path, entry) as f:
             sha = hashlib.sha256()
             while block := f.read(_IO_BLOCK):
                 sha.update(block)
