@@ -507,7 +507,6 @@ class _SceneGeometry:
             v_off.append(nv)
             nf += len(F)
             nv += len(V)
-        self.groups = groups
         mats = [o.material for o in scene.objects]
         arr = lambda x, dt: wp.array(np.ascontiguousarray(x), dtype=dt, device=device)  # noqa: E731
         packed = concat_bvhs(self.bvhs)

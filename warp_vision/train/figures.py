@@ -70,5 +70,5 @@ def write_figures(out: Path, history, retina, onv16, target, idx, pred, cfg) -> 
     for k in range(n):
         ax = fig.add_subplot(1, n, k + 1)
         viz.plot_onv(retina, onv16[int(idx[k])].float(), ax=ax, mark=[tuple(tp[k]), tuple(pp[k])],
-                     title=f"ball image: + true, x predicted")
+                     title="ball image: + true, x predicted")
     fig.savefig(figdir / "retina_images.png", dpi=110, bbox_inches="tight")

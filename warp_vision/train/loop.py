@@ -153,13 +153,18 @@ def evaluate_model(model, onv16, target, idx, norm, device, batch: int = 256) ->
     }
 
 
+def build_model(cfg: TrainConfig, retina, device: str):
+    """The run's net (liNet or FC baseline) on the retina's photoreceptor positions, initialised from cfg.seed."""
+    from warp_vision.nn.connectivity import onv_positions
+    from warp_vision.nn.heads import foveation_net
+
+    return foveation_net(cfg.model, onv_positions(retina.domain_xy), cfg.layers, cfg.receptive_field, cfg.reduction, cfg.seed).to(device)
+
+
 def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: bool = True, log=print,
         stop_after_epoch: int | None = None) -> dict:
     """Train (or resume) a foveation run; returns the summary dict (also written to summary.json)."""
     from tqdm import tqdm
-
-    from warp_vision.nn.connectivity import onv_positions
-    from warp_vision.nn.heads import foveation_net
 
     if resume:
         out = Path(resume)
@@ -193,7 +198,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
         "target_mean": target[torch.as_tensor(tr)].mean(0),
         "target_std": target[torch.as_tensor(tr)].std(0).clamp_min(1e-6),
     }
-    model = foveation_net(cfg.model, onv_positions(retina.domain_xy), cfg.layers, cfg.receptive_field, cfg.reduction, cfg.seed).to(device)
+    model = build_model(cfg, retina, device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     start_epoch, history, best_val, bad = 0, [], math.inf, 0
     if resume:
@@ -314,8 +319,6 @@ def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
     cfg = TrainConfig(**ck["config"])
     from warp_vision.data.store import ChunkedStore
     from warp_vision.eye.retina import Retina
-    from warp_vision.nn.connectivity import onv_positions
-    from warp_vision.nn.heads import foveation_net
 
     ddir = dataset_dir(cfg)
     store = ChunkedStore.open(ddir)
@@ -325,7 +328,7 @@ def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
     tr, va, te = splits(len(target), cfg)
     idx = {"test": te if len(te) else va, "val": va, "train": tr}[split]
     device = pick_device(cfg.device)
-    model = foveation_net(cfg.model, onv_positions(retina.domain_xy), cfg.layers, cfg.receptive_field, cfg.reduction, cfg.seed).to(device)
+    model = build_model(cfg, retina, device)
     model.load_state_dict(ck["model"])
     ev = evaluate_model(model, onv16, target, idx, ck["norm"], device)
     log(f"{run_dir} ({split}, {len(idx):,} ONVs): MSE {ev['mse']:.4f}; angular error median {ev['median_deg']:.3f} deg, "
