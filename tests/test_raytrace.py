@@ -357,3 +357,24 @@ def test_hidden_objects_are_skipped_per_batch_element():
     np.testing.assert_allclose(got, expect, rtol=2e-3, atol=1e-6)
     with pytest.raises(ValueError, match="static"):
         sc.set_visible("floor", False)
+
+
+def test_emission_is_seen_without_light_and_matches_the_reference(device):
+    """A glowing ball in a room with no light: its radiance is exactly its emission; with lights the
+    kernel still matches the reference."""
+    sc = Scene(ambient=(0.0, 0.0, 0.0))
+    sc.add_plane("floor", (10, 10), material=Material((0.5, 0.5, 0.5)), static=True)
+    sc.add_sphere("glow", 0.3, (0.0, 0.0, 1.0), Material((1, 1, 1), emission=(0.7, 0.4, 0.2), smooth=True))
+    o = np.array([[0.0, -2.0, 1.0], [2.0, -2.0, 0.5]])
+    d = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])
+    L = rt.radiance(sc, o, d, device=device).cpu().numpy()
+    assert np.allclose(L[0], [0.7, 0.4, 0.2], rtol=1e-6)  # the ball glows
+    assert np.allclose(L[1], 0.0)  # the floor is dark: emission lights nothing else
+    sc2 = small_scene()
+    sc2.objects[-1].material.emission = (0.5, 0.5, 0.5)  # the ball (before the scene is first packed)
+    o, d = random_rays(1500, seed=3)
+    got = rt.radiance(sc2, o, d, device=device).cpu().numpy()
+    expect = ref.radiance_ref(sc2, o, d)
+    assert np.isclose(got, expect, rtol=2e-3, atol=1e-6).all(axis=1).mean() > 0.995
+    with pytest.raises(ValueError, match="emission"):
+        Material(emission=(-1.0, 0.0, 0.0))

@@ -438,3 +438,21 @@ def test_from_polar_bad_arguments():
         Retina.from_polar([0.1], [0.0], seed=0, layout="x", rho_max=1.0, params={"f": object()})
     with pytest.raises(ValueError, match="P"):
         Retina.log_polar(0, eye=StubEye())
+
+
+def test_visual_angles_follow_the_inverted_image():
+    """The fovea sees straight ahead; a photoreceptor on the retina's +x side sees the field's -x side
+    (the image is inverted), at the field angle the optics give; the targets' (yaw, pitch) convention."""
+    from warp_vision.eye.optics import NavarroEye
+    from warp_vision.eye.retina import Retina
+
+    eye = NavarroEye()
+    rho = np.radians([0.0, 20.0, 20.0, 40.0])
+    theta = np.radians([0.0, 0.0, 90.0, 180.0])
+    r = Retina.from_polar(rho, theta, seed=0, layout="test", rho_max=1.0, morton=False)
+    a = np.degrees(r.visual_angles(eye))
+    F20, F40 = eye.field_angle_deg(np.radians([20.0, 40.0]))
+    assert np.allclose(a[0], 0.0, atol=1e-6)
+    assert a[1][0] == pytest.approx(-F20, rel=1e-6) and abs(a[1][1]) < 1e-6  # +x retina -> looks toward -x
+    assert a[2][1] == pytest.approx(-F20, rel=1e-6) and abs(a[2][0]) < 1e-6  # +y retina -> looks down
+    assert a[3][0] == pytest.approx(F40, rel=1e-6)

@@ -120,7 +120,20 @@ def test_bad_config_is_refused():
         resolve("smoke", {"model": "cnn"})
     with pytest.raises(ValueError, match="val_fraction"):
         resolve("smoke", {"val_fraction": 0.95})
+    with pytest.raises(ValueError, match="head"):
+        resolve("smoke", {"model": "fc", "head": "softargmax"})
+    assert resolve("smoke", {"model": "fc"}).head_kind() == "linear"
+    assert resolve("smoke", {}).head_kind() == "softargmax"
     assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
+
+
+@pytest.mark.parametrize("model,head", [("linet", "linear"), ("fc", "auto")])
+def test_other_read_outs_train(tmp_path, smoke_data, model, head):
+    """The paper's linear read-out and the FC baseline train and evaluate too."""
+    summary = loop.run(smoke(tmp_path, smoke_data, model=model, head=head, epochs=2), progress=False, log=lambda *a: None)
+    assert summary["head"] == "linear" and summary["model"] == model
+    assert np.isfinite(summary["test_median_deg"])
+    assert loop.evaluate_run(str(tmp_path / "run"), log=lambda *a: None)["median_deg"] == pytest.approx(summary["test_median_deg"])
 
 
 def test_torchrun_two_processes(tmp_path, smoke_data):

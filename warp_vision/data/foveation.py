@@ -1,8 +1,8 @@
 """Foveation data the virtual human synthesises itself: ONVs of a white ball in a room, and the eye
 rotation that would bring the ball onto the fovea.
 
-Each sample: the eye stands somewhere in the room looking in a random direction; a white ball of random
-size lies at 0.3 to 5 m within ``max_field_deg`` of the optical axis, sometimes half hidden behind a
+Each sample: the eye stands somewhere in a dim room looking in a random direction; a glowing white ball
+of random size lies at 0.3 to 5 m within ``max_field_deg`` of the optical axis, sometimes half hidden behind a
 panel; the lights change colour and intensity. The target is (yaw, pitch) in radians, eye frame:
 ``yaw = atan2(x, z)`` (turning about the eye's +y axis, toward +x) and ``pitch = atan2(y, hypot(x, z))``
 (elevation) of the ball centre's direction. Every sample's parameters come from its own generator,
@@ -29,16 +29,21 @@ import numpy as np
 from warp_vision.data.store import ChunkedStore
 
 #: Bump when the scene generator changes what a config renders (datasets are cached by config + version).
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 4
 #: Seeds of the two eyes' retinas: each eye has its own photoreceptor layout, hence its own net.
 RETINA_SEEDS = {"left": 1, "right": 2}
 ROOM_SIZE = (10.0, 10.0, 4.0)
 #: Ball radii (m). Transforms are rigid, so each size is its own sphere; a sample shows one of them and
 #: parks the others under the floor.
 BALL_RADII = tuple(float(r) for r in np.geomspace(0.04, 0.2, 8))
-#: The room's surfaces are dimmed to this fraction of make_room's albedos, so the white ball is the
-#: brightest thing in view (as in the paper's set-up) rather than one grey among many.
-ROOM_ALBEDO = 0.35
+#: The room's surfaces are dimmed to this fraction of make_room's albedos, and the white ball glows with
+#: BALL_EMISSION (radiance, on top of the light it reflects), so the ball is the brightest thing in view
+#: as in the paper's set-up (Fig. 7: a white ball on a dark retina) rather than one grey among many: a
+#: point lamp's inverse-square fall-off otherwise makes a wall near the lamp brighter than a lit ball
+#: far from it. Measured on 400 samples: the brightest photoreceptor lies on the ball in 37% of them
+#: with albedo 0.35 and no emission, 98% with these values.
+ROOM_ALBEDO = 0.1
+BALL_EMISSION = 2.0
 _HIDDEN = np.array([0.0, 0.0, -10.0])
 
 
@@ -96,7 +101,8 @@ def make_scene(seed: int):
             o.material.diffuse = tuple(ROOM_ALBEDO * np.asarray(o.material.diffuse))
             o.material.reflectivity = 0.0
     for k, r in enumerate(BALL_RADII):
-        sc.add_sphere(f"ball_{k}", r, _HIDDEN, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True))
+        sc.add_sphere(f"ball_{k}", r, _HIDDEN, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True,
+                                                              emission=(BALL_EMISSION,) * 3))
     sc.set_visible("ball", False)  # the room's own ball: the sized ones above replace it
     panel = trimesh.creation.box((0.02, 0.25, 0.25))
     sc.add("occluder", panel, Material((0.35, 0.3, 0.25)))
@@ -114,9 +120,15 @@ def _rotation_to(forward: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=1)
 
 
-def sample_params(cfg: FoveationDataConfig, index: int) -> dict:
-    """The random scene parameters of sample ``index`` (independent of batching)."""
-    rng = np.random.default_rng([cfg.seed, index])
+#: The ball's apparent diameter is at least this (deg): a smaller ball can fall between the periphery's
+#: photoreceptors and leave no trace in the ONV, making its target noise.
+MIN_APPARENT_DIAMETER_DEG = 1.5
+
+
+def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dict:
+    """The random scene parameters of sample ``index`` (independent of batching); ``attempt`` > 0 draws
+    a replacement when attempt - 1 hid the ball (see :func:`ball_visible`)."""
+    rng = np.random.default_rng([cfg.seed, index, attempt])
     half = np.array(ROOM_SIZE[:2]) / 2 - 0.6
     for _ in range(1000):
         eye = np.array([*rng.uniform(-half, half), rng.uniform(0.9, 1.8)])
@@ -130,9 +142,10 @@ def sample_params(cfg: FoveationDataConfig, index: int) -> dict:
         st = np.sqrt(1 - ct * ct)
         phi = rng.uniform(0, 2 * np.pi)
         u_eye = np.array([st * np.cos(phi), st * np.sin(phi), ct])
-        dist = float(np.exp(rng.uniform(np.log(0.3), np.log(5.0))))
         size = int(rng.integers(len(BALL_RADII)))
         radius = BALL_RADII[size]
+        far = min(5.0, radius / np.sin(np.radians(MIN_APPARENT_DIAMETER_DEG / 2)))
+        dist = float(np.exp(rng.uniform(np.log(0.3), np.log(far))))
         ball = eye + dist * (R @ u_eye)
         lo = np.array([-ROOM_SIZE[0] / 2, -ROOM_SIZE[1] / 2, 0.0]) + radius + 0.05
         hi = np.array([ROOM_SIZE[0] / 2, ROOM_SIZE[1] / 2, ROOM_SIZE[2]]) - radius - 0.05
@@ -170,11 +183,8 @@ def sample_params(cfg: FoveationDataConfig, index: int) -> dict:
     }
 
 
-def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device: str = "cpu") -> dict:
-    """Render samples ``indices`` in one batch: {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3]}."""
-    from warp_vision.kernels.raytrace import render_onv
-
-    ps = [sample_params(cfg, int(i)) for i in indices]
+def _place(scene, ps: list) -> None:
+    """Move the balls, the panel and the lamp of ``scene`` to the samples ``ps`` (one per batch element)."""
     B = len(ps)
     for k in range(len(BALL_RADII)):
         T = np.broadcast_to(np.eye(4), (B, 4, 4)).copy()
@@ -186,6 +196,43 @@ def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device
     light = scene.lights[0]
     light.color = np.stack([p["light_colour"] for p in ps])
     light.intensity = np.array([p["light_intensity"] for p in ps])
+
+
+def ball_visible(scene, p: dict, batch: int, device: str = "cpu") -> bool:
+    """Whether any of 9 lines of sight from the eye (to the ball's centre and to 8 points at 0.8 of its
+    apparent radius) reaches the ball first in batch element ``batch`` of the placed ``scene``."""
+    from warp_vision.kernels.raytrace import closest_hit
+
+    eye = p["eye_pose"][:3, 3]
+    fwd = p["ball"] - eye
+    R = _rotation_to(fwd)
+    a = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    rim = 0.8 * p["radius"] * np.stack([np.cos(a), np.sin(a), np.zeros(8)], 1) @ R.T
+    d = np.concatenate([fwd[None], fwd + rim])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    _, obj, _ = closest_hit(scene, np.tile(eye, (len(d), 1)), d, batch=batch, device=device)
+    return bool(np.any(obj == scene.index(f"ball_{p['size']}")))
+
+
+def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device: str = "cpu") -> dict:
+    """Render samples ``indices`` in one batch: {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3]}.
+
+    A sample whose ball no line of sight reaches (behind a piece of furniture, or the panel) is redrawn
+    (``attempt`` + 1) until one does: a hidden ball has no place to foveate, and its target would be noise.
+    """
+    from warp_vision.kernels.raytrace import render_onv
+
+    attempts = [0] * len(indices)
+    ps = [sample_params(cfg, int(i)) for i in indices]
+    todo = list(range(len(ps)))
+    while todo:
+        _place(scene, ps)
+        todo = [k for k in todo if not ball_visible(scene, ps[k], k, device)]
+        for k in todo:
+            attempts[k] += 1
+            if attempts[k] > 50:  # pragma: no cover - the room is mostly empty; never seen
+                raise RuntimeError(f"sample {indices[k]}: no visible ball in 50 draws")
+            ps[k] = sample_params(cfg, int(indices[k]), attempts[k])
     onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed, device=device)
     return {
         "onv": onv.cpu().numpy().astype(np.float16),

@@ -491,6 +491,27 @@ class Retina:
         """[P, 3] float64 unit vectors in the eye frame from each photoreceptor towards the eyeball centre."""
         return -self.positions_eye_m / RETINA_RADIUS_M
 
+    def visual_angles(self, eye=None, wavelength_nm: float = 589.0) -> np.ndarray:
+        """[P, 2] float64 (yaw, pitch) [rad] of the world direction each photoreceptor sees: its chief ray
+        (through the pupil centre) leaving the cornea, in the eye frame, with the foveation targets'
+        convention ``yaw = atan2(x, z)``, ``pitch = atan2(y, hypot(x, z))``. The image is inverted, so a
+        photoreceptor at polar angle theta sees the field near theta + pi. NaN where the chief ray is
+        blocked.
+
+        Args:
+            eye: the :class:`NavarroEye` (accommodation and pupil); default ``NavarroEye()``.
+        """
+        from warp_vision.eye.optics import eye_from_optical_dir
+
+        eye = NavarroEye() if eye is None else eye
+        _, d, valid = eye.chief_ray(self.positions_optical_mm, wavelength_nm)
+        d = eye_from_optical_dir(d)
+        yaw = np.arctan2(d[:, 0], d[:, 2])
+        pitch = np.arctan2(d[:, 1], np.hypot(d[:, 0], d[:, 2]))
+        out = np.stack([yaw, pitch], axis=1)
+        out[~valid] = np.nan
+        return out
+
     def local_spacing_rad(self) -> np.ndarray:
         """[P] float64: each photoreceptor's distance to its nearest neighbour in the retinal domain [rad]."""
         from scipy.spatial import cKDTree

@@ -72,6 +72,7 @@ class SceneData:
     specular: wp.array(dtype=float)
     shininess: wp.array(dtype=float)
     reflectivity: wp.array(dtype=float)
+    emission: wp.array(dtype=wp.vec3)  # [n_obj] emitted radiance
     flags: wp.array(dtype=int)
     light_pos: wp.array2d(dtype=wp.vec3)  # [B or 1, n_lights], m
     light_rad: wp.array2d(dtype=wp.vec3)  # colour * intensity
@@ -161,9 +162,10 @@ def packet_radiance(
             cr[l] = base[0]
             cg[l] = base[1]
             cb[l] = base[2]
-            lr[l] = sc.ambient[0] * base[0]
-            lg[l] = sc.ambient[1] * base[1]
-            lb[l] = sc.ambient[2] * base[2]
+            em = sc.emission[obj]
+            lr[l] = sc.ambient[0] * base[0] + em[0]
+            lg[l] = sc.ambient[1] * base[1] + em[1]
+            lb[l] = sc.ambient[2] * base[2] + em[2]
             ks[l] = sc.specular[obj]
             shin[l] = sc.shininess[obj]
             refl[l] = sc.reflectivity[obj]
@@ -522,6 +524,7 @@ class _SceneGeometry:
         self.specular = arr(np.array([m.specular for m in mats], np.float32), wp.float32)
         self.shininess = arr(np.array([m.shininess for m in mats], np.float32), wp.float32)
         self.reflectivity = arr(np.array([m.reflectivity for m in mats], np.float32), wp.float32)
+        self.emission = arr(np.array([m.emission for m in mats], np.float32), wp.vec3)
         self.flags = arr(
             np.array([(FLAG_VERTEX_COLORS if m.vertex_colors else 0) | (FLAG_SMOOTH if m.smooth else 0) for m in mats], np.int32),
             wp.int32,
@@ -558,7 +561,7 @@ def scene_data(scene, device: str = "cpu", max_depth: int = 2) -> SceneData:
     sc = SceneData()
     sc.bv = bv
     for name in (
-        "faces face_offset face_object face_local normals colors vert_offset diffuse specular shininess reflectivity flags"
+        "faces face_offset face_object face_local normals colors vert_offset diffuse specular shininess reflectivity emission flags"
     ).split():
         setattr(sc, name, getattr(geo, name))
     if scene.lights:

@@ -143,6 +143,7 @@ def radiance_ref(scene, origins, directions, batch: int = 0, max_depth: int = 2)
         n = np.zeros((len(hit_idx), 3))
         base = np.zeros((len(hit_idx), 3))
         ks, shin, refl = np.zeros(len(hit_idx)), np.ones(len(hit_idx)), np.zeros(len(hit_idx))
+        emit = np.zeros((len(hit_idx), 3))
         for i, ob in enumerate(scene.objects):
             m = obj == i
             if not m.any():
@@ -166,9 +167,10 @@ def radiance_ref(scene, origins, directions, batch: int = 0, max_depth: int = 2)
             else:
                 base[m] = mat.diffuse
             ks[m], shin[m], refl[m] = mat.specular, mat.shininess, mat.reflectivity
+            emit[m] = mat.emission
         flip = np.sum(n * dd, axis=1) > 0
         n[flip] *= -1
-        local = scene.ambient[None] * base
+        local = scene.ambient[None] * base + emit
         p_off = p + RAY_EPSILON_M * n
         for lpos, lrad in lights:
             lv = lpos[None] - p_off

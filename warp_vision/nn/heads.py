@@ -1,35 +1,154 @@
-"""Task heads on a backbone: the foveation net (ONV -> eye yaw and pitch)."""
+"""Task heads on a backbone: the foveation net (ONV -> eye yaw and pitch).
+
+Two read-outs of a backbone's hidden layers are available:
+
+- ``"linear"``: the paper's Fig. 5, one fully-connected layer from the last hidden layer to
+  (yaw, pitch). It learns localisation slowly: a ReLU net must divide by the target's total response
+  to turn "which units fire" into an angle that does not depend on the ball's size and brightness, and
+  a ball's localised response shrinks layer by layer under random weights (measured in the closing note
+  of the foveation issue).
+- ``"softargmax"`` (liNet only): each hidden layer h votes for a gaze direction, the softmax-weighted
+  mean of its units' visual directions (spatial soft-argmax), with weights
+  ``softmax_n(exp(log_temperature_h) * a_h[n] + bias_h[n])``; a unit's visual direction is the mean of
+  its receptive field's, starting from the photoreceptors' chief rays (:meth:`Retina.visual_angles`),
+  as the paper gives each unit the mean position of its receptive field. The same fully-connected output
+  layer then reads the last hidden layer and the H votes (standardised like the targets). The softmax
+  is the normalisation the linear read-out lacks, so the net localises to a fraction of a unit's
+  spacing from its first epoch.
+"""
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from warp_vision.nn.linet import FullyConnected, LiNet
 
+HEADS = ("linear", "softargmax")
+
+
+def unit_directions(linet: LiNet, input_angles: np.ndarray | Tensor) -> list[Tensor]:
+    """Visual directions [N_h, 2] of each layer's units, h = 0..H: ``input_angles`` [N_0, 2] (the ONV's),
+    then for each hidden unit the mean over its receptive field of the previous layer's."""
+    a = torch.as_tensor(np.asarray(input_angles, dtype=np.float64))
+    if a.shape != (linet.in_features, 2) or not torch.isfinite(a).all():
+        raise ValueError(f"input_angles: expected finite values of shape ({linet.in_features}, 2), got {tuple(a.shape)}")
+    out = [a]
+    for layer in linet.layers:
+        a = a[layer.index.cpu().long()].mean(1)
+        out.append(a)
+    return out
+
+
+def log_solid_angle_share(directions: Tensor, k: int = 4) -> Tensor:
+    """[N] log of each unit's share of the field, estimated as the squared distance to its k-th nearest
+    neighbour in (yaw, pitch), relative to the mean (float32; zeros when N <= k)."""
+    from scipy.spatial import cKDTree
+
+    d = np.asarray(directions.detach().cpu().numpy(), dtype=np.float64)
+    if len(d) <= k:
+        return torch.zeros(len(d))
+    dist, _ = cKDTree(d).query(d, k=k + 1)
+    area = np.maximum(dist[:, k], 1e-9) ** 2
+    return torch.from_numpy(np.log(area / area.mean()).astype(np.float32))
+
 
 class FoveationNet(nn.Module):
-    """A backbone (liNet or its fully-connected twin) and a linear output layer to (yaw, pitch).
+    """A backbone (liNet or its fully-connected twin) and a fully-connected output layer to (yaw, pitch).
 
-    forward: onv [B, 3P] float32 -> [B, outputs] (standardised targets during training).
+    forward: onv [B, 3P] float32 -> [B, outputs] (standardised targets: ``(angle - target_mean) /
+    target_std``, the buffers set by :meth:`set_target_norm`).
     """
 
-    def __init__(self, backbone: nn.Module, outputs: int = 2):
+    def __init__(self, backbone: nn.Module, outputs: int = 2, head: str = "linear",
+                 directions: list[Tensor] | None = None):
+        """
+        Args:
+            backbone:   a :class:`LiNet` or :class:`FullyConnected`.
+            head:       "linear" or "softargmax" (needs a liNet and ``directions``).
+            directions: for "softargmax", each layer's unit directions [N_h, 2], h = 0..H (radians, the
+                        targets' units), from :func:`unit_directions`.
+        """
         super().__init__()
+        if head not in HEADS:
+            raise ValueError(f"head: expected one of {HEADS}, got {head!r}")
         self.backbone = backbone
-        self.head = nn.Linear(backbone.out_features, outputs)
+        self.head_kind = head
+        self.register_buffer("target_mean", torch.zeros(outputs))
+        self.register_buffer("target_std", torch.ones(outputs))
+        extra = 0
+        if head == "softargmax":
+            if not isinstance(backbone, LiNet):
+                raise ValueError("head: 'softargmax' needs a liNet backbone (its units have retinal positions)")
+            H = backbone.num_layers
+            if outputs != 2 or directions is None or len(directions) != H + 1:
+                raise ValueError("directions: expected one [N_h, 2] tensor per layer h = 0..H (0: the inputs), and outputs=2")
+            for h, (d, n) in enumerate(zip(directions, backbone.layer_sizes)):
+                if tuple(d.shape) != (n, 2):
+                    raise ValueError(f"directions[{h}]: expected shape ({n}, 2), got {tuple(d.shape)}")
+                self.register_buffer(f"directions_{h}", d.detach().to(torch.float32).clone())
+            # temperature 3: an input 1 (one std) above its neighbours gets e^3 = 20x their weight
+            self.log_temperature = nn.Parameter(torch.full((H + 1,), math.log(3.0)))
+            # each unit's vote starts weighted by the solid angle it covers (the fovea's many small units
+            # would otherwise pull every vote toward the fovea); the biases then learn
+            self.vote_bias = nn.ParameterList(nn.Parameter(log_solid_angle_share(d)) for d in directions)
+            extra = 2 * (H + 1)
+        self.head = nn.Linear(backbone.out_features + extra, outputs)
+        if head == "softargmax":
+            with torch.no_grad():  # start as the inputs' vote (a bright-spot detector); the rest learns
+                self.head.weight.zero_()
+                self.head.bias.zero_()
+                self.head.weight[:, backbone.out_features : backbone.out_features + 2] = torch.eye(2)
 
-    def forward(self, onv: torch.Tensor) -> torch.Tensor:
-        return self.head(self.backbone(onv))
+    def set_target_norm(self, mean: Tensor, std: Tensor) -> None:
+        """The targets' mean and std (the training set's): the net's outputs are standardised with them."""
+        with torch.no_grad():
+            self.target_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+            self.target_std.copy_(torch.as_tensor(std, dtype=torch.float32))
+
+    def _vote(self, h: int, x: Tensor) -> Tensor:
+        w = torch.softmax(x * self.log_temperature[h].exp() + self.vote_bias[h], dim=1)
+        return w @ getattr(self, f"directions_{h}")
+
+    def votes(self, onv: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """(last hidden layer [B, N_H], gaze votes [B, 2] in radians of layers h = 0..H) for the
+        soft-argmax head (h = 0: the net's input, one vote per ONV element)."""
+        x, votes = onv, [self._vote(0, onv)]
+        for h, layer in enumerate(self.backbone.layers, start=1):
+            x = layer(x)
+            votes.append(self._vote(h, x))
+        return x, votes
+
+    def forward(self, onv: Tensor) -> Tensor:
+        if self.head_kind == "linear":
+            return self.head(self.backbone(onv))
+        x, votes = self.votes(onv)
+        z = [(v - self.target_mean) / self.target_std for v in votes]
+        return self.head(torch.cat([x, *z], dim=1))
 
 
 def foveation_net(model: str, in_positions, layers: int = 4, receptive_field: int = 20, reduction: int = 5,
-                  seed: int = 0) -> FoveationNet:
-    """``model`` "linet" or "fc" (same hidden sizes as the liNet), on inputs at ``in_positions`` [3P, 2]."""
+                  seed: int = 0, head: str = "linear", input_angles=None) -> FoveationNet:
+    """``model`` "linet" or "fc" (same hidden sizes as the liNet), on inputs at ``in_positions`` [3P, 2].
+
+    ``head`` "softargmax" (liNet only) needs ``input_angles`` [3P, 2], each input's visual direction
+    (yaw, pitch) in radians (e.g. ``Retina.visual_angles`` repeated per channel).
+    """
+    if head not in HEADS:
+        raise ValueError(f"head: expected one of {HEADS}, got {head!r}")
     torch.manual_seed(seed)
     linet = LiNet(in_positions, layers=layers, receptive_field=receptive_field, reduction=reduction, seed=seed)
     if model == "linet":
+        if head == "softargmax":
+            if input_angles is None:
+                raise ValueError("input_angles: the softargmax head needs each input's visual direction")
+            return FoveationNet(linet, head=head, directions=unit_directions(linet, input_angles))
         return FoveationNet(linet)
     if model == "fc":
+        if head != "linear":
+            raise ValueError(f"head: the fc baseline has only the linear head, got {head!r}")
         return FoveationNet(FullyConnected.like(linet))
     raise ValueError(f"model: expected 'linet' or 'fc', got {model!r}")

@@ -28,6 +28,7 @@ class Material:
     specular: Phong specular coefficient (>= 0), white highlights.
     shininess: Phong exponent (>= 1).
     reflectivity: mirror reflectance in [0, 1]; rays recurse while it is non-zero.
+    emission: RGB radiance the surface emits itself (>= 0), seen whatever the lights (a glowing object).
     vertex_colors: use the mesh's per-vertex colours (trimesh ``visual.vertex_colors``) as albedo.
     smooth: interpolate vertex normals (smooth shading) instead of the flat face normal.
     """
@@ -36,6 +37,7 @@ class Material:
     specular: float = 0.0
     shininess: float = 32.0
     reflectivity: float = 0.0
+    emission: tuple[float, float, float] = (0.0, 0.0, 0.0)
     vertex_colors: bool = False
     smooth: bool = False
 
@@ -49,6 +51,9 @@ class Material:
             raise ValueError(f"Material.shininess: expected >= 1, got {self.shininess}")
         if not 0 <= self.reflectivity <= 1:
             raise ValueError(f"Material.reflectivity: expected a value in [0, 1], got {self.reflectivity}")
+        e = np.asarray(self.emission, dtype=np.float64)
+        if e.shape != (3,) or not np.all(np.isfinite(e)) or e.min() < 0:
+            raise ValueError(f"Material.emission: expected 3 finite values >= 0, got {self.emission}")
 
 
 @dataclass

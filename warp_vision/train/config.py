@@ -25,6 +25,7 @@ class TrainConfig:
     data_seed: int = 0  # seed of the dataset (scenes) and of the train/val/test split
     # the model
     model: str = "linet"  # linet, or fc: the fully-connected baseline with the same hidden sizes
+    head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig. 5), or auto (softargmax for a liNet, linear for fc)
     layers: int = 4  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units
@@ -37,6 +38,12 @@ class TrainConfig:
     test_fraction: float = 0.1
     seed: int = 0  # initialisation and shuffling
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
+
+    def head_kind(self) -> str:
+        """The read-out this config builds ("auto" resolved)."""
+        if self.head == "auto":
+            return "linear" if self.model == "fc" else "softargmax"
+        return self.head
 
     def data_config(self) -> FoveationDataConfig:
         return FoveationDataConfig(
@@ -53,6 +60,10 @@ class TrainConfig:
             raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {self.preset!r}")
         if self.model not in ("linet", "fc"):
             raise ValueError(f"model: expected linet or fc, got {self.model!r}")
+        if self.head not in ("auto", "softargmax", "linear"):
+            raise ValueError(f"head: expected auto, softargmax or linear, got {self.head!r}")
+        if self.model == "fc" and self.head == "softargmax":
+            raise ValueError("head: the fc baseline has no unit positions to vote with; use --head linear")
         for name in ("samples", "photoreceptors", "samples_per_receptor", "layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
@@ -106,7 +117,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
             p.add_argument("--preset", choices=sorted(PRESETS), default="default", help=_help("preset"))
             continue
         kind = type(getattr(defaults, f.name))
-        extra = {"choices": ["linet", "fc"]} if f.name == "model" else {"choices": ["left", "right"]} if f.name == "eye" else {}
+        extra = {"model": {"choices": ["linet", "fc"]}, "eye": {"choices": ["left", "right"]},
+                 "head": {"choices": ["auto", "softargmax", "linear"]}}.get(f.name, {})
         p.add_argument(
             f"--{f.name.replace('_', '-')}",
             type=kind,

@@ -58,17 +58,19 @@ def angular_error_deg(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
 def net_input(onv: torch.Tensor, norm: dict, device) -> torch.Tensor:
     """What the net sees: a compressive (log) photoreceptor response, log(1 + irradiance / scale) with the
     scale the training set's mean irradiance (it keeps dim scenes and a lamp's hot spot in one range),
-    then standardised per photoreceptor and channel with the training set's mean and std. Without the
-    standardisation the fixed structure of the image (vignetting, the room's usual layout) swamps the
-    ball and the net does not even fit its training set."""
+    standardised with the training set's mean and std over all inputs. One mean and std for every input
+    keeps "brighter" meaning the same everywhere on the retina; standardising each input on its own
+    (tried) turns a rarely lit peripheral photoreceptor's noise into large values, and the brightest
+    standardised input then lies on the ball in 72% of the samples against 98% for the log response."""
     x = torch.log1p(onv.to(device=device, dtype=torch.float32) / norm["input_scale"])
     return (x - norm["input_mean"].to(device)) / norm["input_std"].to(device)
 
 
 def input_stats(onv16: torch.Tensor, idx, scale: float, limit: int = 2000) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-input mean and std of log(1 + onv / scale) over (at most ``limit`` of) the samples ``idx``."""
+    """Mean and std (0-d tensors) of log(1 + onv / scale) over all inputs of (at most ``limit`` of) the
+    samples ``idx``."""
     x = torch.log1p(onv16[torch.as_tensor(idx[:limit])].float() / scale)
-    return x.mean(0), x.std(0).clamp_min(1e-3)
+    return x.mean(), x.std().clamp_min(1e-6)
 
 
 def pick_device(name: str) -> str:
@@ -154,11 +156,18 @@ def evaluate_model(model, onv16, target, idx, norm, device, batch: int = 256) ->
 
 
 def build_model(cfg: TrainConfig, retina, device: str):
-    """The run's net (liNet or FC baseline) on the retina's photoreceptor positions, initialised from cfg.seed."""
+    """The run's net (liNet or FC baseline, cfg.head read-out) on the retina's photoreceptor positions,
+    initialised from cfg.seed."""
+    from warp_vision.eye.optics import NavarroEye
     from warp_vision.nn.connectivity import onv_positions
     from warp_vision.nn.heads import foveation_net
 
-    return foveation_net(cfg.model, onv_positions(retina.domain_xy), cfg.layers, cfg.receptive_field, cfg.reduction, cfg.seed).to(device)
+    angles = None
+    if cfg.head_kind() == "softargmax":
+        dc = cfg.data_config()
+        angles = np.repeat(retina.visual_angles(NavarroEye(dc.accommodation_D, dc.pupil_diameter_mm)), 3, axis=0)
+    return foveation_net(cfg.model, onv_positions(retina.domain_xy), cfg.layers, cfg.receptive_field, cfg.reduction,
+                         cfg.seed, head=cfg.head_kind(), input_angles=angles).to(device)
 
 
 def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: bool = True, log=print,
@@ -199,6 +208,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
         "target_std": target[torch.as_tensor(tr)].std(0).clamp_min(1e-6),
     }
     model = build_model(cfg, retina, device)
+    model.set_target_norm(norm["target_mean"], norm["target_std"])
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     start_epoch, history, best_val, bad = 0, [], math.inf, 0
     if resume:
@@ -210,7 +220,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
         say(f"resuming {out} after epoch {ck['epoch']}")
     net = torch.nn.parallel.DistributedDataParallel(model) if dd.on else model
     n_params = sum(p.numel() for p in model.parameters())
-    say(f"{cfg.model}: {n_params:,} parameters, layers {getattr(model.backbone, 'layer_sizes', '?')}; "
+    say(f"{cfg.model} ({cfg.head_kind()} head): {n_params:,} parameters, layers {getattr(model.backbone, 'layer_sizes', '?')}; "
         f"{len(tr):,} train / {len(va):,} val / {len(te):,} test ONVs; device {device}")
     y_all = (target - norm["target_mean"]) / norm["target_std"]
 
@@ -286,6 +296,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
         first_below = next((h["epoch"] for h in history if h["train_mse"] < 0.01), None)
         summary = {
             "model": cfg.model,
+            "head": cfg.head_kind(),
             "parameters": n_params,
             "epochs": len(history),
             "stopped": stopped,
