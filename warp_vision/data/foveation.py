@@ -11,8 +11,8 @@ renders it: the same seed gives the same ONVs.
 
 ONVs are stored as float16, which halves the dataset: the relative rounding error is at most 2^-11
 (4.9e-4), which moves the net's standardised inputs by at most 0.003 of their spread and a trained
-foveation net's predictions by 0.015 degrees (median; 0.03 at most) against its 15-degree error (the
-measurement is in the closing note of the foveation issue).
+foveation net's predictions by 0.015 degrees (median; 0.03 at most; measured with generator v2 and the
+linear read-out, whose error was 15 degrees; the closing notes of the foveation issue have the numbers).
 """
 
 from __future__ import annotations

@@ -7,14 +7,15 @@ Two read-outs of a backbone's hidden layers are available:
   to turn "which units fire" into an angle that does not depend on the ball's size and brightness, and
   a ball's localised response shrinks layer by layer under random weights (measured in the closing note
   of the foveation issue).
-- ``"softargmax"`` (liNet only): each hidden layer h votes for a gaze direction, the softmax-weighted
-  mean of its units' visual directions (spatial soft-argmax), with weights
+- ``"softargmax"`` (liNet only): every layer h = 0..H (0: the ONV itself) votes for a gaze direction,
+  the softmax-weighted mean of its units' visual directions (spatial soft-argmax), with weights
   ``softmax_n(exp(log_temperature_h) * a_h[n] + bias_h[n])``; a unit's visual direction is the mean of
   its receptive field's, starting from the photoreceptors' chief rays (:meth:`Retina.visual_angles`),
-  as the paper gives each unit the mean position of its receptive field. The same fully-connected output
-  layer then reads the last hidden layer and the H votes (standardised like the targets). The softmax
-  is the normalisation the linear read-out lacks, so the net localises to a fraction of a unit's
-  spacing from its first epoch.
+  as the paper gives each unit the mean position of its receptive field, and its bias starts at the
+  log of the solid angle it covers. The same fully-connected output layer then reads the last hidden
+  layer and the H + 1 votes (standardised like the targets); it starts as the ONV's vote alone, a
+  bright-spot detector, and training adds the rest. The softmax is the normalisation the linear
+  read-out lacks.
 """
 
 from __future__ import annotations
