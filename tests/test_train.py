@@ -43,6 +43,26 @@ def test_targets_point_the_axis_at_the_ball():
     assert np.array_equal(sample_params(cfg, 3)["target"], sample_params(cfg, 3)["target"])
 
 
+def test_hidden_balls_are_redrawn():
+    """A ball behind a wall of the room is hidden; the same sample's ball in the open is visible; samples
+    draw balls at least MIN_APPARENT_DIAMETER_DEG across, and a redraw draws another."""
+    from warp_vision.data import foveation as F
+
+    cfg = FoveationDataConfig(samples=8)
+    scene = F.make_scene(cfg.seed)
+    p = sample_params(cfg, 0)
+    F._place(scene, [p])
+    assert F.ball_visible(scene, p, 0)
+    eye = p["eye_pose"][:3, 3]
+    wall = dict(p, ball=np.array([eye[0], F.ROOM_SIZE[1] / 2 + 1.0, eye[2]]))  # 1 m beyond the north wall
+    F._place(scene, [wall])
+    assert not F.ball_visible(scene, wall, 0)
+    for i in range(40):
+        q = sample_params(cfg, i)
+        assert 2 * np.degrees(np.arcsin(q["radius"] / q["meta"][0])) >= F.MIN_APPARENT_DIAMETER_DEG - 1e-9
+    assert not np.array_equal(sample_params(cfg, 0, attempt=1)["ball"], p["ball"])
+
+
 def test_smoke_preset_end_to_end(tmp_path, smoke_data, capsys):
     summary = loop.run(smoke(tmp_path, smoke_data), progress=False)
     run = tmp_path / "run"

@@ -2,11 +2,13 @@
 rotation that would bring the ball onto the fovea.
 
 Each sample: the eye stands somewhere in a dim room looking in a random direction; a glowing white ball
-of random size lies at 0.3 to 5 m within ``max_field_deg`` of the optical axis, sometimes half hidden behind a
-panel; the lights change colour and intensity. The target is (yaw, pitch) in radians, eye frame:
+of random size lies at 0.3 to 5 m (closer for small balls: it looks at least
+``MIN_APPARENT_DIAMETER_DEG`` across) within ``max_field_deg`` of the optical axis, sometimes half hidden
+behind a panel, never wholly hidden (a sample whose ball no line of sight reaches is redrawn); the lights
+change colour and intensity. The target is (yaw, pitch) in radians, eye frame:
 ``yaw = atan2(x, z)`` (turning about the eye's +y axis, toward +x) and ``pitch = atan2(y, hypot(x, z))``
 (elevation) of the ball centre's direction. Every sample's parameters come from its own generator,
-seeded with (dataset seed, sample index), so a sample does not depend on the batch, chunk or shard that
+seeded with (dataset seed, sample index, attempt), so a sample does not depend on the batch, chunk or shard that
 renders it: the same seed gives the same ONVs.
 
 ONVs are stored as float16, which halves the dataset: the relative rounding error is at most 2^-11
@@ -81,11 +83,17 @@ class FoveationDataConfig:
         return {"generator_version": GENERATOR_VERSION, **dataclasses.asdict(self)}
 
 
-def make_retina(cfg: FoveationDataConfig):
+def make_eye(cfg: FoveationDataConfig):
+    """The eye the dataset is rendered with (its accommodation and pupil)."""
     from warp_vision.eye.optics import NavarroEye
+
+    return NavarroEye(cfg.accommodation_D, cfg.pupil_diameter_mm)
+
+
+def make_retina(cfg: FoveationDataConfig):
     from warp_vision.eye.retina import Retina
 
-    return Retina.log_polar(cfg.photoreceptors, seed=RETINA_SEEDS[cfg.eye], eye=NavarroEye(cfg.accommodation_D, cfg.pupil_diameter_mm))
+    return Retina.log_polar(cfg.photoreceptors, seed=RETINA_SEEDS[cfg.eye], eye=make_eye(cfg))
 
 
 def make_scene(seed: int):
@@ -254,7 +262,6 @@ def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16,
     """
     from tqdm import tqdm
 
-    from warp_vision.eye.optics import NavarroEye
     from warp_vision.eye.retina import Retina
 
     cfg.validate()
@@ -279,7 +286,7 @@ def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16,
     if not missing:
         return store
     log(f"synthesising {todo:,} of {mine:,} ONVs (P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into {out}")
-    eye = NavarroEye(cfg.accommodation_D, cfg.pupil_diameter_mm)
+    eye = make_eye(cfg)
     scene = make_scene(cfg.seed)
     t0 = time.perf_counter()
     with tqdm(total=mine, initial=mine - todo, unit="ONV", desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:

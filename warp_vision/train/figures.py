@@ -44,7 +44,7 @@ def plot_curves(histories: dict, title: str = "foveation training") -> Figure:
 
 def write_figures(out: Path, history, retina, onv16, target, idx, pred, cfg) -> None:
     from warp_vision import viz
-    from warp_vision.eye.optics import NavarroEye
+    from warp_vision.data.foveation import make_eye
 
     figdir = Path(out) / "figures"
     figdir.mkdir(exist_ok=True)
@@ -62,7 +62,7 @@ def write_figures(out: Path, history, retina, onv16, target, idx, pred, cfg) -> 
         ax.set_aspect("equal")
     fig.suptitle("held-out ONVs: predicted vs true eye rotation")
     fig.savefig(figdir / "predicted_vs_true.png", dpi=120, bbox_inches="tight")
-    eye = NavarroEye(cfg.data_config().accommodation_D, cfg.data_config().pupil_diameter_mm)
+    eye = make_eye(cfg.data_config())
     n = min(4, len(idx))
     fig = Figure(figsize=(4.2 * n, 4.4))
     tp = retinal_image_point_deg(true[:n], eye)

@@ -158,14 +158,13 @@ def evaluate_model(model, onv16, target, idx, norm, device, batch: int = 256) ->
 def build_model(cfg: TrainConfig, retina, device: str):
     """The run's net (liNet or FC baseline, cfg.head read-out) on the retina's photoreceptor positions,
     initialised from cfg.seed."""
-    from warp_vision.eye.optics import NavarroEye
+    from warp_vision.data.foveation import make_eye
     from warp_vision.nn.connectivity import onv_positions
     from warp_vision.nn.heads import foveation_net
 
     angles = None
     if cfg.head_kind() == "softargmax":
-        dc = cfg.data_config()
-        angles = np.repeat(retina.visual_angles(NavarroEye(dc.accommodation_D, dc.pupil_diameter_mm)), 3, axis=0)
+        angles = np.repeat(retina.visual_angles(make_eye(cfg.data_config())), 3, axis=0)
     return foveation_net(cfg.model, onv_positions(retina.domain_xy), cfg.layers, cfg.receptive_field, cfg.reduction,
                          cfg.seed, head=cfg.head_kind(), input_angles=angles).to(device)
 
