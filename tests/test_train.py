@@ -63,6 +63,25 @@ def test_hidden_balls_are_redrawn():
     assert not np.array_equal(sample_params(cfg, 0, attempt=1)["ball"], p["ball"])
 
 
+def test_the_panel_partly_hides_the_ball():
+    """With a panel in every sample, the panel covers part of the ball (not none, not all) in most samples:
+    it faces the eye and its edge runs past the ball."""
+    from warp_vision.data import foveation as F
+
+    cfg = FoveationDataConfig(samples=16, occluded_fraction=1.0)
+    scene = F.make_scene(cfg.seed)
+    ps = [sample_params(cfg, i) for i in range(16)]
+    F._place(scene, ps)
+    frac = np.array([F.ball_sight_fraction(scene, p, k, rings=(0.3, 0.6, 0.9), per_ring=12) for k, p in enumerate(ps)])
+    partly = (frac > 0.05) & (frac < 0.95)
+    assert partly.mean() >= 0.5, frac
+    assert 0.2 < frac.mean() < 0.9, frac
+    # and without the panel the same balls are in full view (furniture aside)
+    F._place(scene, [dict(p, meta=np.array([*p["meta"][:2], 0.0], np.float32)) for p in ps])
+    clear = np.array([F.ball_sight_fraction(scene, p, k, rings=(0.3, 0.6, 0.9), per_ring=12) for k, p in enumerate(ps)])
+    assert np.median(clear) == 1.0 and clear.mean() > frac.mean() + 0.2
+
+
 def test_smoke_preset_end_to_end(tmp_path, smoke_data, capsys):
     summary = loop.run(smoke(tmp_path, smoke_data), progress=False)
     run = tmp_path / "run"
@@ -78,6 +97,12 @@ def test_smoke_preset_end_to_end(tmp_path, smoke_data, capsys):
     assert json.loads((run / "config.json").read_text())["preset"] == "smoke"
     assert train_main(["evaluate", str(run)]) == 0
     assert "angular error median" in capsys.readouterr().out
+    assert summary["peak_rss_mib"] > 0 and summary["model_state_mib"] > 0
+    # a second run into the same directory is refused, not appended to the first's metrics
+    with pytest.raises(ValueError, match="already holds a run"):
+        loop.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)
+    loop.run(smoke(tmp_path, smoke_data, epochs=1), progress=False, log=lambda *a: None, overwrite=True)
+    assert len((run / "metrics.jsonl").read_text().splitlines()) == 1
 
 
 def test_resume_equals_an_uninterrupted_run(tmp_path, smoke_data):
@@ -145,6 +170,22 @@ def test_bad_config_is_refused():
     assert resolve("smoke", {"model": "fc"}).head_kind() == "linear"
     assert resolve("smoke", {}).head_kind() == "softargmax"
     assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
+
+
+def test_learning_rate_schedule(tmp_path, smoke_data):
+    cfg = resolve("default", {"epochs": 11})
+    lrs = [cfg.epoch_lr(e) for e in range(11)]
+    assert lrs[0] == cfg.lr and abs(lrs[-1] - cfg.lr / 20) < 1e-12 and abs(lrs[5] - cfg.lr * 0.525) < 1e-12
+    assert all(a > b for a, b in zip(lrs, lrs[1:]))
+    assert resolve("default", {"lr_schedule": "constant"}).epoch_lr(7) == cfg.lr
+    with pytest.raises(ValueError, match="lr_schedule"):
+        resolve("default", {"lr_schedule": "step"})
+    loop.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)  # the optimiser follows it
+    rows = [json.loads(x) for x in (tmp_path / "run/metrics.jsonl").read_text().splitlines()]
+    sm = resolve("smoke", {})
+    assert [r["lr"] for r in rows] == [sm.epoch_lr(e) for e in range(3)]
+    ck = torch.load(tmp_path / "run/latest.pt", weights_only=True)
+    assert ck["optimizer"]["param_groups"][0]["lr"] == sm.epoch_lr(2)
 
 
 @pytest.mark.parametrize("model,head", [("linet", "linear"), ("fc", "auto")])

@@ -31,7 +31,7 @@ import numpy as np
 from warp_vision.data.store import ChunkedStore
 
 #: Bump when the scene generator changes what a config renders (datasets are cached by config + version).
-GENERATOR_VERSION = 4
+GENERATOR_VERSION = 5
 #: Seeds of the two eyes' retinas: each eye has its own photoreceptor layout, hence its own net.
 RETINA_SEEDS = {"left": 1, "right": 2}
 ROOM_SIZE = (10.0, 10.0, 4.0)
@@ -112,7 +112,8 @@ def make_scene(seed: int):
         sc.add_sphere(f"ball_{k}", r, _HIDDEN, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True,
                                                               emission=(BALL_EMISSION,) * 3))
     sc.set_visible("ball", False)  # the room's own ball: the sized ones above replace it
-    panel = trimesh.creation.box((0.02, 0.25, 0.25))
+    # 25 x 25 cm, 2 cm thick along its local z: posed face-on to the eye (z along the line of sight)
+    panel = trimesh.creation.box((0.25, 0.25, 0.02))
     sc.add("occluder", panel, Material((0.35, 0.3, 0.25)))
     sc.lights[0].position = np.array([0.0, 0.0, ROOM_SIZE[2] - 0.6])  # a hanging lamp, not a hot spot on the ceiling
     return sc
@@ -162,14 +163,20 @@ def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dic
     else:  # pragma: no cover - the room is large; never seen
         raise RuntimeError("could not place the ball inside the room")
     occluded = bool(rng.uniform() < cfg.occluded_fraction)
-    # the panel: between the eye and the ball, offset sideways by about the ball's apparent radius
+    # the panel: between the eye and the ball, its near edge crossing the ball's disc within 0.6 of its
+    # apparent radius from the centre (so it hides about 20% to 80% of the ball)
     side = R @ np.array([np.cos(phi + np.pi / 2), np.sin(phi + np.pi / 2), 0.0])
     frac = rng.uniform(0.4, 0.7)
-    panel = eye + frac * (ball - eye) + side * frac * radius * rng.uniform(0.6, 1.4) + side * 0.125
+    panel = eye + frac * (ball - eye) + side * frac * radius * rng.uniform(-0.6, 0.6) + side * 0.125
     if not occluded:
         panel = _HIDDEN
+    # face-on to the eye (the panel's thin local z along the line of sight; generator v4 had it edge-on,
+    # hiding at most a 2 cm strip), its local x along ``side`` so its near edge runs straight past the ball
     Tp = np.eye(4)
-    Tp[:3, :3] = _rotation_to(ball - eye)
+    z = (ball - eye) / np.linalg.norm(ball - eye)
+    x = side - (side @ z) * z
+    x /= np.linalg.norm(x)
+    Tp[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
     Tp[:3, 3] = panel
     light_colour = rng.uniform(0.6, 1.0, 3)
     light_intensity = float(rng.uniform(3.0, 15.0))
@@ -206,20 +213,27 @@ def _place(scene, ps: list) -> None:
     light.intensity = np.array([p["light_intensity"] for p in ps])
 
 
-def ball_visible(scene, p: dict, batch: int, device: str = "cpu") -> bool:
-    """Whether any of 9 lines of sight from the eye (to the ball's centre and to 8 points at 0.8 of its
-    apparent radius) reaches the ball first in batch element ``batch`` of the placed ``scene``."""
+def ball_sight_fraction(scene, p: dict, batch: int, rings=(0.8,), per_ring: int = 8, device: str = "cpu") -> float:
+    """Share of lines of sight from the eye that reach the ball first in batch element ``batch`` of the
+    placed ``scene``: one to the ball's centre and ``per_ring`` to points at each of ``rings`` (fractions of
+    its apparent radius)."""
     from warp_vision.kernels.raytrace import closest_hit
 
     eye = p["eye_pose"][:3, 3]
     fwd = p["ball"] - eye
     R = _rotation_to(fwd)
-    a = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    rim = 0.8 * p["radius"] * np.stack([np.cos(a), np.sin(a), np.zeros(8)], 1) @ R.T
-    d = np.concatenate([fwd[None], fwd + rim])
+    a = np.linspace(0, 2 * np.pi, per_ring, endpoint=False)
+    circle = np.stack([np.cos(a), np.sin(a), np.zeros(per_ring)], 1) @ R.T
+    d = np.concatenate([fwd[None]] + [fwd + f * p["radius"] * circle for f in rings])
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     _, obj, _ = closest_hit(scene, np.tile(eye, (len(d), 1)), d, batch=batch, device=device)
-    return bool(np.any(obj == scene.index(f"ball_{p['size']}")))
+    return float(np.mean(obj == scene.index(f"ball_{p['size']}")))
+
+
+def ball_visible(scene, p: dict, batch: int, device: str = "cpu") -> bool:
+    """Whether any of 9 lines of sight from the eye (to the ball's centre and to 8 points at 0.8 of its
+    apparent radius) reaches the ball first in batch element ``batch`` of the placed ``scene``."""
+    return ball_sight_fraction(scene, p, batch, device=device) > 0
 
 
 def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device: str = "cpu") -> dict:

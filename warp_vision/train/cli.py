@@ -26,6 +26,7 @@ def _train_parser() -> argparse.ArgumentParser:
     )
     C.add_arguments(p)
     p.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the stopped run in RUN_DIR exactly")
+    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
 
@@ -73,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.resume:
             loop.run(resume=a.resume, progress=not a.no_progress)
         else:
-            loop.run(C.from_args(a), progress=not a.no_progress)
+            loop.run(C.from_args(a), progress=not a.no_progress, overwrite=a.overwrite)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from dataclasses import dataclass, fields
 
 from warp_vision.data.foveation import FoveationDataConfig
@@ -31,7 +32,8 @@ class TrainConfig:
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units
     # optimisation
     batch: int = 64
-    lr: float = 1e-3  # Adam learning rate
+    lr: float = 1e-3  # Adam learning rate (of the first epoch)
+    lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs) or constant
     epochs: int = 40  # at most
     patience: int = 8  # early stopping: epochs without a better validation MSE
     val_fraction: float = 0.1
@@ -44,6 +46,14 @@ class TrainConfig:
         if self.head == "auto":
             return "linear" if self.model == "fc" else "softargmax"
         return self.head
+
+    def epoch_lr(self, epoch: int) -> float:
+        """Adam's learning rate in epoch ``epoch`` (0-based): a function of the epoch alone, so a resumed
+        run continues the schedule exactly."""
+        if self.lr_schedule == "constant" or self.epochs == 1:
+            return self.lr
+        t = min(epoch, self.epochs - 1) / (self.epochs - 1)
+        return self.lr * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * t)))
 
     def data_config(self) -> FoveationDataConfig:
         return FoveationDataConfig(
@@ -69,6 +79,8 @@ class TrainConfig:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
         if not (0 < self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
             raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
+        if self.lr_schedule not in ("cosine", "constant"):
+            raise ValueError(f"lr_schedule: expected cosine or constant, got {self.lr_schedule!r}")
         if not self.lr > 0:
             raise ValueError(f"lr: expected > 0, got {self.lr}")
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
@@ -118,6 +130,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
             continue
         kind = type(getattr(defaults, f.name))
         extra = {"model": {"choices": ["linet", "fc"]}, "eye": {"choices": ["left", "right"]},
+                 "lr_schedule": {"choices": ["cosine", "constant"]},
                  "head": {"choices": ["auto", "softargmax", "linear"]}}.get(f.name, {})
         p.add_argument(
             f"--{f.name.replace('_', '-')}",

@@ -73,6 +73,15 @@ def input_stats(onv16: torch.Tensor, idx, scale: float, limit: int = 2000) -> tu
     return x.mean(), x.std().clamp_min(1e-6)
 
 
+def peak_rss_mib() -> float:
+    """This process's peak resident memory (MiB) so far: dataset, model, activations and all."""
+    import resource
+    import sys
+
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / 2**20 if sys.platform == "darwin" else r / 1024
+
+
 def pick_device(name: str) -> str:
     if name == "auto":
         from warp_vision.kernels.launch import available_devices
@@ -170,8 +179,11 @@ def build_model(cfg: TrainConfig, retina, device: str):
 
 
 def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: bool = True, log=print,
-        stop_after_epoch: int | None = None) -> dict:
-    """Train (or resume) a foveation run; returns the summary dict (also written to summary.json)."""
+        stop_after_epoch: int | None = None, overwrite: bool = False) -> dict:
+    """Train (or resume) a foveation run; returns the summary dict (also written to summary.json).
+
+    A new run refuses an output directory that already holds a run (its metrics or checkpoints) unless
+    ``overwrite``, which deletes them first."""
     from tqdm import tqdm
 
     if resume:
@@ -183,6 +195,14 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
         raise ValueError("run: give a config or a run directory to resume")
     else:
         out = Path(cfg.out)
+        old = [out / n for n in ("metrics.jsonl", "latest.pt", "best.pt", "summary.json")]
+        if any(f.exists() for f in old):
+            if not overwrite:
+                raise ValueError(f"--out {out} already holds a run; continue it with --resume {out}, "
+                                 f"choose another --out, or pass --overwrite to replace it")
+            if int(os.environ.get("RANK", "0")) == 0:
+                for f in old:
+                    f.unlink(missing_ok=True)
     cfg.validate()
     device = pick_device(cfg.device)
     dd = _Dist(device)
@@ -231,6 +251,8 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
     try:
         for epoch in range(start_epoch, cfg.epochs):
             t0 = time.perf_counter()
+            for g in opt.param_groups:
+                g["lr"] = cfg.epoch_lr(epoch)
             perm = np.random.default_rng([cfg.seed, epoch]).permutation(tr)
             steps = range(0, len(perm), cfg.batch)
             total, count = 0.0, 0
@@ -264,7 +286,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
             improved = ev["mse"] < best_val
             best_val, bad = (ev["mse"], 0) if improved else (best_val, bad + 1)
             row = {"epoch": epoch + 1, "train_mse": train_mse, "val_mse": ev["mse"], "val_median_deg": ev["median_deg"],
-                   "val_p90_deg": ev["p90_deg"], "seconds": time.perf_counter() - t0}
+                   "val_p90_deg": ev["p90_deg"], "lr": cfg.epoch_lr(epoch), "seconds": time.perf_counter() - t0}
             history.append(row)
             if dd.rank == 0:
                 with open(out / "metrics.jsonl", "a") as f:
@@ -308,6 +330,8 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
             "seconds_data": t_data,
             "seconds_total": time.perf_counter() - t_start,
             "seconds_per_epoch": float(np.median([h["seconds"] for h in history])) if history else None,
+            "peak_rss_mib": peak_rss_mib(),
+            "model_state_mib": 16 * n_params / 2**20,  # weights, gradients and Adam's two moments, float32
             "dataset": str(ddir),
         }
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
