@@ -29,9 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from warp_vision.data.store import ChunkedStore
+from warp_vision.scene.scene import look_rotation
 
 #: Bump when the scene generator changes what a config renders (datasets are cached by config + version).
-GENERATOR_VERSION = 5
+GENERATOR_VERSION = 6
 #: Seeds of the two eyes' retinas: each eye has its own photoreceptor layout, hence its own net.
 RETINA_SEEDS = {"left": 1, "right": 2}
 ROOM_SIZE = (10.0, 10.0, 4.0)
@@ -114,19 +115,10 @@ def make_scene(seed: int):
     sc.set_visible("ball", False)  # the room's own ball: the sized ones above replace it
     # 25 x 25 cm, 2 cm thick along its local z: posed face-on to the eye (z along the line of sight)
     panel = trimesh.creation.box((0.25, 0.25, 0.02))
-    sc.add("occluder", panel, Material((0.35, 0.3, 0.25)))
+    # as dim as the room: v5's panel had the undimmed albedo and outshone the room beside the ball
+    sc.add("occluder", panel, Material(tuple(ROOM_ALBEDO * np.array([0.35, 0.3, 0.25]))))
     sc.lights[0].position = np.array([0.0, 0.0, ROOM_SIZE[2] - 0.6])  # a hanging lamp, not a hot spot on the ceiling
     return sc
-
-
-def _rotation_to(forward: np.ndarray) -> np.ndarray:
-    """World-from-eye rotation whose +z is ``forward``, +y as close to world up as possible."""
-    z = forward / np.linalg.norm(forward)
-    up = np.array([0.0, 0.0, 1.0])
-    x = np.cross(up, z)  # eye +x = y cross z
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return np.stack([x, y, z], axis=1)
 
 
 #: The ball's apparent diameter is at least this (deg): a smaller ball can fall between the periphery's
@@ -144,7 +136,7 @@ def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dic
         yaw0 = rng.uniform(-np.pi, np.pi)
         pitch0 = rng.uniform(-0.35, 0.35)
         fwd = np.array([np.cos(pitch0) * np.cos(yaw0), np.cos(pitch0) * np.sin(yaw0), np.sin(pitch0)])
-        R = _rotation_to(fwd)
+        R = look_rotation(fwd)
         # ball direction: uniform over the solid angle within max_field_deg of the axis
         cmax = np.cos(np.radians(cfg.max_field_deg))
         ct = rng.uniform(cmax, 1.0)
@@ -163,11 +155,11 @@ def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dic
     else:  # pragma: no cover - the room is large; never seen
         raise RuntimeError("could not place the ball inside the room")
     occluded = bool(rng.uniform() < cfg.occluded_fraction)
-    # the panel: between the eye and the ball, its near edge crossing the ball's disc within 0.6 of its
-    # apparent radius from the centre (so it hides about 20% to 80% of the ball)
+    # the panel: between the eye and the ball, its near edge crossing the ball's disc from 0.2 of its
+    # apparent radius beyond the centre to 0.8 short of it (so it hides about 5% to 60% of the ball)
     side = R @ np.array([np.cos(phi + np.pi / 2), np.sin(phi + np.pi / 2), 0.0])
     frac = rng.uniform(0.4, 0.7)
-    panel = eye + frac * (ball - eye) + side * frac * radius * rng.uniform(-0.6, 0.6) + side * 0.125
+    panel = eye + frac * (ball - eye) + side * frac * radius * rng.uniform(-0.2, 0.8) + side * 0.125
     if not occluded:
         panel = _HIDDEN
     # face-on to the eye (the panel's thin local z along the line of sight; generator v4 had it edge-on,
@@ -221,7 +213,7 @@ def ball_sight_fraction(scene, p: dict, batch: int, rings=(0.8,), per_ring: int 
 
     eye = p["eye_pose"][:3, 3]
     fwd = p["ball"] - eye
-    R = _rotation_to(fwd)
+    R = look_rotation(fwd)
     a = np.linspace(0, 2 * np.pi, per_ring, endpoint=False)
     circle = np.stack([np.cos(a), np.sin(a), np.zeros(per_ring)], 1) @ R.T
     d = np.concatenate([fwd[None]] + [fwd + f * p["radius"] * circle for f in rings])

@@ -93,6 +93,19 @@ def _as_transforms(name: str, T) -> np.ndarray:
     return T
 
 
+def look_rotation(forward, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """The [3, 3] world-from-eye rotation whose +z is ``forward`` and whose +y is as close to ``up`` as
+    possible (+x = +y cross +z); ``forward`` must not be parallel to ``up``."""
+    z = np.asarray(forward, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    x = np.cross(np.asarray(up, dtype=np.float64), z)
+    n = np.linalg.norm(x)
+    if not n > 1e-12:
+        raise ValueError("look_rotation: forward is parallel to up")
+    x /= n
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
 def translation(xyz) -> np.ndarray:
     """A [4, 4] (or [B, 4, 4] for xyz [B, 3]) pure translation."""
     xyz = np.asarray(xyz, dtype=np.float64)
