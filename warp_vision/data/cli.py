@@ -1,4 +1,4 @@
-"""``python -m warp_vision.data foveation --samples N --out DIR [--shard I/N]``: build a dataset alone.
+"""``python -m warp_vision.data foveation|faces [--flag value ...] --out DIR [--shard I/N]``: build a dataset alone.
 
 N processes (or machines sharing a directory) given --shard 0/N .. N-1/N build disjoint chunks of one
 dataset, which then reads as one. An interrupted run resumes where it stopped when run again.
@@ -12,24 +12,40 @@ import dataclasses
 from warp_vision.data.foveation import FoveationDataConfig, synthesize
 
 
+def _add_config_flags(parser: argparse.ArgumentParser, cls) -> None:
+    defaults = cls()
+    for fld in dataclasses.fields(cls):
+        parser.add_argument(f"--{fld.name.replace('_', '-')}", type=type(getattr(defaults, fld.name)),
+                            default=getattr(defaults, fld.name), help=f"(default {getattr(defaults, fld.name)!r})")
+    parser.add_argument("--out", required=True, help="dataset directory")
+    parser.add_argument("--shard", default="0/1", help="I/N: build only shard I of N (default 0/1, everything)")
+    parser.add_argument("--batch", type=int, default=16, help="ONVs rendered per launch (default 16)")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+
+
 def main(argv: list[str] | None = None) -> int:
+    from warp_vision.data.faces import FaceDataConfig
+
     p = argparse.ArgumentParser(prog="python -m warp_vision.data", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="kind", required=True)
-    f = sub.add_parser("foveation", help="ONVs of a white ball in a room, with the eye rotation that foveates it")
-    defaults = FoveationDataConfig()
-    for fld in dataclasses.fields(FoveationDataConfig):
-        f.add_argument(f"--{fld.name.replace('_', '-')}", type=type(getattr(defaults, fld.name)), default=getattr(defaults, fld.name),
-                       help=f"(default {getattr(defaults, fld.name)!r})")
-    f.add_argument("--out", required=True, help="dataset directory")
-    f.add_argument("--shard", default="0/1", help="I/N: build only shard I of N (default 0/1, everything)")
-    f.add_argument("--batch", type=int, default=16, help="ONVs rendered per launch (default 16)")
-    f.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    _add_config_flags(sub.add_parser("foveation", help="ONVs of a white ball in a room, with the eye rotation that foveates it"),
+                      FoveationDataConfig)
+    faces = sub.add_parser("faces", help="ONVs of anny-built faces across yaw and pitch poses, with identity and pose")
+    _add_config_flags(faces, FaceDataConfig)
+    faces.add_argument("--identities-cache", default=None, help="identity meshes' cache file (default runs/faces/...)")
     a = p.parse_args(argv)
     from warp_vision.data.store import parse_shard
 
-    cfg = FoveationDataConfig(**{fld.name: getattr(a, fld.name) for fld in dataclasses.fields(FoveationDataConfig)})
+    cls = FoveationDataConfig if a.kind == "foveation" else FaceDataConfig
+    cfg = cls(**{fld.name: getattr(a, fld.name) for fld in dataclasses.fields(cls)})
     try:
-        store = synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
+        if a.kind == "foveation":
+            store = synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
+        else:
+            from warp_vision.data import faces as FA
+
+            store = FA.synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device,
+                                  identities_path=a.identities_cache)
     except ValueError as e:
         print(f"error: {e}")
         return 2

@@ -1,4 +1,4 @@
-"""Task heads on a backbone: the foveation net (ONV -> eye yaw and pitch).
+"""Task heads on a backbone: the foveation net (ONV -> eye yaw and pitch) and the face-recognition net (ONV -> identity and pose).
 
 Two read-outs of a backbone's hidden layers are available:
 
@@ -152,4 +152,48 @@ def foveation_net(model: str, in_positions, layers: int = 4, receptive_field: in
         if head != "linear":
             raise ValueError(f"head: the fc baseline has only the linear head, got {head!r}")
         return FoveationNet(FullyConnected.like(linet))
+    raise ValueError(f"model: expected 'linet' or 'fc', got {model!r}")
+
+
+class AFRNet(nn.Module):
+    """The paper's active-face-recognition net (Section VI.B): a liNet backbone and two single-layer
+    fully-connected heads on its last hidden layer, FC1 to identity logits and FC2 to the pose angles
+    (standardised: ``(angle - pose_mean) / pose_std``, buffers set by :meth:`set_pose_norm`).
+
+    forward: onv [B, 3P] -> (logits [B, identities], pose [B, 2] standardised).
+    """
+
+    def __init__(self, backbone: nn.Module, identities: int, pose_outputs: int = 2):
+        super().__init__()
+        if identities < 2:
+            raise ValueError(f"identities: expected at least 2 classes, got {identities}")
+        self.backbone = backbone
+        self.fc1 = nn.Linear(backbone.out_features, identities)
+        self.fc2 = nn.Linear(backbone.out_features, pose_outputs)
+        self.register_buffer("pose_mean", torch.zeros(pose_outputs))
+        self.register_buffer("pose_std", torch.ones(pose_outputs))
+
+    def set_pose_norm(self, mean: Tensor, std: Tensor) -> None:
+        with torch.no_grad():
+            self.pose_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+            self.pose_std.copy_(torch.as_tensor(std, dtype=torch.float32))
+
+    def forward(self, onv: Tensor) -> tuple[Tensor, Tensor]:
+        x = self.backbone(onv)
+        return self.fc1(x), self.fc2(x)
+
+    def pose_degrees(self, z: Tensor) -> Tensor:
+        """Standardised pose outputs -> angles in the labels' units."""
+        return z * self.pose_std + self.pose_mean
+
+
+def afr_net(in_positions, identities: int, layers: int = 5, receptive_field: int = 20, reduction: int = 2,
+            seed: int = 0, model: str = "linet") -> AFRNet:
+    """The AFR net on inputs at ``in_positions`` [3P, 2]; ``model`` "fc" swaps in the fully-connected twin."""
+    torch.manual_seed(seed)
+    linet = LiNet(in_positions, layers=layers, receptive_field=receptive_field, reduction=reduction, seed=seed)
+    if model == "linet":
+        return AFRNet(linet, identities)
+    if model == "fc":
+        return AFRNet(FullyConnected.like(linet), identities)
     raise ValueError(f"model: expected 'linet' or 'fc', got {model!r}")

@@ -2,7 +2,9 @@
 
     python -m warp_vision.train [--preset smoke|default|paper] [--flag value ...]   train (the default)
     python -m warp_vision.train --resume RUN_DIR                                       continue a stopped run
-    python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run
+    python -m warp_vision.train faces [--preset smoke|default|paper] [--flag value ...]  active face recognition
+    python -m warp_vision.train faces --resume RUN_DIR                                 continue a stopped AFR run
+    python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (either task)
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """
 
@@ -21,10 +23,27 @@ def _train_parser() -> argparse.ArgumentParser:
             "Train the foveation liNet: synthesise (or reuse) a dataset of ONVs of a white ball in a room, "
             "train the net to predict the eye rotation (yaw, pitch) that foveates the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
-            "Also: 'python -m warp_vision.train evaluate RUN_DIR' and 'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
+            "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'evaluate RUN_DIR' and "
+            "'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )
     C.add_arguments(p)
+    p.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the stopped run in RUN_DIR exactly")
+    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return p
+
+
+def _faces_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m warp_vision.train faces",
+        description=(
+            "Active face recognition (the paper's Section VI.B): build identities with anny, synthesise (or reuse) "
+            "ONVs of each face across yaw and pitch poses, train the two-headed liNet (identity and pose), evaluate, "
+            "and write config, checkpoints, metrics and figures to --out. Runs under torchrun unchanged."
+        ),
+    )
+    C.add_arguments(p, C.FaceTrainConfig, C.FACE_PRESETS)
     p.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the stopped run in RUN_DIR exactly")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -66,16 +85,42 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {a.out}")
         return 0
     if argv and argv[0] == "evaluate":
+        import json
+        from pathlib import Path
+
         a = _eval_parser().parse_args(argv[1:])
-        loop.evaluate_run(a.run_dir, a.split)
+        cfg_path = Path(a.run_dir) / "config.json"
+        task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
+        try:
+            if task == "faces":
+                from warp_vision.train import faces
+
+                faces.evaluate_run(a.run_dir, a.split)
+            else:
+                loop.evaluate_run(a.run_dir, a.split)
+        except FileNotFoundError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
         return 0
+    if argv and argv[0] == "faces":
+        from warp_vision.train import faces
+
+        a = _faces_parser().parse_args(argv[1:])
+        return _guarded(lambda: faces.run(resume=a.resume, progress=not a.no_progress) if a.resume else
+                        faces.run(C.from_args(a, C.FaceTrainConfig, C.FACE_PRESETS), progress=not a.no_progress,
+                                  overwrite=a.overwrite))
     a = _train_parser().parse_args(argv)
+    return _guarded(lambda: loop.run(resume=a.resume, progress=not a.no_progress) if a.resume else
+                    loop.run(C.from_args(a), progress=not a.no_progress, overwrite=a.overwrite))
+
+
+def _guarded(job) -> int:
+    """Run a training job; bad input and a non-finite loss become an error message and exit code."""
+    from warp_vision.train import loop
+
     try:
-        if a.resume:
-            loop.run(resume=a.resume, progress=not a.no_progress)
-        else:
-            loop.run(C.from_args(a), progress=not a.no_progress, overwrite=a.overwrite)
-    except ValueError as e:
+        job()
+    except (ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except loop.NonFiniteLoss as e:

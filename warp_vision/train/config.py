@@ -98,11 +98,89 @@ PRESETS: dict[str, dict] = {
 }
 
 
-def resolve(preset: str, overrides: dict) -> TrainConfig:
-    """The preset's config with ``overrides`` (only keys whose value is not None) applied."""
-    if preset not in PRESETS:
-        raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {preset!r}")
-    cfg = TrainConfig(preset=preset, **PRESETS[preset])
+@dataclass
+class FaceTrainConfig:
+    """Everything an active-face-recognition run depends on (written to RUN_DIR/config.json)."""
+
+    preset: str = "default"  # smoke | default | paper: sets the defaults of everything below
+    task: str = "faces"  # fixed: tells evaluate which kind of run a directory holds
+    out: str = "runs/faces"  # output directory (config, checkpoints, metrics, figures)
+    data_dir: str = ""  # dataset directory; default: runs/datasets/faces-<config hash>
+    identities_cache: str = ""  # the identity meshes' cache file; default: runs/faces/identities-<n>-<seed>-...npz
+    # the dataset
+    identities: int = 50  # distinct people (classes)
+    pose_step_deg: float = 4.0  # yaw and pitch step (the paper: 2)
+    max_pose_deg: float = 30.0  # poses span -max to +max degrees in yaw and pitch
+    photoreceptors: int = 14_400  # P per retina
+    eye: str = "left"  # which eye's retina
+    samples_per_receptor: int = 4  # S rays per photoreceptor and channel
+    distance_m: float = 0.5  # eye to the face's centre
+    identity_seed: int = 0  # seed of the identities' shapes and colours
+    data_seed: int = 0  # seed of the train/val/test split (and of the rays)
+    # the model
+    model: str = "linet"  # linet, or fc: the fully-connected twin with the same hidden sizes
+    layers: int = 5  # liNet hidden layers H
+    receptive_field: int = 20  # R, connections per unit
+    reduction: int = 2  # f, each layer has 1/f of the previous layer's units
+    # optimisation
+    loss_lambda: float = 6.0  # loss = cross-entropy + loss_lambda * MSE(standardised pose)
+    batch: int = 64
+    lr: float = 1e-3  # Adam learning rate (betas 0.9, 0.999)
+    epochs: int = 150  # at most
+    patience: int = 30  # early stopping: epochs in which neither validation metric reaches a new best
+    val_fraction: float = 0.1
+    test_fraction: float = 0.2
+    shuffle_labels: bool = False  # sanity check: train on identities and poses shuffled across the training ONVs
+    seed: int = 0  # initialisation and shuffling
+    device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
+
+    def data_config(self):
+        from warp_vision.data.faces import FaceDataConfig
+
+        return FaceDataConfig(identities=self.identities, pose_step_deg=self.pose_step_deg, max_pose_deg=self.max_pose_deg,
+                              photoreceptors=self.photoreceptors, eye=self.eye, samples_per_receptor=self.samples_per_receptor,
+                              distance_m=self.distance_m, identity_seed=self.identity_seed, seed=self.data_seed)
+
+    def validate(self) -> None:
+        if self.preset not in FACE_PRESETS:
+            raise ValueError(f"preset: expected one of {sorted(FACE_PRESETS)}, got {self.preset!r}")
+        if self.task != "faces":
+            raise ValueError(f"task: expected 'faces', got {self.task!r}")
+        if self.model not in ("linet", "fc"):
+            raise ValueError(f"model: expected linet or fc, got {self.model!r}")
+        for name in ("layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+        if self.identities < 2:
+            raise ValueError(f"identities: expected at least 2 (a classifier needs classes), got {self.identities}")
+        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
+            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
+        if not self.lr > 0 or not self.loss_lambda >= 0:
+            raise ValueError(f"lr and loss_lambda: expected lr > 0 and loss_lambda >= 0, got {self.lr} and {self.loss_lambda}")
+        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ValueError(f"device: expected cpu, cuda or auto, got {self.device!r}")
+        self.data_config().validate()
+
+
+FACE_PRESETS: dict[str, dict] = {
+    # seconds, for tests: 3 identities x 4 x 4 poses on a small retina
+    "smoke": dict(identities=3, pose_step_deg=15.0, photoreceptors=400, samples_per_receptor=1, layers=3,
+                  receptive_field=8, batch=8, epochs=3, patience=3),
+    # 50 identities x 15 x 15 poses (4-degree steps): 11,250 ONVs
+    "default": {},
+    # the paper's protocol: 50 identities x 30 x 30 poses (2-degree steps): 45,000 ONVs
+    "paper": dict(pose_step_deg=2.0),
+}
+
+
+def resolve(preset: str, overrides: dict, cls=None, presets: dict | None = None):
+    """The preset's config (of ``cls``, TrainConfig by default) with ``overrides`` (only keys whose value
+    is not None) applied."""
+    cls = cls or TrainConfig
+    presets = PRESETS if presets is None else presets
+    if preset not in presets:
+        raise ValueError(f"preset: expected one of {sorted(presets)}, got {preset!r}")
+    cfg = cls(preset=preset, **presets[preset])
     for k, v in overrides.items():
         if v is not None and k != "preset":
             setattr(cfg, k, v)
@@ -110,40 +188,51 @@ def resolve(preset: str, overrides: dict) -> TrainConfig:
     return cfg
 
 
-def _help(name: str) -> str:
+def _help(cls, name: str) -> str:
     import inspect
 
-    src = inspect.getsource(TrainConfig)
-    for line in src.splitlines():
+    for line in inspect.getsource(cls).splitlines():
         s = line.strip()
         if s.startswith(f"{name}:") and "#" in s:
             return s.split("#", 1)[1].strip()
     return ""
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """One ``--flag`` per TrainConfig field (default None: the preset decides)."""
-    defaults = TrainConfig()
-    for f in fields(TrainConfig):
-        if f.name == "preset":
-            p.add_argument("--preset", choices=sorted(PRESETS), default="default", help=_help("preset"))
+#: argparse choices of the fields that have them
+CHOICES = {"model": ["linet", "fc"], "eye": ["left", "right"], "lr_schedule": ["cosine", "constant"],
+           "head": ["auto", "softargmax", "linear"]}
+
+
+def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = None) -> None:
+    """One ``--flag`` per field of ``cls`` (TrainConfig by default; default None: the preset decides)."""
+    cls = cls or TrainConfig
+    presets = PRESETS if presets is None else presets
+    defaults = cls()
+    for f in fields(cls):
+        if f.name == "task":  # fixed per config class, not a choice
             continue
-        kind = type(getattr(defaults, f.name))
-        extra = {"model": {"choices": ["linet", "fc"]}, "eye": {"choices": ["left", "right"]},
-                 "lr_schedule": {"choices": ["cosine", "constant"]},
-                 "head": {"choices": ["auto", "softargmax", "linear"]}}.get(f.name, {})
+        if f.name == "preset":
+            p.add_argument("--preset", choices=sorted(presets), default="default", help=_help(cls, f.name))
+            continue
+        value = getattr(defaults, f.name)
+        extra = {"choices": CHOICES[f.name]} if f.name in CHOICES else {}
+        if isinstance(value, bool):
+            p.add_argument(f"--{f.name.replace('_', '-')}", action="store_const", const=True, default=None,
+                           help=f"{_help(cls, f.name)} (default: off)")
+            continue
         p.add_argument(
             f"--{f.name.replace('_', '-')}",
-            type=kind,
+            type=type(value),
             default=None,
-            help=f"{_help(f.name)} (default: {getattr(defaults, f.name)!r}; presets may change it)",
+            help=f"{_help(cls, f.name)} (default: {value!r}; presets may change it)",
             **extra,
         )
 
 
-def from_args(args: argparse.Namespace) -> TrainConfig:
-    return resolve(args.preset, {f.name: getattr(args, f.name, None) for f in fields(TrainConfig)})
+def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
+    cls = cls or TrainConfig
+    return resolve(args.preset, {f.name: getattr(args, f.name, None) for f in fields(cls)}, cls, presets)
 
 
-def asdict(cfg: TrainConfig) -> dict:
+def asdict(cfg) -> dict:
     return dataclasses.asdict(cfg)

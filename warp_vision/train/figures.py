@@ -1,4 +1,4 @@
-"""Figures of a foveation run: loss curves (Fig. 6), predicted vs true angles, retina images."""
+"""Figures of training runs: foveation (Fig. 6 curves, predicted vs true angles, retina images) and face recognition (Figs. 11 and 12)."""
 
 from __future__ import annotations
 
@@ -72,3 +72,96 @@ def write_figures(out: Path, history, retina, onv16, target, idx, pred, cfg) -> 
         viz.plot_onv(retina, onv16[int(idx[k])].float(), ax=ax, mark=[tuple(tp[k]), tuple(pp[k])],
                      title="ball image: + true, x predicted")
     fig.savefig(figdir / "retina_images.png", dpi=110, bbox_inches="tight")
+
+
+# --------------------------------------------------------------------------------------------------
+# active face recognition (the paper's Figs. 11 and 12)
+
+
+def plot_face_curves(history) -> Figure:
+    """Classification (cross-entropy, accuracy) and regression (pose MSE) curves of an AFR run (Fig. 12)."""
+    fig = Figure(figsize=(11, 4.2))
+    ep = [h["epoch"] for h in history]
+    ax = fig.add_subplot(1, 2, 1)
+    ax.plot(ep, [h["train_ce"] for h in history], "-", color="C0", label="train cross-entropy")
+    ax.plot(ep, [h["val_ce"] for h in history], "--", color="C0", label="validation cross-entropy")
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("classification loss")
+    acc = ax.twinx()
+    acc.plot(ep, [100 * h["val_accuracy"] for h in history], ":", color="C3", label="validation accuracy")
+    acc.set_ylabel("validation accuracy (%)", color="C3")
+    acc.set_ylim(0, 100)
+    ax.legend(loc="center right")
+    ax.set_title("identity (FC1)")
+    ax = fig.add_subplot(1, 2, 2)
+    ax.plot(ep, [h["train_mse"] for h in history], "-", color="C1", label="train")
+    ax.plot(ep, [h["val_mse"] for h in history], "--", color="C1", label="validation")
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("pose MSE (standardised)")
+    ax.set_title("pose (FC2)")
+    ax.legend()
+    return fig
+
+
+def write_face_figures(out: Path, history, retina, onv16, ident, pose, idx, test: dict, cfg) -> None:
+    """loss_curves.png, confusion_matrix.png, retina_grid.png, pose_error.png in ``out/figures``."""
+    from warp_vision import viz
+
+    figdir = Path(out) / "figures"
+    figdir.mkdir(exist_ok=True)
+    plot_face_curves(history).savefig(figdir / "loss_curves.png", dpi=120, bbox_inches="tight")
+    i = torch.as_tensor(idx)
+    true_id, pred_id = ident[i].numpy(), test["pred_identity"].numpy()
+    n = cfg.identities
+    cm = np.zeros((n, n))
+    np.add.at(cm, (true_id, pred_id), 1)
+    cm /= np.maximum(cm.sum(1, keepdims=True), 1)
+    fig = Figure(figsize=(6, 5.2))
+    ax = fig.add_subplot(1, 1, 1)
+    im = ax.imshow(cm, cmap="viridis", vmin=0, vmax=1)
+    fig.colorbar(im, ax=ax, label="share of the true identity's test ONVs")
+    ax.set_xlabel("predicted identity")
+    ax.set_ylabel("true identity")
+    ax.set_title(f"test confusion matrix (accuracy {100 * test['accuracy']:.1f}%)")
+    fig.savefig(figdir / "confusion_matrix.png", dpi=120, bbox_inches="tight")
+    # retina images across poses (columns) and identities (rows), as in Fig. 11
+    data = cfg.data_config()
+    values = data.pose_values()
+    cols = sorted({int(round(k)) for k in np.linspace(0, len(values) - 1, min(5, len(values)))})
+    rows = list(range(min(4, n)))
+    mid = len(values) // 2
+    fig = Figure(figsize=(3.0 * len(cols), 3.1 * len(rows)))
+    for r, who in enumerate(rows):
+        for c, k in enumerate(cols):
+            s = who * data.poses + k * len(values) + mid
+            ax = fig.add_subplot(len(rows), len(cols), r * len(cols) + c + 1)
+            viz.plot_onv(retina, onv16[s].float(), ax=ax, title=f"id {who}, yaw {values[k]:+.0f}, pitch {values[mid]:+.0f}")
+            lim = 1.5 * np.degrees(np.arctan(0.12 / data.distance_m)) + 5
+            ax.set_xlim(-lim, lim)
+            ax.set_ylim(-lim, lim)
+            ax.set_xlabel("")
+            ax.set_ylabel("")
+    fig.suptitle("retina images (optical image inverted, as on a retina) across poses and identities")
+    fig.savefig(figdir / "retina_grid.png", dpi=90, bbox_inches="tight")
+    # pose error as a function of pose
+    err = (test["pred_pose"] - pose[i]).abs().mean(1).numpy()
+    yaw_k = np.searchsorted(values, pose[i][:, 0].numpy() - 1e-3)
+    pit_k = np.searchsorted(values, pose[i][:, 1].numpy() - 1e-3)
+    grid = np.full((len(values), len(values)), np.nan)
+    tot = np.zeros_like(grid)
+    cnt = np.zeros_like(grid)
+    np.add.at(tot, (pit_k, yaw_k), err)
+    np.add.at(cnt, (pit_k, yaw_k), 1)
+    grid[cnt > 0] = tot[cnt > 0] / cnt[cnt > 0]
+    fig = Figure(figsize=(6, 5.2))
+    ax = fig.add_subplot(1, 1, 1)
+    half = (values[1] - values[0]) / 2 if len(values) > 1 else 1
+    im = ax.imshow(grid, origin="lower", extent=(values[0] - half, values[-1] + half, values[0] - half, values[-1] + half),
+                   cmap="magma")
+    fig.colorbar(im, ax=ax, label="mean absolute pose error (deg)")
+    ax.set_xlabel("yaw (deg)")
+    ax.set_ylabel("pitch (deg)")
+    ax.set_title(f"test pose error by pose (mean {test['pose_mae_deg']:.2f} deg)")
+    fig.savefig(figdir / "pose_error.png", dpi=120, bbox_inches="tight")

@@ -82,6 +82,19 @@ def peak_rss_mib() -> float:
     return r / 2**20 if sys.platform == "darwin" else r / 1024
 
 
+def claim_out_dir(out: Path, overwrite: bool) -> None:
+    """Refuse to start a new run in a directory that holds one (its metrics or checkpoints), unless
+    ``overwrite``: then delete them (rank 0)."""
+    old = [out / n for n in ("metrics.jsonl", "latest.pt", "best.pt", "summary.json")]
+    if any(f.exists() for f in old):
+        if not overwrite:
+            raise ValueError(f"--out {out} already holds a run; continue it with --resume {out}, "
+                             f"choose another --out, or pass --overwrite to replace it")
+        if int(os.environ.get("RANK", "0")) == 0:
+            for f in old:
+                f.unlink(missing_ok=True)
+
+
 def pick_device(name: str) -> str:
     if name == "auto":
         from warp_vision.kernels.launch import available_devices
@@ -195,14 +208,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
         raise ValueError("run: give a config or a run directory to resume")
     else:
         out = Path(cfg.out)
-        old = [out / n for n in ("metrics.jsonl", "latest.pt", "best.pt", "summary.json")]
-        if any(f.exists() for f in old):
-            if not overwrite:
-                raise ValueError(f"--out {out} already holds a run; continue it with --resume {out}, "
-                                 f"choose another --out, or pass --overwrite to replace it")
-            if int(os.environ.get("RANK", "0")) == 0:
-                for f in old:
-                    f.unlink(missing_ok=True)
+        claim_out_dir(out, overwrite)
     cfg.validate()
     device = pick_device(cfg.device)
     dd = _Dist(device)
