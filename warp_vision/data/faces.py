@@ -416,46 +416,20 @@ def synthesize(out_dir, cfg: FaceDataConfig, shard=(0, 1), batch: int = 16, devi
 
     ``out_dir/identities.npz`` holds the identity meshes and ``out_dir/retina.npz`` the retina.
     """
-    from tqdm import tqdm
-
-    from warp_vision.eye.retina import Retina
+    from warp_vision.data.synth import open_store, pending, render_missing
 
     cfg.validate()
-    if batch < 1:
-        raise ValueError(f"batch: expected >= 1, got {batch}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    store = ChunkedStore.create_or_resume(out, cfg.manifest(), cfg.samples, cfg.chunk_size, dataset_fields(cfg),
-                                          shard=tuple(shard))
     retina = make_retina(cfg)
-    retina_path = out / "retina.npz"
-    if retina_path.exists():
-        saved = Retina.load(retina_path)
-        if not np.array_equal(saved.rho, retina.rho) or not np.array_equal(saved.theta, retina.theta):
-            raise ValueError(f"{retina_path}: holds a different retina than this config builds")
-    else:
-        retina.save(retina_path)
-    missing = store.missing_chunks()
-    if not missing:
+    store = open_store(out_dir, cfg.manifest(), cfg.samples, cfg.chunk_size, dataset_fields(cfg), shard, retina, batch)
+    todo, mine = pending(store)
+    if not todo:
         return store
     ids = load_identities(cfg.identities, cfg.identity_seed, identities_path, progress, log)
-    if not (out / "identities.npz").exists():
-        ids.save(out / "identities.npz")
-    todo = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in missing)
-    mine = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in store.my_chunks())
+    if not (Path(out_dir) / "identities.npz").exists():
+        ids.save(Path(out_dir) / "identities.npz")
     log(f"synthesising {todo:,} of {mine:,} face ONVs ({cfg.identities} identities x {cfg.poses} poses; "
-        f"P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into {out}")
-    eye = make_eye(cfg)
-    scene = make_scene(ids)
-    t0 = time.perf_counter()
-    with tqdm(total=mine, initial=mine - todo, unit="ONV", desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:
-        for c in missing:
-            lo, hi = store.chunk_range(c)
-            parts = []
-            for s in range(lo, hi, batch):
-                parts.append(render_samples(cfg, range(s, min(hi, s + batch)), ids, scene, retina, eye, device))
-                bar.update(len(parts[-1]["identity"]))
-            store.write_chunk(c, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
-    dt = time.perf_counter() - t0
-    log(f"synthesised {todo:,} face ONVs in {dt:.0f} s ({todo / dt:.1f} ONV/s)")
+        f"P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into {out_dir}")
+    eye, scene = make_eye(cfg), make_scene(ids)
+    render_missing(store, lambda r: render_samples(cfg, r, ids, scene, retina, eye, device), batch, progress, log,
+                   "face ONVs")
     return store

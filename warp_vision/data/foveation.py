@@ -22,9 +22,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -266,43 +264,15 @@ def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16,
     Chunks already written (and recorded) are kept; the rest are rendered ``batch`` samples per launch.
     Returns the store. ``out_dir/retina.npz`` holds the retina the ONVs were rendered with.
     """
-    from tqdm import tqdm
-
-    from warp_vision.eye.retina import Retina
+    from warp_vision.data.synth import open_store, pending, render_missing
 
     cfg.validate()
-    if batch < 1:
-        raise ValueError(f"batch: expected >= 1, got {batch}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    store = ChunkedStore.create_or_resume(
-        out, cfg.manifest(), cfg.samples, cfg.chunk_size, dataset_fields(cfg), shard=tuple(shard)
-    )
-    retina_path = out / "retina.npz"
     retina = make_retina(cfg)
-    if retina_path.exists():
-        saved = Retina.load(retina_path)
-        if not np.array_equal(saved.rho, retina.rho) or not np.array_equal(saved.theta, retina.theta):
-            raise ValueError(f"{retina_path}: holds a different retina than this config builds")
-    else:
-        retina.save(retina_path)
-    missing = store.missing_chunks()
-    todo = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in missing)
-    mine = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in store.my_chunks())
-    if not missing:
+    store = open_store(out_dir, cfg.manifest(), cfg.samples, cfg.chunk_size, dataset_fields(cfg), shard, retina, batch)
+    todo, mine = pending(store)
+    if not todo:
         return store
-    log(f"synthesising {todo:,} of {mine:,} ONVs (P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into {out}")
-    eye = make_eye(cfg)
-    scene = make_scene(cfg.seed)
-    t0 = time.perf_counter()
-    with tqdm(total=mine, initial=mine - todo, unit="ONV", desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:
-        for c in missing:
-            lo, hi = store.chunk_range(c)
-            parts = []
-            for s in range(lo, hi, batch):
-                parts.append(render_samples(cfg, range(s, min(hi, s + batch)), scene, retina, eye, device))
-                bar.update(len(parts[-1]["target"]))
-            store.write_chunk(c, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
-    dt = time.perf_counter() - t0
-    log(f"synthesised {todo:,} ONVs in {dt:.0f} s ({todo / dt:.1f} ONV/s)")
+    log(f"synthesising {todo:,} of {mine:,} ONVs (P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into {out_dir}")
+    eye, scene = make_eye(cfg), make_scene(cfg.seed)
+    render_missing(store, lambda r: render_samples(cfg, r, scene, retina, eye, device), batch, progress, log)
     return store

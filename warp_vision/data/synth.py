@@ -1,0 +1,57 @@
+"""What the dataset generators share: a store with its retina beside it, and rendering its missing chunks."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from warp_vision.data.store import ChunkedStore
+
+
+def open_store(out_dir, manifest: dict, total: int, chunk_size: int, fields: dict, shard, retina, batch: int) -> ChunkedStore:
+    """Create or resume the store in ``out_dir`` and keep ``retina`` in ``out_dir/retina.npz`` (a store
+    whose saved retina differs from ``retina`` is refused with ``ValueError``)."""
+    from warp_vision.eye.retina import Retina
+
+    if batch < 1:
+        raise ValueError(f"batch: expected >= 1, got {batch}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    store = ChunkedStore.create_or_resume(out, manifest, total, chunk_size, fields, shard=tuple(shard))
+    path = out / "retina.npz"
+    if path.exists():
+        saved = Retina.load(path)
+        if not np.array_equal(saved.rho, retina.rho) or not np.array_equal(saved.theta, retina.theta):
+            raise ValueError(f"{path}: holds a different retina than this config builds")
+    else:
+        retina.save(path)
+    return store
+
+
+def pending(store: ChunkedStore) -> tuple[int, int]:
+    """(samples still to render, samples of this shard) of ``store``."""
+    size = lambda cs: sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in cs)  # noqa: E731
+    return size(store.missing_chunks()), size(store.my_chunks())
+
+
+def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: int, progress: bool, log,
+                   what: str = "ONVs") -> None:
+    """Render this shard's missing chunks, ``batch`` samples per ``render(range)`` call, with a progress
+    bar (rate and time left), and write each chunk when it is whole."""
+    from tqdm import tqdm
+
+    todo, mine = pending(store)
+    t0 = time.perf_counter()
+    with tqdm(total=mine, initial=mine - todo, unit="ONV", desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:
+        for c in store.missing_chunks():
+            lo, hi = store.chunk_range(c)
+            parts = []
+            for s in range(lo, hi, batch):
+                parts.append(render(range(s, min(hi, s + batch))))
+                bar.update(min(hi, s + batch) - s)
+            store.write_chunk(c, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
+    dt = time.perf_counter() - t0
+    log(f"synthesised {todo:,} {what} in {dt:.0f} s ({todo / dt:.1f} ONV/s)")
