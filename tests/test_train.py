@@ -167,6 +167,8 @@ def test_bad_config_is_refused():
         resolve("smoke", {"val_fraction": 0.95})
     with pytest.raises(ValueError, match="head"):
         resolve("smoke", {"model": "fc", "head": "softargmax"})
+    with pytest.raises(ValueError, match="loss"):
+        resolve("smoke", {"loss": "l1"})
     assert resolve("smoke", {"model": "fc"}).head_kind() == "linear"
     assert resolve("smoke", {}).head_kind() == "softargmax"
     assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
@@ -188,11 +190,17 @@ def test_learning_rate_schedule(tmp_path, smoke_data):
     assert ck["optimizer"]["param_groups"][0]["lr"] == sm.epoch_lr(2)
 
 
-@pytest.mark.parametrize("model,head", [("linet", "linear"), ("fc", "auto")])
-def test_other_read_outs_train(tmp_path, smoke_data, model, head):
-    """The paper's linear read-out and the FC baseline train and evaluate too."""
-    summary = loop.run(smoke(tmp_path, smoke_data, model=model, head=head, epochs=2), progress=False, log=lambda *a: None)
-    assert summary["head"] == "linear" and summary["model"] == model
+@pytest.mark.parametrize("model,head,loss", [("linet", "linear", "mse"), ("fc", "auto", "huber")])
+def test_other_read_outs_train(tmp_path, smoke_data, model, head, loss):
+    """The paper's linear read-out and MSE loss, and the FC baseline, train and evaluate too."""
+    summary = loop.run(smoke(tmp_path, smoke_data, model=model, head=head, loss=loss, epochs=2), progress=False,
+                       log=lambda *a: None)
+    assert summary["head"] == "linear" and summary["model"] == model and summary["loss"] == loss
+    rows = [json.loads(x) for x in (tmp_path / "run/metrics.jsonl").read_text().splitlines()]
+    if loss == "mse":  # the training loss is the MSE itself
+        assert all(r["val_loss"] == pytest.approx(r["val_mse"]) for r in rows)
+    else:  # Huber is at most half the squared error
+        assert all(r["val_loss"] <= 0.5 * r["val_mse"] + 1e-9 for r in rows)
     assert np.isfinite(summary["test_median_deg"])
     assert loop.evaluate_run(str(tmp_path / "run"), log=lambda *a: None)["median_deg"] == pytest.approx(summary["test_median_deg"])
 

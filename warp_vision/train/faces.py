@@ -29,12 +29,13 @@ from warp_vision.train.loop import (
     NonFiniteLoss,
     _Dist,
     _Interrupt,
-    claim_out_dir,
+    load_best,
+    open_run,
     input_stats,
     net_input,
     peak_rss_mib,
     pick_device,
-    save_atomic,
+    record_epoch,
 )
 
 
@@ -118,17 +119,7 @@ def run(cfg: FaceTrainConfig | None = None, resume: str | None = None, progress:
     """Train (or resume) an AFR run; returns the summary (also written to summary.json)."""
     from tqdm import tqdm
 
-    if resume:
-        out = Path(resume)
-        if not (out / "latest.pt").exists():
-            raise FileNotFoundError(f"--resume {resume}: no latest.pt there to resume from")
-        cfg = FaceTrainConfig(**json.loads((out / "config.json").read_text()))
-    elif cfg is None:
-        raise ValueError("run: give a config or a run directory to resume")
-    else:
-        out = Path(cfg.out)
-        claim_out_dir(out, overwrite)
-    cfg.validate()
+    cfg, out = open_run(FaceTrainConfig, cfg, resume, overwrite)
     device = pick_device(cfg.device)
     dd = _Dist(device)
     say = log if dd.rank == 0 else (lambda *a, **k: None)
@@ -209,11 +200,7 @@ def run(cfg: FaceTrainConfig | None = None, resume: str | None = None, progress:
                    "val_pose_mae_deg": ev["pose_mae_deg"], "saved_best": save_best, "seconds": time.perf_counter() - t0}
             history.append(row)
             if dd.rank == 0:
-                with open(out / "metrics.jsonl", "a") as f:
-                    f.write(json.dumps(row) + "\n")
-                save_atomic(checkpoint(epoch), out / "latest.pt")
-                if save_best:
-                    save_atomic(checkpoint(epoch), out / "best.pt")
+                record_epoch(out, row, checkpoint(epoch), save_best)
                 say(f"epoch {epoch + 1:3d}: train CE {tr_ce:.3f} MSE {tr_mse:.4f} acc {tr_acc:.3f} | val CE {ev['ce']:.3f} "
                     f"MSE {ev['mse']:.4f} acc {ev['accuracy']:.3f} pose MAE {ev['pose_mae_deg']:.2f} deg "
                     f"({row['seconds']:.1f} s){'  *' if save_best else ''}")
@@ -276,11 +263,7 @@ def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
     from warp_vision.data.store import ChunkedStore
     from warp_vision.eye.retina import Retina
 
-    out = Path(run_dir)
-    if not (out / "best.pt").exists():
-        raise FileNotFoundError(f"{run_dir}: no best.pt (is this a training run directory?)")
-    ck = torch.load(out / "best.pt", weights_only=True)
-    cfg = FaceTrainConfig(**ck["config"])
+    ck, cfg = load_best(run_dir, FaceTrainConfig)
     ddir = dataset_dir(cfg)
     data = ChunkedStore.open(ddir).load(["onv", "identity", "pose"])
     onv16, ident, pose = (torch.from_numpy(data[k]) for k in ("onv", "identity", "pose"))

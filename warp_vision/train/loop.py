@@ -82,6 +82,41 @@ def peak_rss_mib() -> float:
     return r / 2**20 if sys.platform == "darwin" else r / 1024
 
 
+def open_run(cls, cfg, resume: str | None, overwrite: bool):
+    """(validated config, output directory) of the run to resume (its config.json read as ``cls``) or
+    of the new run ``cfg`` (refusing an --out that holds a run unless ``overwrite``)."""
+    if resume:
+        out = Path(resume)
+        if not (out / "latest.pt").exists():
+            raise FileNotFoundError(f"--resume {resume}: no latest.pt there to resume from")
+        cfg = cls(**json.loads((out / "config.json").read_text()))
+    elif cfg is None:
+        raise ValueError("run: give a config or a run directory to resume")
+    else:
+        out = Path(cfg.out)
+        claim_out_dir(out, overwrite)
+    cfg.validate()
+    return cfg, out
+
+
+def load_best(run_dir: str, cls):
+    """(best.pt's contents, its config as ``cls``) of a finished run directory."""
+    out = Path(run_dir)
+    if not (out / "best.pt").exists():
+        raise FileNotFoundError(f"{run_dir}: no best.pt (is this a training run directory?)")
+    ck = torch.load(out / "best.pt", weights_only=True)
+    return ck, cls(**ck["config"])
+
+
+def record_epoch(out: Path, row: dict, checkpoint: dict, best: bool) -> None:
+    """Append the epoch's metrics row and write latest.pt (and best.pt when ``best``), atomically."""
+    with open(out / "metrics.jsonl", "a") as f:
+        f.write(json.dumps(row) + "\n")
+    save_atomic(checkpoint, out / "latest.pt")
+    if best:
+        save_atomic(checkpoint, out / "best.pt")
+
+
 def claim_out_dir(out: Path, overwrite: bool) -> None:
     """Refuse to start a new run in a directory that holds one (its metrics or checkpoints), unless
     ``overwrite``: then delete them (rank 0)."""
@@ -214,17 +249,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
     ``overwrite``, which deletes them first."""
     from tqdm import tqdm
 
-    if resume:
-        out = Path(resume)
-        if not (out / "latest.pt").exists():
-            raise FileNotFoundError(f"--resume {resume}: no latest.pt there to resume from")
-        cfg = TrainConfig(**json.loads((out / "config.json").read_text()))
-    elif cfg is None:
-        raise ValueError("run: give a config or a run directory to resume")
-    else:
-        out = Path(cfg.out)
-        claim_out_dir(out, overwrite)
-    cfg.validate()
+    cfg, out = open_run(TrainConfig, cfg, resume, overwrite)
     device = pick_device(cfg.device)
     dd = _Dist(device)
     if dd.on and "WARP_VISION_THREADS" not in os.environ:
@@ -313,11 +338,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
                    "val_p90_deg": ev["p90_deg"], "lr": cfg.epoch_lr(epoch), "seconds": time.perf_counter() - t0}
             history.append(row)
             if dd.rank == 0:
-                with open(out / "metrics.jsonl", "a") as f:
-                    f.write(json.dumps(row) + "\n")
-                save_atomic(checkpoint(epoch), out / "latest.pt")
-                if improved:
-                    save_atomic(checkpoint(epoch), out / "best.pt")
+                record_epoch(out, row, checkpoint(epoch), improved)
                 say(f"epoch {epoch + 1:3d}: train {cfg.loss} {train_loss_:.4f} MSE {train_mse:.4f}  val {cfg.loss} {ev['loss']:.4f} "
                     f"MSE {ev['mse']:.4f}  "
                     f"val median {ev['median_deg']:.2f} deg  ({row['seconds']:.1f} s){'  *' if improved else ''}")
@@ -373,11 +394,7 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
 
 def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
     """Re-evaluate a run's best checkpoint on its held-out split; prints the angular error."""
-    out = Path(run_dir)
-    if not (out / "best.pt").exists():
-        raise FileNotFoundError(f"{run_dir}: no best.pt (is this a training run directory?)")
-    ck = torch.load(out / "best.pt", weights_only=True)
-    cfg = TrainConfig(**ck["config"])
+    ck, cfg = load_best(run_dir, TrainConfig)
     from warp_vision.data.store import ChunkedStore
     from warp_vision.eye.retina import Retina
 
