@@ -34,7 +34,7 @@ class TrainConfig:
     loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls too small or hidden to localise) or mse (the paper's)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
-    lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs) or constant
+    lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs), plateau (x0.3 after every 3 epochs without a better validation loss) or constant
     epochs: int = 40  # at most
     patience: int = 8  # early stopping: epochs without a better validation loss
     val_fraction: float = 0.1
@@ -51,7 +51,7 @@ class TrainConfig:
     def epoch_lr(self, epoch: int) -> float:
         """Adam's learning rate in epoch ``epoch`` (0-based): a function of the epoch alone, so a resumed
         run continues the schedule exactly."""
-        if self.lr_schedule == "constant" or self.epochs == 1:
+        if self.lr_schedule in ("constant", "plateau") or self.epochs == 1:  # plateau: the loop lowers it
             return self.lr
         t = min(epoch, self.epochs - 1) / (self.epochs - 1)
         return self.lr * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * t)))
@@ -82,8 +82,8 @@ class TrainConfig:
             raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
         if self.loss not in ("huber", "mse"):
             raise ValueError(f"loss: expected huber or mse, got {self.loss!r}")
-        if self.lr_schedule not in ("cosine", "constant"):
-            raise ValueError(f"lr_schedule: expected cosine or constant, got {self.lr_schedule!r}")
+        if self.lr_schedule not in ("cosine", "plateau", "constant"):
+            raise ValueError(f"lr_schedule: expected cosine, plateau or constant, got {self.lr_schedule!r}")
         if not self.lr > 0:
             raise ValueError(f"lr: expected > 0, got {self.lr}")
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
@@ -202,7 +202,7 @@ def _help(cls, name: str) -> str:
 
 
 #: argparse choices of the fields that have them
-CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc"], "eye": ["left", "right"], "lr_schedule": ["cosine", "constant"],
+CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc"], "eye": ["left", "right"], "lr_schedule": ["cosine", "plateau", "constant"],
            "head": ["auto", "softargmax", "linear"]}
 
 

@@ -80,7 +80,8 @@ def write_figures(out: Path, history, retina, onv16, target, idx, pred, cfg) -> 
 
 def plot_face_curves(history) -> Figure:
     """Classification (cross-entropy, accuracy) and regression (pose MSE) curves of an AFR run (Fig. 12)."""
-    fig = Figure(figsize=(11, 4.2))
+    fig = Figure(figsize=(12, 4.2))
+    fig.subplots_adjust(wspace=0.45)  # room for the accuracy axis between the panels
     ep = [h["epoch"] for h in history]
     ax = fig.add_subplot(1, 2, 1)
     ax.plot(ep, [h["train_ce"] for h in history], "-", color="C0", label="train cross-entropy")

@@ -198,6 +198,10 @@ def train_loss(kind: str, pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.huber_loss(pred, y, delta=HUBER_DELTA)
 
 
+#: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
+#: without a better validation loss.
+PLATEAU_EPOCHS = 3
+PLATEAU_FACTOR = 0.3
 #: Huber loss threshold in standardised target units (the targets' std is about 20 degrees, so ~2 degrees).
 HUBER_DELTA = 0.1
 
@@ -297,8 +301,10 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
     try:
         for epoch in range(start_epoch, cfg.epochs):
             t0 = time.perf_counter()
-            for g in opt.param_groups:
-                g["lr"] = cfg.epoch_lr(epoch)
+            if cfg.lr_schedule != "plateau":  # plateau: the optimizer's own rate (lowered below, restored on resume)
+                for g in opt.param_groups:
+                    g["lr"] = cfg.epoch_lr(epoch)
+            lr_now = opt.param_groups[0]["lr"]
             perm = np.random.default_rng([cfg.seed, epoch]).permutation(tr)
             steps = range(0, len(perm), cfg.batch)
             total, total_mse, count = 0.0, 0.0, 0
@@ -333,9 +339,12 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
             ev = evaluate_model(model, onv16, target, va, norm, device, loss=cfg.loss)
             improved = ev["loss"] < best_val
             best_val, bad = (ev["loss"], 0) if improved else (best_val, bad + 1)
+            if cfg.lr_schedule == "plateau" and bad and bad % PLATEAU_EPOCHS == 0:
+                for g in opt.param_groups:
+                    g["lr"] *= PLATEAU_FACTOR
             row = {"epoch": epoch + 1, "train_loss": train_loss_, "train_mse": train_mse, "val_loss": ev["loss"],
                    "val_mse": ev["mse"], "val_median_deg": ev["median_deg"],
-                   "val_p90_deg": ev["p90_deg"], "lr": cfg.epoch_lr(epoch), "seconds": time.perf_counter() - t0}
+                   "val_p90_deg": ev["p90_deg"], "lr": lr_now, "seconds": time.perf_counter() - t0}
             history.append(row)
             if dd.rank == 0:
                 record_epoch(out, row, checkpoint(epoch), improved)
