@@ -16,6 +16,14 @@ import sys
 from warp_vision.train import config as C
 
 
+def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The flags every training command has besides its config's."""
+    p.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the stopped run in RUN_DIR exactly")
+    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return p
+
+
 def _train_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m warp_vision.train",
@@ -28,10 +36,7 @@ def _train_parser() -> argparse.ArgumentParser:
         ),
     )
     C.add_arguments(p)
-    p.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the stopped run in RUN_DIR exactly")
-    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    return p
+    return _run_flags(p)
 
 
 def _faces_parser() -> argparse.ArgumentParser:
@@ -44,15 +49,14 @@ def _faces_parser() -> argparse.ArgumentParser:
         ),
     )
     C.add_arguments(p, C.FaceTrainConfig, C.FACE_PRESETS)
-    p.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the stopped run in RUN_DIR exactly")
-    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    return p
+    return _run_flags(p)
 
 
 def _eval_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m warp_vision.train evaluate",
-                                description="Re-evaluate a run's best checkpoint: angular error (median, 90th percentile) in degrees.")
+                                description="Re-evaluate a run's best checkpoint: for a foveation run the angular error "
+                                            "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
+                                            "the pose error.")
     p.add_argument("run_dir", help="a training run directory (with best.pt)")
     p.add_argument("--split", choices=["test", "val", "train"], default="test", help="which split (default test)")
     return p
