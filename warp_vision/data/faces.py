@@ -18,7 +18,7 @@ first k identities of a set of 50 are the k identities of a set of k (tests use 
 A sample is one identity in one pose. The head turns about its centre (at eye height) by ``yaw``
 (about +z; positive turns the face toward +x, its left) and then ``pitch`` (positive lifts the chin).
 Both run over ``-max_pose_deg`` to ``max_pose_deg`` in ``pose_step_deg`` steps: with the defaults that
-is 30 x 30 poses, the 1st to the 30th of -29, -27, ..., 29 degrees. The eye stands ``distance_m``
+is 30 x 30 poses, each angle one of -29, -27, ..., 29 degrees. The eye stands ``distance_m``
 in front of the frontal face's centre (midway between the eyes and the mouth) and fixates that
 centre wherever the pose puts it. It is accommodated to that distance. The lighting is fixed: a
 warm key light, a cool fill light, ambient light and a grey backdrop. ONVs are stored as float16, as

@@ -10,6 +10,28 @@ from dataclasses import dataclass, fields
 from warp_vision.data.foveation import FoveationDataConfig
 
 
+#: The allowed values of the fields that have a fixed set (argparse choices and validation).
+CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc"], "eye": ["left", "right"],
+           "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"]}
+
+
+def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
+    """The checks every training config shares: its preset, its fields with a fixed set of values, the
+    network's and the optimisation's positive integers (and ``positive``), lr and device."""
+    if cfg.preset not in presets:
+        raise ValueError(f"preset: expected one of {sorted(presets)}, got {cfg.preset!r}")
+    for name, allowed in CHOICES.items():
+        if hasattr(cfg, name) and getattr(cfg, name) not in allowed:
+            raise ValueError(f"{name}: expected one of {allowed}, got {getattr(cfg, name)!r}")
+    for name in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"{name}: expected a positive integer, got {getattr(cfg, name)}")
+    if not cfg.lr > 0:
+        raise ValueError(f"lr: expected > 0, got {cfg.lr}")
+    if cfg.device not in ("auto", "cpu", "cuda") and not cfg.device.startswith("cuda:"):
+        raise ValueError(f"device: expected cpu, cuda or auto, got {cfg.device!r}")
+
+
 @dataclass
 class TrainConfig:
     """Everything a foveation training run depends on (written to RUN_DIR/config.json)."""
@@ -67,27 +89,11 @@ class TrainConfig:
         )
 
     def validate(self) -> None:
-        if self.preset not in PRESETS:
-            raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {self.preset!r}")
-        if self.model not in ("linet", "fc"):
-            raise ValueError(f"model: expected linet or fc, got {self.model!r}")
-        if self.head not in ("auto", "softargmax", "linear"):
-            raise ValueError(f"head: expected auto, softargmax or linear, got {self.head!r}")
+        _check_common(self, PRESETS, ("samples", "photoreceptors", "samples_per_receptor"))
         if self.model == "fc" and self.head == "softargmax":
             raise ValueError("head: the fc baseline has no unit positions to vote with; use --head linear")
-        for name in ("samples", "photoreceptors", "samples_per_receptor", "layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
         if not (0 < self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
             raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
-        if self.loss not in ("huber", "mse"):
-            raise ValueError(f"loss: expected huber or mse, got {self.loss!r}")
-        if self.lr_schedule not in ("cosine", "plateau", "constant"):
-            raise ValueError(f"lr_schedule: expected cosine, plateau or constant, got {self.lr_schedule!r}")
-        if not self.lr > 0:
-            raise ValueError(f"lr: expected > 0, got {self.lr}")
-        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
-            raise ValueError(f"device: expected cpu, cuda or auto, got {self.device!r}")
         self.data_config().validate()
 
 
@@ -145,23 +151,15 @@ class FaceTrainConfig:
                               distance_m=self.distance_m, identity_seed=self.identity_seed, seed=self.data_seed)
 
     def validate(self) -> None:
-        if self.preset not in FACE_PRESETS:
-            raise ValueError(f"preset: expected one of {sorted(FACE_PRESETS)}, got {self.preset!r}")
+        _check_common(self, FACE_PRESETS)
         if self.task != "faces":
             raise ValueError(f"task: expected 'faces', got {self.task!r}")
-        if self.model not in ("linet", "fc"):
-            raise ValueError(f"model: expected linet or fc, got {self.model!r}")
-        for name in ("layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
         if self.identities < 2:
             raise ValueError(f"identities: expected at least 2 (a classifier needs classes), got {self.identities}")
         if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
             raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
-        if not self.lr > 0 or not self.loss_lambda >= 0:
-            raise ValueError(f"lr and loss_lambda: expected lr > 0 and loss_lambda >= 0, got {self.lr} and {self.loss_lambda}")
-        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
-            raise ValueError(f"device: expected cpu, cuda or auto, got {self.device!r}")
+        if not self.loss_lambda >= 0:
+            raise ValueError(f"loss_lambda: expected >= 0, got {self.loss_lambda}")
         self.data_config().validate()
 
 
@@ -201,9 +199,6 @@ def _help(cls, name: str) -> str:
     return ""
 
 
-#: argparse choices of the fields that have them
-CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc"], "eye": ["left", "right"], "lr_schedule": ["cosine", "plateau", "constant"],
-           "head": ["auto", "softargmax", "linear"]}
 
 
 def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = None) -> None:

@@ -193,7 +193,6 @@ def run(cfg: FaceTrainConfig | None = None, resume: str | None = None, progress:
             save_best = new_mse and new_acc
             if save_best:
                 best_epoch = epoch
-            best_mse, best_acc = float(best_mse), float(best_acc)
             bad = 0 if improved else bad + 1
             row = {"epoch": epoch + 1, "train_ce": tr_ce, "train_mse": tr_mse, "train_accuracy": tr_acc,
                    "val_ce": ev["ce"], "val_mse": ev["mse"], "val_accuracy": ev["accuracy"],

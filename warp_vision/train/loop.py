@@ -335,20 +335,20 @@ def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: boo
                 total_mse += float(torch.nn.functional.mse_loss(pred.detach(), y)) * len(idx)
                 count += len(idx)
                 bar.set_postfix(loss=f"{total / max(count, 1):.4f}")
-            train_loss_, train_mse = dd.all_mean(total / max(count, 1)), dd.all_mean(total_mse / max(count, 1))
+            tr_loss, train_mse = dd.all_mean(total / max(count, 1)), dd.all_mean(total_mse / max(count, 1))
             ev = evaluate_model(model, onv16, target, va, norm, device, loss=cfg.loss)
             improved = ev["loss"] < best_val
             best_val, bad = (ev["loss"], 0) if improved else (best_val, bad + 1)
             if cfg.lr_schedule == "plateau" and bad and bad % PLATEAU_EPOCHS == 0:
                 for g in opt.param_groups:
                     g["lr"] *= PLATEAU_FACTOR
-            row = {"epoch": epoch + 1, "train_loss": train_loss_, "train_mse": train_mse, "val_loss": ev["loss"],
+            row = {"epoch": epoch + 1, "train_loss": tr_loss, "train_mse": train_mse, "val_loss": ev["loss"],
                    "val_mse": ev["mse"], "val_median_deg": ev["median_deg"],
                    "val_p90_deg": ev["p90_deg"], "lr": lr_now, "seconds": time.perf_counter() - t0}
             history.append(row)
             if dd.rank == 0:
                 record_epoch(out, row, checkpoint(epoch), improved)
-                say(f"epoch {epoch + 1:3d}: train {cfg.loss} {train_loss_:.4f} MSE {train_mse:.4f}  val {cfg.loss} {ev['loss']:.4f} "
+                say(f"epoch {epoch + 1:3d}: train {cfg.loss} {tr_loss:.4f} MSE {train_mse:.4f}  val {cfg.loss} {ev['loss']:.4f} "
                     f"MSE {ev['mse']:.4f}  "
                     f"val median {ev['median_deg']:.2f} deg  ({row['seconds']:.1f} s){'  *' if improved else ''}")
             if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
