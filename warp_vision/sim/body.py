@@ -1,0 +1,501 @@
+"""The virtual human's body in MuJoCo, assembled with ``mujoco.MjSpec`` from parts.
+
+- myo-sim's ``myoarms``: a passive anatomical torso scaffold (pelvis, spine, ribcage, skull) with two
+  muscle-driven arms (63 Hill-type muscles each). The pelvis is fixed and sits on a stool (the paper's
+  Fig. 8 set-up).
+- A head on a neck of three hinges (yaw, pitch, roll about the skull base), each moved by an
+  antagonistic pair of Hill-type muscles on fixed tendons (moment arm ``NECK_MOMENT_ARM``), with passive
+  ligament stiffness and damping.
+- Two eyes in the skull's orbits, 63 mm apart: 12 mm spheres of 7.5 g on ball joints with orbital
+  tissue stiffness and damping, each turned by six Hill-type muscles on spatial tendons that wrap the
+  globe: the four recti from the annulus of Zinn behind the eye, the superior oblique through a
+  trochlea at the upper nasal orbital rim, the inferior oblique from the nasal orbital floor (see
+  :data:`EYE_MUSCLES`). Each eye also has two intraocular actuators, pupil diameter (mm) and lens
+  accommodation (dioptres): first-order filters whose state (``data.act``) is the eye's optical state.
+- A cannon (a static barrel) and a ball on a free joint that it launches.
+
+Frames: world +z up (DESIGN.md); the body faces -y; its left is +x. At rest each eye's body frame is
+the eye frame of DESIGN.md (+z the optical axis, +y up, +x = +y cross +z = the body's left), so the ball
+joint's quaternion is the eye-in-head rotation. Gaze angles (yaw, pitch) follow the foveation data:
+yaw = atan2(x, z) toward +x, pitch = atan2(y, hypot(x, z)) upward. SI units throughout.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from functools import lru_cache
+
+import mujoco
+import numpy as np
+
+EYE_RADIUS = 0.012  # m
+EYE_MASS = 0.0075  # kg
+INTEROCULAR = 0.063  # m
+#: Eye centres in the world at rest with the pelvis at ``PELVIS_HEIGHT``: found in the scaffold's skull
+#: mesh (the orbits' centres, 12 mm behind the orbital rim) relative to its head body.
+ORBIT_HEIGHT_ABOVE_HEAD = 0.079  # m above the head body's origin (the skull base)
+ORBIT_FORWARD_OF_HEAD = 0.068  # m forward (-y) of the head body's origin
+PELVIS_HEIGHT = 0.62  # m: the sacrum of a person seated on a 0.5 m stool
+STOOL_HEIGHT = 0.5
+#: Eye plant: orbital tissue stiffness (N m / rad) and viscosity (N m s / rad) about the eye centre; the
+#: time constant viscosity / stiffness is 20 ms.
+EYE_STIFFNESS = 0.01
+EYE_DAMPING = 2e-4
+EYE_RANGE_DEG = 50.0
+EYE_MUSCLE_FORCE = 1.0  # N, peak isometric force of each extraocular muscle (about 100 g)
+EYE_MUSCLE_TIMECONST = (0.005, 0.02)  # s, activation and deactivation
+NECK_JOINTS = ("yaw", "pitch", "roll")
+NECK_RANGE_DEG = {"yaw": 70.0, "pitch": 40.0, "roll": 30.0}
+NECK_STIFFNESS = 2.0  # N m / rad
+NECK_DAMPING = 0.4  # N m s / rad
+NECK_MOMENT_ARM = 0.03  # m
+NECK_MUSCLE_FORCE = 150.0  # N
+NECK_MUSCLE_TIMECONST = (0.01, 0.04)
+PUPIL_RANGE_MM = (2.0, 8.0)
+PUPIL_TIMECONST = 0.3  # s
+ACCOMMODATION_RANGE_D = (0.0, 10.0)
+ACCOMMODATION_TIMECONST = 0.2  # s
+BALL_RADIUS = 0.04
+BALL_MASS = 0.06
+TIMESTEP = 0.001  # s
+SIDES = ("left", "right")
+
+#: Extraocular muscles: name -> (origin, via point, insertion, wrap side, textbook action). Positions are
+#: in the eye frame at rest (m from the eye centre) with x measured *nasally* (mirrored per eye): the
+#: origin and via point are fixed in the head, the insertion on the globe; the tendon wraps the globe on
+#: the side of ``wrap side`` where its straight path would cut through it.
+_A = np.array([0.007, 0.0, -0.030])  # the annulus of Zinn: the orbit's apex, behind and nasal of the eye
+_S60, _C60 = np.sin(np.radians(60)), np.cos(np.radians(60))  # insertions 60 deg from the front pole
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+EYE_MUSCLES = {
+    "lateral_rectus": (_A + [-0.004, 0, 0], None, EYE_RADIUS * np.array([-_S60, 0, _C60]), [-1, 0, 0], "abduction"),
+    "medial_rectus": (_A + [0.004, 0, 0], None, EYE_RADIUS * np.array([_S60, 0, _C60]), [1, 0, 0], "adduction"),
+    "superior_rectus": (_A + [0, 0.004, 0], None, EYE_RADIUS * np.array([0, _S60, _C60]), [0, 1, 0], "elevation"),
+    "inferior_rectus": (_A + [0, -0.004, 0], None, EYE_RADIUS * np.array([0, -_S60, _C60]), [0, -1, 0], "depression"),
+    "superior_oblique": (_A + [0.002, 0.003, 0], np.array([0.014, 0.012, 0.008]),
+                         EYE_RADIUS * _unit([-0.35, 0.75, -0.55]), [0, 1, 0], "intorsion"),
+    "inferior_oblique": (np.array([0.010, -0.014, 0.004]), None,
+                         EYE_RADIUS * _unit([-0.5, -0.8, -0.3]), [0, -1, 0], "extorsion"),
+}
+EYE_MUSCLE_NAMES = tuple(EYE_MUSCLES)
+NECK_MUSCLE_NAMES = tuple(f"neck_{j}_{s}" for j in NECK_JOINTS for s in ("pos", "neg"))
+
+
+class SimulationError(RuntimeError):
+    """MuJoCo reported a warning or the state became unphysical (NaN, deep penetration)."""
+
+
+@dataclass
+class BodyConfig:
+    """What the assembled body contains."""
+
+    arms: bool = True  # myo-sim's muscle-driven arms and torso scaffold (False: a bare torso box, for fast tests)
+    timestep: float = TIMESTEP  # s
+    cannon_position: tuple = (1.2, -2.6, 0.9)  # m, the barrel's muzzle
+    #: m: deeper contacts raise SimulationError. myo-sim's rest pose already has each humerus's collision
+    #: capsule 11.4 mm inside the thorax's (measured), hence 2 cm.
+    max_penetration: float = 0.02
+
+
+def _nasal_sign(side: str) -> float:
+    """+1 where the eye frame's +x is nasal (the right eye), -1 where it is temporal (the left eye)."""
+    return {"left": -1.0, "right": 1.0}[side]
+
+
+def _quat_from_matrix(R) -> np.ndarray:
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.asarray(R, float).reshape(9))
+    return q
+
+
+#: World-from-eye rotation at rest: +z forward (-y world), +y up, +x the body's left (+x world).
+EYE_REST_ROTATION = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+
+
+@lru_cache(maxsize=1)
+def _scaffold_head_rotation() -> np.ndarray:
+    """World-from-body rotation of the myo-sim scaffold's head body at rest (its OpenSim frame: x forward,
+    y up, z to the right)."""
+    return np.array([[0.0, 0, -1], [-1, 0, 0], [0, 1, 0]])
+
+
+def _myo_spec() -> mujoco.MjSpec:
+    import myo_sim
+
+    with warnings.catch_warnings():  # myo-sim attaches its arms with an empty prefix and says so
+        warnings.simplefilter("ignore", UserWarning)
+        spec = myo_sim.load_spec("myoarms")
+    for g in list(spec.worldbody.geoms):  # its floor (at -0.4 m); the room has its own
+        spec.delete(g)
+    for light in list(spec.worldbody.lights):
+        spec.delete(light)
+    spec.body("Full Body").pos = [0.0, 0.0, PELVIS_HEIGHT]
+    return spec
+
+
+def _bare_spec() -> mujoco.MjSpec:
+    """A stand-in for the scaffold with the same head frame: a torso box and a skull sphere."""
+    spec = mujoco.MjSpec()
+    torso = spec.worldbody.add_body(name="torso", pos=[0, 0.1, PELVIS_HEIGHT])
+    torso.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.16, 0.1, 0.28], pos=[0, 0, 0.28], rgba=[0.8, 0.7, 0.6, 1],
+                   contype=0, conaffinity=0)
+    head = torso.add_body(name="head", pos=[0, 0.009, 0.601], quat=_quat_from_matrix(_scaffold_head_rotation()))
+    head.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.075, 0, 0], pos=[0.03, 0.08, 0], mass=2.1,
+                  rgba=[0.9, 0.85, 0.8, 1], contype=0, conaffinity=0, group=0)
+    return spec
+
+
+def _angle(spec: mujoco.MjSpec, radians: float) -> float:
+    """A joint range value in the unit the spec's compiler reads (degrees unless the spec says radians)."""
+    return float(np.degrees(radians)) if spec.compiler.degree else float(radians)
+
+
+def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
+    Rh = _scaffold_head_rotation()
+    n = _nasal_sign(side)
+    lat = {"left": 1.0, "right": -1.0}[side] * INTEROCULAR / 2  # world x of the eye centre
+    centre_world = np.array([lat, -ORBIT_FORWARD_OF_HEAD, ORBIT_HEIGHT_ABOVE_HEAD])
+    # an "orbit" frame in the head, aligned with the eye at rest; the eye body sits at its origin
+    orbit = head.add_body(name=f"orbit_{side}", pos=Rh.T @ centre_world, quat=_quat_from_matrix(Rh.T @ EYE_REST_ROTATION))
+    eye = orbit.add_body(name=f"eye_{side}")
+    eye.add_joint(name=f"eye_{side}", type=mujoco.mjtJoint.mjJNT_BALL, stiffness=EYE_STIFFNESS, damping=EYE_DAMPING,
+                  range=[0, _angle(spec, np.radians(EYE_RANGE_DEG))], limited=mujoco.mjtLimited.mjLIMITED_TRUE, armature=1e-7)
+    eye.add_geom(name=f"globe_{side}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[EYE_RADIUS, 0, 0], mass=EYE_MASS,
+                 rgba=[0.95, 0.95, 0.92, 1], contype=0, conaffinity=0, group=0)
+    # the cornea and iris as a dark disc on the front pole, so a third-person view shows where it looks
+    eye.add_geom(name=f"iris_{side}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.006, 0.0015, 0], pos=[0, 0, EYE_RADIUS - 0.001],
+                 mass=1e-5, rgba=[0.25, 0.15, 0.08, 1], contype=0, conaffinity=0, group=0)
+    mirror = np.array([n, 1.0, 1.0])  # nasal-x table -> eye-frame x
+    for name, (origin, via, insertion, wrap_side, _action) in EYE_MUSCLES.items():
+        tag = f"{name}_{side}"
+        orbit.add_site(name=f"{tag}_origin", pos=origin * mirror, size=[0.001, 0, 0], group=3)
+        if via is not None:
+            orbit.add_site(name=f"{tag}_trochlea", pos=via * mirror, size=[0.001, 0, 0], group=3)
+        orbit.add_site(name=f"{tag}_side", pos=0.02 * np.asarray(wrap_side, float) * mirror, size=[0.001, 0, 0], group=3)
+        eye.add_site(name=f"{tag}_insertion", pos=insertion * mirror, size=[0.001, 0, 0], group=3)
+        t = spec.add_tendon(name=tag, width=0.0008, rgba=[0.8, 0.2, 0.2, 1], group=3)
+        t.wrap_site(f"{tag}_origin")
+        if via is not None:
+            t.wrap_site(f"{tag}_trochlea")
+        t.wrap_geom(f"globe_{side}", f"{tag}_side")
+        t.wrap_site(f"{tag}_insertion")
+        a = spec.add_actuator(name=tag, target=tag, trntype=mujoco.mjtTrn.mjTRN_TENDON, group=1)
+        a.set_to_muscle(timeconst=list(EYE_MUSCLE_TIMECONST), tausmooth=0.0, range=[0.75, 1.05], force=EYE_MUSCLE_FORCE)
+    # intraocular state: first-order filters with no force, whose activation state is the optical state
+    for quantity, rng, tc in (("pupil", PUPIL_RANGE_MM, PUPIL_TIMECONST), ("accommodation", ACCOMMODATION_RANGE_D, ACCOMMODATION_TIMECONST)):
+        a = spec.add_actuator(name=f"{quantity}_{side}", target=f"eye_{side}", trntype=mujoco.mjtTrn.mjTRN_JOINT, group=2)
+        a.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
+        a.dynprm[0] = tc
+        a.gaintype = mujoco.mjtGain.mjGAIN_FIXED
+        a.gainprm[0] = 0.0
+        a.biastype = mujoco.mjtBias.mjBIAS_NONE
+        a.ctrlrange = list(rng)
+        a.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        a.gear = [0, 0, 0, 0, 0, 0]
+
+
+def _add_neck(spec: mujoco.MjSpec, head) -> None:
+    Rh = _scaffold_head_rotation()
+    axes = {"yaw": [0, 0, 1.0], "pitch": [-1.0, 0, 0], "roll": [0, -1.0, 0]}  # world axes; + = left, up, right ear down
+    for j in NECK_JOINTS:
+        r = np.radians(NECK_RANGE_DEG[j])
+        head.add_joint(name=f"neck_{j}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=Rh.T @ axes[j], range=[_angle(spec, -r), _angle(spec, r)],
+                       limited=mujoco.mjtLimited.mjLIMITED_TRUE, stiffness=NECK_STIFFNESS, damping=NECK_DAMPING, armature=0.005)
+        for s, sign in (("pos", -1.0), ("neg", 1.0)):  # a muscle shortens as its joint turns its way
+            t = spec.add_tendon(name=f"neck_{j}_{s}")
+            t.wrap_joint(f"neck_{j}", sign * NECK_MOMENT_ARM)
+            a = spec.add_actuator(name=f"neck_{j}_{s}", target=f"neck_{j}_{s}", trntype=mujoco.mjtTrn.mjTRN_TENDON, group=1)
+            a.set_to_muscle(timeconst=list(NECK_MUSCLE_TIMECONST), tausmooth=0.0, range=[0.75, 1.05], force=NECK_MUSCLE_FORCE)
+
+
+def _add_world(spec: mujoco.MjSpec, cfg: BodyConfig) -> None:
+    wb = spec.worldbody
+    wb.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[5, 5, 0.1], rgba=[0.5, 0.5, 0.5, 1], group=1,
+                contype=4, conaffinity=4)  # the ball lands on it
+    wb.add_geom(name="stool", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.18, STOOL_HEIGHT / 2, 0],
+                pos=[0, 0.06, STOOL_HEIGHT / 2], rgba=[0.45, 0.3, 0.2, 1], contype=0, conaffinity=0, group=0)
+    muzzle = np.asarray(cfg.cannon_position, float)
+    aim = _unit(np.array([0, 0, 1.2]) - muzzle)  # the barrel points roughly at the head
+    cannon = wb.add_body(name="cannon", pos=muzzle - 0.25 * aim, quat=_quat_from_matrix(_frame_z(aim)))
+    cannon.add_geom(name="barrel", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.07, 0.25, 0], rgba=[0.2, 0.2, 0.22, 1],
+                    contype=0, conaffinity=0, group=0)
+    cannon.add_site(name="muzzle", pos=[0, 0, 0.25])
+    ball = wb.add_body(name="ball", pos=[0, 3.0, BALL_RADIUS])  # resting on the floor behind the body
+    ball.add_freejoint(name="ball")
+    ball.add_geom(name="ball", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[BALL_RADIUS, 0, 0], mass=BALL_MASS,
+                  rgba=[1, 1, 1, 1], group=0, contype=4, conaffinity=4)  # hits the floor, flies through the body (a target)
+
+
+def _frame_z(z) -> np.ndarray:
+    """A rotation whose third column is ``z``."""
+    z = _unit(z)
+    x = np.cross([0, 0, 1.0], z) if abs(z[2]) < 0.99 else np.array([1.0, 0, 0])
+    x = _unit(x)
+    return np.stack([x, np.cross(z, x), z], 1)
+
+
+def build_spec(cfg: BodyConfig | None = None) -> mujoco.MjSpec:
+    """The whole body as an (uncompiled) ``MjSpec``."""
+    cfg = cfg or BodyConfig()
+    if not cfg.timestep > 0:
+        raise ValueError(f"timestep: expected > 0 s, got {cfg.timestep}")
+    spec = _myo_spec() if cfg.arms else _bare_spec()
+    spec.modelname = "warp_vision_human"
+    spec.option.timestep = cfg.timestep
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    head = spec.body("head")
+    _add_neck(spec, head)
+    for side in SIDES:
+        _add_eye(spec, head, side)
+    _add_world(spec, cfg)
+    _eye_lengthranges(spec)
+    return spec
+
+
+#: Orientations the length ranges are sampled over: gaze within the joint's cone, torsion within this.
+_LR_TORSION_DEG = 15.0
+
+
+@lru_cache(maxsize=1)
+def _eye_lengths() -> dict:
+    """Each extraocular muscle's (shortest, longest) tendon length (m) over eye orientations sampled
+    uniformly in gaze within the joint's cone with torsion within +-``_LR_TORSION_DEG``. Computed on the
+    bare body (the eyes and their orbits are the same in every body), once per process."""
+    spec = _bare_spec()
+    head = spec.body("head")
+    for side in SIDES:
+        _add_eye(spec, head, side)
+    for a in spec.actuators:
+        if a.name.split("_")[0] not in ("pupil", "accommodation"):
+            a.lengthrange = [0.0, 1.0]
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    rng = np.random.default_rng(0)
+    n = 3000
+    ecc = np.radians(EYE_RANGE_DEG) * 0.98 * np.sqrt(rng.uniform(size=n))
+    phi = rng.uniform(0, 2 * np.pi, n)
+    tor = np.radians(_LR_TORSION_DEG) * rng.uniform(-1, 1, n)
+    out = {}
+    for side in SIDES:
+        adr = model.jnt_qposadr[model.joint(f"eye_{side}").id]
+        tid = [model.tendon(f"{m}_{side}").id for m in EYE_MUSCLE_NAMES]
+        L = np.empty((n, len(tid)))
+        for k in range(n):
+            d = gaze_direction(np.arctan2(np.sin(ecc[k]) * np.cos(phi[k]), np.cos(ecc[k])), np.arcsin(np.sin(ecc[k]) * np.sin(phi[k])))
+            yaw, pitch = gaze_angles(d)
+            R = fick_rotation(yaw, pitch) @ _rot_z(tor[k])
+            data.qpos[adr:adr + 4] = _quat_from_matrix(R)
+            mujoco.mj_fwdPosition(model, data)
+            L[k] = data.ten_length[tid]
+        for j, m in enumerate(EYE_MUSCLE_NAMES):
+            # percentiles, not extremes: at the cone's rim a path can jump to the globe's far side
+            out[f"{m}_{side}"] = tuple(float(v) for v in np.percentile(L[:, j], [1, 99]))
+    return out
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _eye_lengthranges(spec: mujoco.MjSpec) -> None:
+    """Give the extraocular muscles their length ranges (MuJoCo's own search, which pushes the joint with
+    the muscle, does not converge on a ball joint)."""
+    for name, (lo, hi) in _eye_lengths().items():
+        spec.actuator(name).lengthrange = [lo, hi]
+
+
+class Body:
+    """The compiled body and its state, with named access to eyes, muscles, head and ball.
+
+    Each :meth:`step` advances MuJoCo and raises :class:`SimulationError` on any MuJoCo warning, a
+    non-finite state or a contact deeper than ``cfg.max_penetration``.
+    """
+
+    def __init__(self, cfg: BodyConfig | None = None):
+        self.cfg = cfg or BodyConfig()
+        self.spec = build_spec(self.cfg)
+        self.model = self.spec.compile()
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self.eye_muscles = {s: np.array([m.actuator(f"{n}_{s}").id for n in EYE_MUSCLE_NAMES]) for s in SIDES}
+        self.neck_muscles = np.array([m.actuator(n).id for n in NECK_MUSCLE_NAMES])
+        self.pupil = {s: m.actuator(f"pupil_{s}").id for s in SIDES}
+        self.accommodation = {s: m.actuator(f"accommodation_{s}").id for s in SIDES}
+        self.eye_joint = {s: m.joint(f"eye_{s}").id for s in SIDES}
+        self.eye_body = {s: m.body(f"eye_{s}").id for s in SIDES}
+        self.neck_joints = np.array([m.joint(f"neck_{j}").id for j in NECK_JOINTS])
+        self.head_body = m.body("head").id
+        self.ball_joint = m.joint("ball").id
+        self._warnings = np.zeros(len(self.data.warning), dtype=int)
+        self.reset()
+
+    # --- state ------------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Rest pose, zero activations, pupils 4 mm, accommodation 1 D, ball resting on the floor behind the body."""
+        mujoco.mj_resetData(self.model, self.data)
+        for s in SIDES:
+            self.data.ctrl[self.pupil[s]] = 4.0
+            self.data.act[self._act(self.pupil[s])] = 4.0
+            self.data.ctrl[self.accommodation[s]] = 1.0
+            self.data.act[self._act(self.accommodation[s])] = 1.0
+        mujoco.mj_forward(self.model, self.data)
+        self._warnings[:] = [w.number for w in self.data.warning]
+
+    def _act(self, actuator: int) -> int:
+        return int(self.model.actuator_actadr[actuator])
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    def step(self, n: int = 1) -> None:
+        """Advance ``n`` timesteps with the current controls; raise :class:`SimulationError` on trouble."""
+        for _ in range(int(n)):
+            mujoco.mj_step(self.model, self.data)
+            self.check()
+
+    def check(self) -> None:
+        d = self.data
+        counts = np.array([w.number for w in d.warning])
+        new = np.nonzero(counts > self._warnings)[0]
+        self._warnings[:] = counts
+        if len(new):
+            names = [mujoco.mjtWarning(int(i)).name for i in new]
+            raise SimulationError(f"t={d.time:.4f} s: MuJoCo warned {names} (info {[d.warning[i].lastinfo for i in new]})")
+        if not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel)) and np.all(np.isfinite(d.act))):
+            raise SimulationError(f"t={d.time:.4f} s: non-finite state")
+        if d.ncon:
+            depth = -d.contact.dist[: d.ncon].min()
+            if depth > self.cfg.max_penetration:
+                raise SimulationError(f"t={d.time:.4f} s: contact penetration {depth * 1000:.1f} mm "
+                                      f"(limit {self.cfg.max_penetration * 1000:.0f} mm)")
+
+    # --- controls ---------------------------------------------------------------------------------
+    def set_eye_activations(self, side: str, a) -> None:
+        """Six extraocular activations in [0, 1], in the order of :data:`EYE_MUSCLE_NAMES`."""
+        self.data.ctrl[self.eye_muscles[side]] = _check_activations("eye activations", a, 6)
+
+    def eye_activations(self, side: str) -> np.ndarray:
+        """The six extraocular muscles' commanded activations (ctrl), [6]."""
+        return self.data.ctrl[self.eye_muscles[side]].copy()
+
+    def set_neck_activations(self, a) -> None:
+        self.data.ctrl[self.neck_muscles] = _check_activations("neck activations", a, len(NECK_MUSCLE_NAMES))
+
+    def set_intraocular(self, side: str, pupil_mm: float | None = None, accommodation_D: float | None = None) -> None:
+        """Command the pupil diameter (mm) and lens accommodation (D); the state follows with time constants
+        ``PUPIL_TIMECONST`` and ``ACCOMMODATION_TIMECONST``."""
+        if pupil_mm is not None:
+            self.data.ctrl[self.pupil[side]] = np.clip(pupil_mm, *PUPIL_RANGE_MM)
+        if accommodation_D is not None:
+            self.data.ctrl[self.accommodation[side]] = np.clip(accommodation_D, *ACCOMMODATION_RANGE_D)
+
+    def intraocular(self, side: str) -> tuple[float, float]:
+        """(pupil diameter mm, accommodation D): the eye's current optical state."""
+        return (float(self.data.act[self._act(self.pupil[side])]), float(self.data.act[self._act(self.accommodation[side])]))
+
+    # --- kinematics -------------------------------------------------------------------------------
+    def eye_pose(self, side: str) -> np.ndarray:
+        """[4, 4] world-from-eye transform (the eye frame of DESIGN.md)."""
+        b = self.eye_body[side]
+        T = np.eye(4)
+        T[:3, :3] = self.data.xmat[b].reshape(3, 3)
+        T[:3, 3] = self.data.xpos[b]
+        return T
+
+    def head_pose(self) -> np.ndarray:
+        """[4, 4] world-from-head transform, in the eye-frame convention (+z forward, +y up)."""
+        b = self.head_body
+        T = np.eye(4)
+        T[:3, :3] = self.data.xmat[b].reshape(3, 3) @ _scaffold_head_rotation().T @ EYE_REST_ROTATION
+        T[:3, 3] = self.data.xpos[b]
+        return T
+
+    def eye_in_head(self, side: str) -> np.ndarray:
+        """[3, 3] eye-in-head rotation (the ball joint's)."""
+        q = self.data.qpos[self.model.jnt_qposadr[self.eye_joint[side]]:][:4]
+        R = np.zeros(9)
+        mujoco.mju_quat2Mat(R, q)
+        return R.reshape(3, 3)
+
+    def gaze_in_head(self, side: str) -> np.ndarray:
+        """(yaw, pitch) of the eye in the head, radians."""
+        return gaze_angles(self.eye_in_head(side)[:, 2])
+
+    def torsion(self, side: str) -> float:
+        """The eye's rotation about its line of sight beyond the Fick rotation to its gaze (rad, + = about +z)."""
+        R = self.eye_in_head(side)
+        yaw, pitch = gaze_angles(R[:, 2])
+        return float(torsion_angle(R, yaw, pitch))
+
+    def neck_angles(self) -> np.ndarray:
+        """(yaw, pitch, roll) of the neck hinges, radians."""
+        return self.data.qpos[self.model.jnt_qposadr[self.neck_joints]].copy()
+
+    def ball_position(self) -> np.ndarray:
+        return self.data.qpos[self.model.jnt_qposadr[self.ball_joint]:][:3].copy()
+
+    def set_ball(self, position, velocity=(0.0, 0.0, 0.0)) -> None:
+        """Place the ball (m) with a linear velocity (m/s) and no spin."""
+        a = self.model.jnt_qposadr[self.ball_joint]
+        v = self.model.jnt_dofadr[self.ball_joint]
+        self.data.qpos[a:a + 3] = position
+        self.data.qpos[a + 3:a + 7] = [1, 0, 0, 0]
+        self.data.qvel[v:v + 3] = velocity
+        self.data.qvel[v + 3:v + 6] = 0
+        mujoco.mj_forward(self.model, self.data)
+
+    def fire_cannon(self, through, after: float) -> np.ndarray:
+        """Launch the ball from the muzzle on the ballistic path that passes ``through`` (m) ``after``
+        seconds; returns the launch velocity (m/s)."""
+        if not after > 0:
+            raise ValueError(f"after: expected > 0 s, got {after}")
+        p0 = self.data.site_xpos[self.model.site("muzzle").id].copy()
+        g = self.model.opt.gravity
+        v = (np.asarray(through, float) - p0 - 0.5 * g * after**2) / after
+        self.set_ball(p0, v)
+        return v
+
+
+def _check_activations(name: str, a, n: int) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.shape != (n,):
+        raise ValueError(f"{name}: expected shape ({n},), got {a.shape}")
+    if not np.all(np.isfinite(a)) or a.min() < 0 or a.max() > 1:
+        raise ValueError(f"{name}: expected values in [0, 1], got min {a.min():.3g}, max {a.max():.3g}")
+    return a
+
+
+def gaze_angles(direction) -> np.ndarray:
+    """(yaw, pitch) radians of a direction [..., 3] in an eye-convention frame (+z forward, +y up)."""
+    d = np.asarray(direction, float)
+    return np.stack([np.arctan2(d[..., 0], d[..., 2]), np.arctan2(d[..., 1], np.hypot(d[..., 0], d[..., 2]))], -1)
+
+
+def gaze_direction(yaw, pitch) -> np.ndarray:
+    """The unit direction [..., 3] of (yaw, pitch) radians: the inverse of :func:`gaze_angles`."""
+    yaw, pitch = np.asarray(yaw, float), np.asarray(pitch, float)
+    return np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
+
+
+def fick_rotation(yaw: float, pitch: float) -> np.ndarray:
+    """The [3, 3] rotation turning +z to (yaw, pitch): about +y by yaw, then about the turned -x by pitch
+    (a Fick gimbal: no torsion by construction)."""
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rx = np.array([[1, 0, 0], [0, cp, sp], [0, -sp, cp]])  # +z -> (0, sin p, cos p)
+    return Ry @ Rx
+
+
+def torsion_angle(R, yaw: float, pitch: float) -> float:
+    """The rotation about the line of sight (rad, + about +z) that takes Fick's (yaw, pitch) to ``R``."""
+    Rt = fick_rotation(yaw, pitch).T @ np.asarray(R, float)
+    return float(np.arctan2(Rt[1, 0], Rt[0, 0]))

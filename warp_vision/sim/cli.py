@@ -1,0 +1,229 @@
+"""``python -m warp_vision.sim``: the virtual human's closed-loop demos and measurements.
+
+  demo         the cannon scenario: a ball flies into the periphery; both eyes saccade, converge and track
+               it, the head follows. Writes a third-person GIF with the gaze lines, the left retina at four
+               moments (Fig. 7) and the gaze error over time.
+  experiments  a ball appearing at 20 deg; a ball moving at 30 deg/s; vergence at 1 m; the time shares of
+               the loop. Writes experiments.json.
+  oculomotor   synthesise the holding activations and train both eyes' oculomotor nets (about a minute).
+
+The foveation nets come from ``python -m warp_vision.train --eye left --out runs/foveation_left`` and
+``--eye right --out runs/foveation_right`` (about 8 minutes each on a 2-core CPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+
+from warp_vision.sim.body import SIDES, Body, BodyConfig
+
+SETTLE_S = 0.2  # s of simulation before a scenario starts: the passive arms settle under gravity
+
+
+def _setup(args):
+    from warp_vision.sim.loop import Foveator, VisuomotorLoop
+    from warp_vision.sim.oculomotor import load_oculomotor, train_oculomotor
+
+    for side, run in (("left", args.left), ("right", args.right)):
+        if not os.path.exists(os.path.join(run, "best.pt")):
+            raise SystemExit(f"--{side} {run}: no trained foveation net there; make one with\n"
+                             f"  python -m warp_vision.train --eye {side} --out {run}")
+    if not os.path.exists(os.path.join(args.oculomotor, "left.pt")):
+        print(f"training the oculomotor nets into {args.oculomotor} (about a minute)")
+        train_oculomotor(args.oculomotor, progress=not args.no_progress)
+    body = Body(BodyConfig(arms=not args.no_arms))
+    body.step(int(SETTLE_S / body.model.opt.timestep))
+    fov = {"left": Foveator(args.left), "right": Foveator(args.right)}
+    return body, VisuomotorLoop(body, fov, load_oculomotor(args.oculomotor), seed=args.seed)
+
+
+def run_scenario(loop, duration: float, ball=None, record=None, progress: bool = True) -> dict:
+    """Run the loop for ``duration`` s. ``ball(t)`` (optional) places the ball kinematically each period
+    (t from the start); otherwise it flies freely. Returns per-period traces: time, ball position, each
+    eye's gaze error (deg) and distance from its gaze line to the ball (m), neck angles."""
+    from tqdm import tqdm
+
+    from warp_vision.sim.loop import CONTROL_DT, gaze_error_deg, line_distance
+
+    body = loop.body
+    t0 = body.time
+    tr = {"t": [], "ball": [], "neck": [], **{f"error_{s}": [] for s in SIDES}, **{f"line_{s}": [] for s in SIDES}}
+    for _ in tqdm(range(int(round(duration / CONTROL_DT))), desc="closed loop", disable=not progress, leave=False):
+        if ball is not None:
+            body.set_ball(ball(body.time - t0))
+        loop.step()
+        if ball is not None:
+            body.set_ball(ball(body.time - t0))
+        p = body.ball_position()
+        tr["t"].append(body.time - t0)
+        tr["ball"].append(p)
+        tr["neck"].append(body.neck_angles())
+        for s in SIDES:
+            tr[f"error_{s}"].append(gaze_error_deg(body, s, p))
+            tr[f"line_{s}"].append(line_distance(body, s, p))
+        if record is not None:
+            record(loop)
+    return {k: np.asarray(v) for k, v in tr.items()}
+
+
+def experiments(args) -> dict:
+    from warp_vision.sim.loop import point_at
+
+    body, loop = _setup(args)
+    body.model.opt.gravity[:] = 0  # the ball is placed kinematically in these
+    out = {}
+    t = time.perf_counter()
+    sim0 = body.time
+    # 1. a ball appears at 20 deg eccentricity, 1 m away
+    p = point_at(body, 20.0, 0.0, 1.0)
+    tr = run_scenario(loop, 0.5, ball=lambda _t: p, progress=not args.no_progress)
+    within = np.maximum(tr["error_left"], tr["error_right"]) < 1.0
+    first = float(tr["t"][np.argmax(within)]) if within.any() else None
+    out["saccade_20deg"] = {"time_both_within_1deg_s": first,
+                            "error_at_0.3s_deg": {s: float(np.interp(0.3, tr["t"], tr[f"error_{s}"])) for s in SIDES},
+                            "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES}}
+    # 2. vergence: the gaze lines' distance to a ball 1 m ahead after 0.5 s of fixation
+    p = point_at(body, 0.0, 0.0, 1.0)
+    tr = run_scenario(loop, 0.5, ball=lambda _t: p, progress=not args.no_progress)
+    out["vergence_1m"] = {"gaze_line_distance_cm": {s: 100 * float(np.median(tr[f"line_{s}"][-10:])) for s in SIDES}}
+    # 3. tracking a ball moving at 30 deg/s on a 1 m circle around the eyes, after it is foveated
+    omega = 30.0
+    tr = run_scenario(loop, 1.2, ball=lambda t: _orbit(body, np.radians(-18.0 + omega * t)), progress=not args.no_progress)
+    late = tr["t"] > 0.3
+    out["tracking_30deg_s"] = {"median_error_deg": {s: float(np.median(tr[f"error_{s}"][late])) for s in SIDES}}
+    wall = time.perf_counter() - t
+    sim = body.time - sim0
+    out["timing"] = {"sim_s": sim, "wall_s": wall, "sim_to_wall": sim / wall,
+                     "share": {k: v / wall for k, v in loop.timing.items()}}
+    return out
+
+
+_ORBIT: dict = {}
+
+
+def _orbit(body, yaw: float) -> np.ndarray:
+    """A point 1 m from the eyes' midpoint at ``yaw`` rad in the world's horizontal plane (fixed at the
+    first call, so the head's turning does not move it)."""
+    if "mid" not in _ORBIT:
+        _ORBIT["mid"] = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
+    return _ORBIT["mid"] + np.array([np.sin(yaw), -np.cos(yaw), 0.0])
+
+
+def demo(args) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    from warp_vision.kernels.raytrace import look_at, render_camera
+    from warp_vision.sim.loop import set_eye_view, sync_scene
+    from warp_vision.viz import plot_onv, tone_map
+
+    os.makedirs(args.out, exist_ok=True)
+    body, loop = _setup(args)
+    head = body.head_pose()[:3, 3]
+    v = body.fire_cannon(head + np.array([0.25, -0.6, 0.15]), after=args.flight)
+    frames, retinas = [], []
+    cam = look_at(head + np.array([1.6, -1.4, 0.5]), head + np.array([0.3, -0.6, -0.1]))
+
+    def record(lp):
+        sync_scene(lp.scene, body)
+        set_eye_view(lp.scene, False)
+        k = len(retinas)
+        retinas.append((body.time, lp.onv["left"][0].clone()))
+        if k % args.frame_every == 0:
+            img = render_camera(lp.scene, cam, args.width, args.height, fov_deg=50).numpy()
+            frames.append(_draw_gaze(tone_map(img), body, cam, args.width, args.height, 50))
+
+    tr = run_scenario(loop, args.duration, record=record, progress=not args.no_progress)
+    gif = os.path.join(args.out, "demo.gif")
+    Image.fromarray(frames[0]).save(gif, save_all=True, append_images=[Image.fromarray(f) for f in frames[1:]],
+                                    duration=int(1000 * 0.01 * args.frame_every), loop=0)
+    # the left retina at four moments: the ball's entry, mid-saccade, fixation and tracking (Fig. 7)
+    err = tr["error_left"]
+    seen = np.nonzero(err < 60)[0]
+    k0 = int(seen[0]) if len(seen) else 0
+    moments = [k0, min(k0 + 4, len(err) - 1), min(k0 + 15, len(err) - 1), len(err) - 1]
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4.4))
+    for ax, k, label in zip(axes, moments, ("t0", "t1", "t2", "t3")):
+        plot_onv(loop.fov["left"].retina, retinas[k][1], ax=ax, title=f"{label}: t = {retinas[k][0]:.2f} s, error {err[k]:.1f} deg")
+    fig.tight_layout()
+    fig.savefig(os.path.join(args.out, "left_retina.png"), dpi=110)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for s in SIDES:
+        ax.plot(tr["t"], tr[f"error_{s}"], label=f"{s} eye")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("gaze error (deg)")
+    ax.set_yscale("log")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(os.path.join(args.out, "gaze_error.png"), dpi=110)
+    plt.close(fig)
+    summary = {"launch_velocity_m_s": v.tolist(), "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES},
+               "timing_share": {k: v for k, v in loop.timing.items()}}
+    with open(os.path.join(args.out, "demo.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+    return summary
+
+
+def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov_deg: float) -> np.ndarray:
+    """Draw each eye's gaze line (1.5 m, red) onto a tone-mapped image [h, w, 3] (uint8 out)."""
+    from PIL import Image, ImageDraw
+
+    im = Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8))
+    dr = ImageDraw.Draw(im)
+    f = 0.5 * h / np.tan(np.radians(fov_deg) / 2)
+    inv = np.linalg.inv(cam)
+
+    def project(p):
+        q = inv[:3, :3] @ p + inv[:3, 3]
+        return (w / 2 + f * q[0] / -q[2], h / 2 - f * q[1] / -q[2]) if q[2] < -1e-3 else None
+
+    for s in SIDES:
+        T = body.eye_pose(s)
+        a, b = project(T[:3, 3]), project(T[:3, 3] + 1.5 * T[:3, 2])
+        if a and b:
+            dr.line([a, b], fill=(230, 40, 40), width=2)
+    return np.asarray(im)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", required=True)
+    for name in ("demo", "experiments", "oculomotor"):
+        p = sub.add_parser(name)
+        p.add_argument("--oculomotor", default="runs/oculomotor", help="oculomotor nets' directory (trained there if missing)")
+        p.add_argument("--no-progress", action="store_true")
+        if name == "oculomotor":
+            continue
+        p.add_argument("--left", default="runs/foveation_left", help="the left eye's foveation run")
+        p.add_argument("--right", default="runs/foveation_right", help="the right eye's foveation run")
+        p.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
+        p.add_argument("--seed", type=int, default=0, help="the room's seed")
+        p.add_argument("--out", default=f"runs/sim_{name}")
+        if name == "demo":
+            p.add_argument("--duration", type=float, default=1.2, help="simulated seconds")
+            p.add_argument("--flight", type=float, default=0.9, help="s from launch until the ball passes the head")
+            p.add_argument("--width", type=int, default=320)
+            p.add_argument("--height", type=int, default=240)
+            p.add_argument("--frame-every", type=int, default=2, help="GIF frame every N control periods (10 ms)")
+    args = ap.parse_args(argv)
+    if args.command == "oculomotor":
+        from warp_vision.sim.oculomotor import train_oculomotor
+
+        print(json.dumps(train_oculomotor(args.oculomotor, progress=not args.no_progress), indent=2))
+        return
+    result = demo(args) if args.command == "demo" else experiments(args)
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, f"{args.command}.json"), "w") as f:
+        json.dump(result, f, indent=2)
+    print(json.dumps(result, indent=2))

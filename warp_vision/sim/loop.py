@@ -1,0 +1,353 @@
+"""The closed loop: MuJoCo body -> scene -> both eyes' ONVs -> foveation liNets -> gaze and neck control
+-> oculomotor nets -> muscles -> MuJoCo.
+
+Each control period (``CONTROL_DT``) the scene follows the MuJoCo state, each eye renders its ONV from its
+eye body's pose with its own retina and current optical state (pupil, accommodation), its foveation liNet
+(trained by ``python -m warp_vision.train --eye left|right``) estimates the ball's direction in the eye
+frame, and the gaze controller turns that retinal error into a change of the commanded gaze:
+
+- where the eye is: an internal model (efference copy through a first-order lag of ``EYE_MODEL_TAU``)
+  of the commanded gaze, so the ball's direction in the head is that belief plus the retinal error,
+  also while the eye is moving;
+- a saccade when the error exceeds ``SACCADE_DEG``: the command jumps to the ball's direction;
+- pursuit otherwise: the command follows the ball's direction led by its estimated angular velocity
+  times ``LEAD``, and a slow integrator of the retinal error (``BIAS_GAIN`` per period) takes out the
+  muscles' static error;
+- the vestibulo-ocular reflex: the head's rotation since the last period (from the neck joints) is taken
+  off the command, so gaze stays on the target while the head turns.
+
+The oculomotor net maps (change of commanded gaze, current activations) to the next activations. The
+neck controller moves the head's target a fraction ``NECK_GAIN`` per period toward the eyes' mean gaze
+(the eye-head synergy: the eyes return toward centre as the head takes over), held by least-effort neck
+activations (:func:`warp_vision.sim.oculomotor.holding_activations`). Accommodation follows the
+distance where the two gaze lines converge; the pupil follows the retinal irradiance by the Watson &
+Yellott formula.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+import torch
+
+from warp_vision.sim.body import SIDES, Body, gaze_angles, gaze_direction
+from warp_vision.sim.oculomotor import OculomotorNet, holding_activations
+
+CONTROL_DT = 0.01  # s
+SACCADE_DEG = 2.0
+EYE_MODEL_TAU = 0.06  # s
+LEAD = 0.03  # s
+BIAS_GAIN = 0.15
+VELOCITY_SMOOTHING = 0.3  # weight of the newest velocity sample in its running estimate
+NECK_GAIN = 0.02
+MAX_GAZE_DEG = 35.0
+#: Bodies the eyes do not see: the skull and cervical spine around them (its inside would shadow every
+#: ray) and the eyes themselves; the third-person camera sees them.
+HIDDEN_FROM_EYES = ("head", "neck", "eye_left", "eye_right", "orbit_left", "orbit_right")
+
+
+class Foveator:
+    """An eye's trained foveation liNet: ONV [B, 3P] -> the ball's (yaw, pitch) in the eye frame, rad."""
+
+    def __init__(self, run_dir: str, device: str = "cpu"):
+        from warp_vision.data.foveation import make_eye, make_retina
+        from warp_vision.train.config import TrainConfig
+        from warp_vision.train.loop import build_model, load_best
+
+        ck, cfg = load_best(run_dir, TrainConfig)
+        self.cfg = cfg
+        self.retina = make_retina(cfg.data_config())
+        self.trained_eye = make_eye(cfg.data_config())
+        self.samples_per_receptor = cfg.samples_per_receptor
+        self.model = build_model(cfg, self.retina, device).eval()
+        self.model.load_state_dict(ck["model"])
+        self.norm = ck["norm"]
+        self.device = device
+
+    @torch.no_grad()
+    def __call__(self, onv: torch.Tensor) -> np.ndarray:
+        from warp_vision.train.loop import net_input
+
+        z = self.model(net_input(onv, self.norm, self.device)).cpu()
+        return (z * self.norm["target_std"] + self.norm["target_mean"]).numpy()
+
+
+#: Bodies whose parts move together in the scene: each arm's humerus, ulna, radius and hand (the carpals
+#: with the fingers), and the head, neck and eyes; everything else (the fixed torso scaffold, clavicles,
+#: scapulae, stool, cannon) is baked into the static BVH at the pose it has when the scene is built. The
+#: passive arms' small joints barely move, and one BVH per MuJoCo body (100 objects) made each eye's
+#: render 10x slower (0.4 s against 0.04 s, measured).
+SCENE_ANCHORS = ("humerus_r", "ulna_r", "radius_r", "lunate_r", "humerus_l", "ulna_l", "radius_l", "lunate_l") + HIDDEN_FROM_EYES
+
+
+def _pose(d, b) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = d.xmat[b].reshape(3, 3), d.xpos[b]
+    return T
+
+
+def body_scene(body: Body, seed: int = 0):
+    """The foveation task's dim room with the body's visible parts (group-0 geoms, grouped as in
+    :data:`SCENE_ANCHORS`) and the glowing ball, at the body's current pose."""
+    import trimesh
+
+    from warp_vision.data.foveation import BALL_EMISSION, ROOM_ALBEDO, make_scene
+    from warp_vision.scene import Material
+
+    sc = make_scene(seed)
+    for o in sc.objects:  # the dataset's balls and panel
+        if o.name.startswith("ball") or o.name == "occluder":
+            sc.set_visible(o.name, False)
+    m, d = body.model, body.data
+    anchors = {m.body(n).id for n in SCENE_ANCHORS if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) >= 0}
+    ball = m.body("ball").id
+    parts: dict[int, list] = {}
+    for g in range(m.ngeom):
+        b = int(m.geom_bodyid[g])
+        if m.geom_group[g] != 0 or m.geom_rgba[g, 3] == 0 or b == ball:
+            continue
+        mesh = _geom_mesh(m, g)
+        if mesh is None:
+            continue
+        anchor = b
+        while anchor not in anchors and anchor != 0:
+            anchor = int(m.body_parentid[anchor])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = d.geom_xmat[g].reshape(3, 3), d.geom_xpos[g]
+        mesh.apply_transform(np.linalg.inv(_pose(d, anchor)) @ T)
+        # dimmed like the room (x ROOM_ALBEDO / 0.4), so the glowing ball stays the brightest thing in view
+        rgb = np.clip(m.geom_rgba[g, :3], 0, 1) * min(1.0, ROOM_ALBEDO / 0.4)
+        mesh.visual.vertex_colors = np.tile(np.r_[rgb * 255, 255].astype(np.uint8), (len(mesh.vertices), 1))
+        parts.setdefault(anchor, []).append(mesh)
+    sc._mj_bodies = []
+    for b, meshes in parts.items():
+        name = f"mj_{m.body(b).name}" if b else "mj_fixed"
+        sc.add(name, trimesh.util.concatenate(meshes), Material(vertex_colors=True), _pose(d, b), static=(b == 0))
+        if b:
+            sc._mj_bodies.append((name, b))
+    sc.add_sphere("mj_ball", m.geom_size[m.geom("ball").id, 0],
+                  material=Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True, emission=(BALL_EMISSION,) * 3))
+    return sc
+
+
+def _geom_mesh(m, g):
+    import trimesh
+
+    t, s = int(m.geom_type[g]), m.geom_size[g]
+    G = mujoco.mjtGeom
+    if t == G.mjGEOM_MESH:
+        i = m.geom_dataid[g]
+        v = m.mesh_vert[m.mesh_vertadr[i]:m.mesh_vertadr[i] + m.mesh_vertnum[i]]
+        f = m.mesh_face[m.mesh_faceadr[i]:m.mesh_faceadr[i] + m.mesh_facenum[i]]
+        return trimesh.Trimesh(v.astype(np.float64), f, process=False)
+    if t == G.mjGEOM_SPHERE:
+        return trimesh.creation.icosphere(2, radius=s[0])
+    if t == G.mjGEOM_CYLINDER:
+        return trimesh.creation.cylinder(radius=s[0], height=2 * s[1], sections=24)
+    if t == G.mjGEOM_BOX:
+        return trimesh.creation.box(2 * s[:3])
+    if t == G.mjGEOM_CAPSULE:
+        return trimesh.creation.capsule(2 * s[1], s[0])
+    return None
+
+
+def sync_scene(scene, body: Body) -> None:
+    """Move the scene's body parts and ball to the MuJoCo state."""
+    d = body.data
+    for name, b in scene._mj_bodies:
+        scene.set_transform(name, _pose(d, b))
+    T = np.eye(4)
+    T[:3, 3] = body.ball_position()
+    scene.set_transform("mj_ball", T)
+
+
+def set_eye_view(scene, eyes: bool) -> None:
+    """Hide (eyes=True) or show the parts the eyes do not see."""
+    for name, _b in scene._mj_bodies:
+        if name[3:] in HIDDEN_FROM_EYES:
+            scene.set_visible(name, not eyes)
+
+
+@dataclass
+class EyeState:
+    command: np.ndarray = field(default_factory=lambda: np.zeros(2))  # commanded gaze in the head, rad
+    activations: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    believed: np.ndarray = field(default_factory=lambda: np.zeros(2))  # the internal model's gaze, rad
+    bias: np.ndarray = field(default_factory=lambda: np.zeros(2))  # learned static offset, rad
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))  # the target's, rad/s in the head
+    last_target: np.ndarray | None = None
+
+
+def _clamp_gaze(g: np.ndarray) -> np.ndarray:
+    r = np.linalg.norm(g)
+    lim = np.radians(MAX_GAZE_DEG)
+    return g if r <= lim else g * (lim / r)
+
+
+class VisuomotorLoop:
+    """Both eyes, their foveation and oculomotor nets, the neck controller; :meth:`step` advances one
+    control period. ``timing`` accumulates wall seconds per stage (render, nets, mujoco, control)."""
+
+    def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, pupil_reference_mm: float = 4.0):
+        self.body, self.fov, self.ocu = body, foveators, oculomotor
+        self.scene = body_scene(body, seed)
+        self.eyes = {s: EyeState() for s in SIDES}
+        self.neck_target = np.zeros(3)
+        self.last_neck = body.neck_angles()
+        self.timing = {"render": 0.0, "nets": 0.0, "mujoco": 0.0, "control": 0.0}
+        self.scratch = mujoco.MjData(body.model)
+        self.neck_dofs = body.model.jnt_dofadr[body.neck_joints]
+        self.onv: dict = {}
+        self.estimate: dict = {}
+        self._neck_hold()
+
+    def _neck_hold(self) -> None:
+        q = self.body.data.qpos.copy()
+        q[self.body.model.jnt_qposadr[self.body.neck_joints]] = self.neck_target
+        a, _ = holding_activations(self.body, self.body.neck_muscles, self.neck_dofs, q, data=self.scratch)
+        self.body.set_neck_activations(a)
+
+    def render(self) -> dict:
+        from warp_vision.eye.optics import NavarroEye
+        from warp_vision.kernels.raytrace import render_onv
+
+        t0 = time.perf_counter()
+        sync_scene(self.scene, self.body)
+        set_eye_view(self.scene, True)
+        out = {}
+        for s in SIDES:
+            pupil, acc = self.body.intraocular(s)
+            # quantised so the eye-ray cache (keyed by the optical state) is reused between periods
+            eye = NavarroEye(round(acc * 4) / 4, round(pupil * 4) / 4)
+            out[s] = render_onv(self.scene, self.fov[s].retina, eye, self.body.eye_pose(s)[None],
+                                self.fov[s].samples_per_receptor, seed=0)
+        self.timing["render"] += time.perf_counter() - t0
+        self.onv = out
+        return out
+
+    def step(self) -> None:
+        body = self.body
+        onv = self.render()
+        t0 = time.perf_counter()
+        err = {s: self.fov[s](onv[s])[0] for s in SIDES}  # the ball's (yaw, pitch) in each eye frame
+        self.estimate = err
+        self.timing["nets"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        neck = body.neck_angles()
+        head_turn = (neck - self.last_neck)[:2]  # (yaw, pitch): same signs as the eyes' in the head
+        self.last_neck = neck
+        changes = {}
+        k = 1 - np.exp(-CONTROL_DT / EYE_MODEL_TAU)
+        for s in SIDES:
+            e = self.eyes[s]
+            e.believed = e.believed - head_turn  # vestibulo-ocular: the head turned under the eye
+            target = e.believed + err[s]  # the ball's direction in the head, as the eye believes it
+            if np.degrees(np.linalg.norm(err[s])) > SACCADE_DEG:
+                e.velocity[:] = 0
+                e.last_target = None
+                new = target + e.bias
+            else:
+                if e.last_target is not None:
+                    v = (target - e.last_target) / CONTROL_DT
+                    e.velocity = (1 - VELOCITY_SMOOTHING) * e.velocity + VELOCITY_SMOOTHING * v
+                e.last_target = target
+                e.bias = e.bias + BIAS_GAIN * err[s]
+                new = target + e.velocity * LEAD + e.bias
+            changes[s] = _clamp_gaze(new) - e.command
+            e.command = e.command + changes[s]
+            e.believed = e.believed + k * (e.command - e.bias - e.believed)
+        self.timing["control"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            for s in SIDES:
+                e = self.eyes[s]
+                a = self.ocu[s](torch.as_tensor(changes[s], dtype=torch.float32)[None],
+                                torch.as_tensor(e.activations, dtype=torch.float32)[None])[0].numpy().astype(np.float64)
+                e.activations = np.clip(a, 0, 1)
+                body.set_eye_activations(s, e.activations)
+        self.timing["nets"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        mean_gaze = 0.5 * (self.eyes["left"].command + self.eyes["right"].command)
+        self.neck_target[:2] += NECK_GAIN * mean_gaze
+        self.neck_target[2] = 0.0
+        self._neck_hold()
+        self._intraocular()
+        self.timing["control"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        body.step(int(round(CONTROL_DT / body.model.opt.timestep)))
+        self.timing["mujoco"] += time.perf_counter() - t0
+
+    def _intraocular(self) -> None:
+        """Accommodate to where the gaze lines converge; the pupil follows the retinal irradiance."""
+        from warp_vision.eye.pupil import pupil_diameter_mm
+
+        dist = vergence_distance(self.body)
+        for s in SIDES:
+            pupil, _ = self.body.intraocular(s)
+            mean = float(self.onv[s].mean()) * (4.0 / pupil) ** 2  # the scene's brightness, pupil factored out
+            lum = LUMINANCE_AT_TRAINING * mean / float(self.fov[s].norm["input_scale"])
+            self.body.set_intraocular(s, pupil_mm=pupil_diameter_mm(lum), accommodation_D=1.0 / max(dist, 0.1))
+
+
+#: The luminance (cd/m^2) at which the Watson & Yellott pupil is 4 mm, the pupil the foveation data were
+#: rendered with: a retina as bright as the training set's mean is taken to see this luminance.
+LUMINANCE_AT_TRAINING = 0.0
+
+
+def _luminance_for(diameter_mm: float) -> float:
+    from scipy.optimize import brentq
+
+    from warp_vision.eye.pupil import pupil_diameter_mm
+
+    return float(np.exp(brentq(lambda x: pupil_diameter_mm(np.exp(x)) - diameter_mm, -10, 15)))
+
+
+LUMINANCE_AT_TRAINING = _luminance_for(4.0)
+
+
+def gaze_line(body: Body, side: str) -> tuple[np.ndarray, np.ndarray]:
+    """(eye centre, unit optical axis) in the world."""
+    T = body.eye_pose(side)
+    return T[:3, 3], T[:3, 2]
+
+
+def vergence_distance(body: Body) -> float:
+    """Distance (m) from the eyes' midpoint to where the two gaze lines pass closest (inf if parallel or
+    diverging)."""
+    (p1, d1), (p2, d2) = gaze_line(body, "left"), gaze_line(body, "right")
+    w = p1 - p2
+    b = d1 @ d2
+    denom = 1 - b * b
+    if denom < 1e-9:
+        return np.inf
+    t1 = (b * (d2 @ w) - (d1 @ w)) / denom
+    t2 = ((d2 @ w) - b * (d1 @ w)) / denom
+    if t1 <= 0 or t2 <= 0:
+        return np.inf
+    return float(np.linalg.norm(0.5 * (p1 + t1 * d1 + p2 + t2 * d2) - 0.5 * (p1 + p2)))
+
+
+def gaze_error_deg(body: Body, side: str, point) -> float:
+    """Angle (deg) between eye ``side``'s optical axis and the direction to ``point``."""
+    p, d = gaze_line(body, side)
+    v = np.asarray(point, float) - p
+    return float(np.degrees(np.arccos(np.clip(d @ v / np.linalg.norm(v), -1, 1))))
+
+
+def line_distance(body: Body, side: str, point) -> float:
+    """Distance (m) from ``point`` to eye ``side``'s gaze line."""
+    p, d = gaze_line(body, side)
+    v = np.asarray(point, float) - p
+    return float(np.linalg.norm(v - (v @ d) * d))
+
+
+def point_at(body: Body, yaw_deg: float, pitch_deg: float, distance: float) -> np.ndarray:
+    """The world point at (yaw, pitch) deg from the eyes' midpoint in the head's rest frame, ``distance`` m away."""
+    mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
+    return mid + body.head_pose()[:3, :3] @ gaze_direction(np.radians(yaw_deg), np.radians(pitch_deg)) * distance
+
+
+__all__ = ["VisuomotorLoop", "Foveator", "OculomotorNet", "gaze_angles", "vergence_distance", "point_at", "gaze_error_deg", "line_distance", "body_scene", "sync_scene", "set_eye_view"]
