@@ -147,8 +147,10 @@ def test_oculomotor_net_interface():
     from warp_vision.sim.oculomotor import OculomotorNet
 
     net = OculomotorNet()
-    out = net(torch.zeros(5, 2), torch.zeros(5, 6))
-    assert out.shape == (5, 6) and torch.all((out > 0) & (out < 1))
+    a = torch.rand(5, 6)
+    out = net(torch.randn(5, 2), a)
+    assert out.shape == (5, 6) and torch.all((out >= 0) & (out <= 1))
+    assert torch.equal(net(torch.zeros(5, 2), a), a)  # no change of gaze asks for no change of activations
     with pytest.raises(ValueError, match="change"):
         net(torch.zeros(5, 3), torch.zeros(5, 6))
 
@@ -195,7 +197,8 @@ def test_scene_follows_the_body_and_eyes_do_not_see_the_head(body):
 
 def test_oculomotor_net_learns_the_inverse(body):
     """A small oculomotor net trained on the body's own holding activations drives the eye near the gaze
-    asked for on held-out transitions; a net given shuffled targets does not."""
+    asked for on held-out transitions, also when it is applied to its own output step after step; a net
+    given shuffled targets does not."""
     from warp_vision.sim.oculomotor import OculomotorConfig, evaluate_on_body, synthesize, train
 
     cfg = OculomotorConfig(gazes=400, transitions=20_000, epochs=15, seed=3)
@@ -203,6 +206,7 @@ def test_oculomotor_net_learns_the_inverse(body):
     net, metrics = train(data, cfg, progress=False)
     ev = evaluate_on_body(net, body, "left", data, n=20)
     assert metrics["test_activation_rmse"] < 0.05 and ev["gaze_error_deg_median"] < 3.0, (metrics, ev)
+    assert ev["pursuit_chain_error_deg_median"] < 5.0, ev  # 30 steps of 0.5 deg: the path is 15 deg long
     shuffled = dict(data, act=data["act"][np.random.default_rng(0).permutation(len(data["act"]))])
     bad, _ = train(shuffled, cfg, progress=False)
     assert evaluate_on_body(bad, body, "left", data, n=20)["gaze_error_deg_median"] > 2 * ev["gaze_error_deg_median"]

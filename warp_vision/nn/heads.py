@@ -197,3 +197,25 @@ def afr_net(in_positions, identities: int, layers: int = 5, receptive_field: int
     if model == "fc":
         return AFRNet(FullyConnected.like(linet), identities)
     raise ValueError(f"model: expected 'linet' or 'fc', got {model!r}")
+
+
+class OculomotorNet(nn.Module):
+    """(desired change of gaze [B, 2] rad, current activations [B, 6]) -> next activations [B, 6] in [0, 1].
+
+    The MLP predicts a [6, 2] matrix J from the change and the activations, and the activations change by
+    J times the change of gaze: no change asks for none, a small change is met by the local Jacobian of the
+    activations that hold a gaze (a smooth function of them), and a saccade by a secant. Applied to its own
+    output every control period it does not drift, as a net that predicts the activations outright does
+    (measured with :func:`warp_vision.sim.oculomotor.evaluate_on_body`, pursuit chains).
+    """
+
+    def __init__(self, hidden: int = 256):
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(8, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(), nn.Linear(hidden, 12))
+
+    def forward(self, change: torch.Tensor, activations: torch.Tensor) -> torch.Tensor:
+        if change.shape[-1] != 2 or activations.shape[-1] != 6 or change.shape[:-1] != activations.shape[:-1]:
+            raise ValueError(f"change [B, 2] and activations [B, 6] expected, got {tuple(change.shape)} and {tuple(activations.shape)}")
+        c = change * (180 / np.pi / 10)  # in units of 10 deg
+        J = 0.1 * self.mlp(torch.cat([c, 4 * activations - 1], -1)).unflatten(-1, (6, 2))
+        return (activations + (J @ c.unsqueeze(-1)).squeeze(-1)).clamp(0.0, 1.0)
