@@ -210,3 +210,18 @@ def test_oculomotor_net_learns_the_inverse(body):
     shuffled = dict(data, act=data["act"][np.random.default_rng(0).permutation(len(data["act"]))])
     bad, _ = train(shuffled, cfg, progress=False)
     assert evaluate_on_body(bad, body, "left", data, n=20)["gaze_error_deg_median"] > 2 * ev["gaze_error_deg_median"]
+
+
+def test_the_full_body_builds_from_pip_packages_and_runs():
+    """myo-sim's torso scaffold and muscle-driven arms with our head, neck and eyes: it compiles, has every
+    actuator, settles under gravity without a MuJoCo warning, and the scene carries its arms."""
+    from warp_vision.sim.loop import body_scene
+
+    b = Body(BodyConfig(arms=True))
+    m = b.model
+    muscles = sum(int(m.actuator_gaintype[i] == mujoco.mjtGain.mjGAIN_MUSCLE) for i in range(m.nu))
+    assert muscles == 126 + len(NECK_MUSCLE_NAMES) + 2 * len(EYE_MUSCLE_NAMES)
+    b.step(200)  # 0.2 s: the passive arms swing and settle; SimulationError would say why not
+    assert 1.2 < b.eye_pose("left")[2, 3] < 1.4  # seated eye height (m)
+    names = [n for n, _ in body_scene(b)._mj_bodies]
+    assert {"mj_humerus_r", "mj_lunate_l", "mj_head"} <= set(names)

@@ -331,7 +331,9 @@ class Body:
     def __init__(self, cfg: BodyConfig | None = None):
         self.cfg = cfg or BodyConfig()
         self.spec = build_spec(self.cfg)
-        self.model = self.spec.compile()
+        with warnings.catch_warnings():  # myo-sim's empty attach prefix, said again on compiling
+            warnings.simplefilter("ignore", UserWarning)
+            self.model = self.spec.compile()
         self.data = mujoco.MjData(self.model)
         m = self.model
         self.eye_muscles = {s: np.array([m.actuator(f"{n}_{s}").id for n in EYE_MUSCLE_NAMES]) for s in SIDES}
