@@ -190,8 +190,11 @@ def test_learning_rate_schedule(tmp_path, smoke_data):
     assert ck["optimizer"]["param_groups"][0]["lr"] == sm.epoch_lr(2)
 
 
-def test_plateau_schedule_lowers_the_rate_when_validation_stalls(tmp_path, smoke_data):
-    cfg = smoke(tmp_path, smoke_data, lr_schedule="plateau", epochs=8, patience=8, lr=3e-2)
+def test_plateau_schedule_lowers_the_rate_when_validation_stalls(tmp_path, smoke_data, monkeypatch):
+    # one stalled epoch lowers the rate here, and the rate is high for 128 ONVs, so the run stalls at
+    # least once whatever the data (with the default 3 epochs whether it stalls depends on the generator)
+    monkeypatch.setattr(loop, "PLATEAU_EPOCHS", 1)
+    cfg = smoke(tmp_path, smoke_data, lr_schedule="plateau", epochs=8, patience=8, lr=1e-1)
     loop.run(cfg, progress=False, log=lambda *a: None)
     rows = [json.loads(x) for x in (tmp_path / "run/metrics.jsonl").read_text().splitlines()]
     lr, best, bad = cfg.lr, float("inf"), 0
@@ -201,7 +204,7 @@ def test_plateau_schedule_lowers_the_rate_when_validation_stalls(tmp_path, smoke
         if bad and bad % loop.PLATEAU_EPOCHS == 0:
             lr *= loop.PLATEAU_FACTOR
     assert len(rows) == 8 or bad >= cfg.patience
-    assert any(r["lr"] < cfg.lr for r in rows)  # this run does stall (lr 3e-2 on 128 ONVs): the rule was exercised
+    assert any(r["lr"] < cfg.lr for r in rows)  # the rule was exercised
 
 
 @pytest.mark.parametrize("model,head,loss", [("linet", "linear", "mse"), ("fc", "auto", "huber")])
