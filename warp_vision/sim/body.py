@@ -88,8 +88,8 @@ EYE_MUSCLES = {
                          EYE_RADIUS * _unit([-0.5, -0.8, -0.3]), [0, -1, 0], "extorsion"),
 }
 EYE_MUSCLE_NAMES = tuple(EYE_MUSCLES)
+#: Insertion sites sit this far off the globe's surface (the tendon's thickness); see _add_eye.
 INSERTION_LIFT = 0.0005  # m
-_SIDESITE_ON = "orbit"
 NECK_MUSCLE_NAMES = tuple(f"neck_{j}_{s}" for j in NECK_JOINTS for s in ("pos", "neg"))
 
 
@@ -124,11 +124,9 @@ def _quat_from_matrix(R) -> np.ndarray:
 EYE_REST_ROTATION = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
 
 
-@lru_cache(maxsize=1)
-def _scaffold_head_rotation() -> np.ndarray:
-    """World-from-body rotation of the myo-sim scaffold's head body at rest (its OpenSim frame: x forward,
-    y up, z to the right)."""
-    return np.array([[0.0, 0, -1], [-1, 0, 0], [0, 1, 0]])
+#: World-from-body rotation of the myo-sim scaffold's head body at rest (its OpenSim frame: x forward, y up,
+#: z to the right).
+SCAFFOLD_HEAD_ROTATION = np.array([[0.0, 0, -1], [-1, 0, 0], [0, 1, 0]])
 
 
 def _myo_spec() -> mujoco.MjSpec:
@@ -151,7 +149,7 @@ def _bare_spec() -> mujoco.MjSpec:
     torso = spec.worldbody.add_body(name="torso", pos=[0, 0.1, PELVIS_HEIGHT])
     torso.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.16, 0.1, 0.28], pos=[0, 0, 0.28], rgba=[0.8, 0.7, 0.6, 1],
                    contype=0, conaffinity=0)
-    head = torso.add_body(name="head", pos=[0, 0.009, 0.601], quat=_quat_from_matrix(_scaffold_head_rotation()))
+    head = torso.add_body(name="head", pos=[0, 0.009, 0.601], quat=_quat_from_matrix(SCAFFOLD_HEAD_ROTATION))
     head.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.075, 0, 0], pos=[0.03, 0.08, 0], mass=2.1,
                   rgba=[0.9, 0.85, 0.8, 1], contype=0, conaffinity=0, group=0)
     return spec
@@ -163,7 +161,7 @@ def _angle(spec: mujoco.MjSpec, radians: float) -> float:
 
 
 def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
-    Rh = _scaffold_head_rotation()
+    Rh = SCAFFOLD_HEAD_ROTATION
     n = _nasal_sign(side)
     lat = {"left": 1.0, "right": -1.0}[side] * INTEROCULAR / 2  # world x of the eye centre
     centre_world = np.array([lat, -ORBIT_FORWARD_OF_HEAD, ORBIT_HEIGHT_ABOVE_HEAD])
@@ -183,8 +181,7 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
         orbit.add_site(name=f"{tag}_origin", pos=origin * mirror, size=[0.001, 0, 0], group=3)
         if via is not None:
             orbit.add_site(name=f"{tag}_trochlea", pos=via * mirror, size=[0.001, 0, 0], group=3)
-        side_body = eye if _SIDESITE_ON == "eye" else orbit
-        side_body.add_site(name=f"{tag}_side", pos=0.02 * np.asarray(wrap_side, float) * mirror, size=[0.001, 0, 0], group=3)
+        orbit.add_site(name=f"{tag}_side", pos=0.02 * np.asarray(wrap_side, float) * mirror, size=[0.001, 0, 0], group=3)
         # half a millimetre off the surface (the tendon's thickness): MuJoCo's sphere wrapping needs its end
         # points outside the sphere, and one on the surface flips between wrapping and not
         eye.add_site(name=f"{tag}_insertion", pos=insertion * mirror * (1 + INSERTION_LIFT / EYE_RADIUS), size=[0.001, 0, 0], group=3)
@@ -192,7 +189,7 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
         t.wrap_site(f"{tag}_origin")
         if via is not None:
             t.wrap_site(f"{tag}_trochlea")
-        t.wrap_geom(f"globe_{side}", "" if (_SIDESITE_ON == "none" and name.endswith("rectus")) else f"{tag}_side")
+        t.wrap_geom(f"globe_{side}", f"{tag}_side")
         t.wrap_site(f"{tag}_insertion")
         a = spec.add_actuator(name=tag, target=tag, trntype=mujoco.mjtTrn.mjTRN_TENDON, group=1)
         a.set_to_muscle(timeconst=list(EYE_MUSCLE_TIMECONST), tausmooth=0.0, range=[0.75, 1.05], force=EYE_MUSCLE_FORCE,
@@ -211,7 +208,7 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
 
 
 def _add_neck(spec: mujoco.MjSpec, head) -> None:
-    Rh = _scaffold_head_rotation()
+    Rh = SCAFFOLD_HEAD_ROTATION
     axes = {"yaw": [0, 0, 1.0], "pitch": [-1.0, 0, 0], "roll": [0, -1.0, 0]}  # world axes; + = left, up, right ear down
     for j in NECK_JOINTS:
         r = np.radians(NECK_RANGE_DEG[j])
@@ -394,11 +391,8 @@ class Body:
         """Six extraocular activations in [0, 1], in the order of :data:`EYE_MUSCLE_NAMES`."""
         self.data.ctrl[self.eye_muscles[side]] = _check_activations("eye activations", a, 6)
 
-    def eye_activations(self, side: str) -> np.ndarray:
-        """The six extraocular muscles' commanded activations (ctrl), [6]."""
-        return self.data.ctrl[self.eye_muscles[side]].copy()
-
     def set_neck_activations(self, a) -> None:
+        """Six neck activations in [0, 1], in the order of :data:`NECK_MUSCLE_NAMES`."""
         self.data.ctrl[self.neck_muscles] = _check_activations("neck activations", a, len(NECK_MUSCLE_NAMES))
 
     def set_intraocular(self, side: str, pupil_mm: float | None = None, accommodation_D: float | None = None) -> None:
@@ -414,20 +408,21 @@ class Body:
         return (float(self.data.act[self._act(self.pupil[side])]), float(self.data.act[self._act(self.accommodation[side])]))
 
     # --- kinematics -------------------------------------------------------------------------------
+    def pose(self, body: int) -> np.ndarray:
+        """[4, 4] world-from-body transform of MuJoCo body ``body`` (an id; 0 is the world)."""
+        T = np.eye(4)
+        T[:3, :3] = self.data.xmat[body].reshape(3, 3)
+        T[:3, 3] = self.data.xpos[body]
+        return T
+
     def eye_pose(self, side: str) -> np.ndarray:
         """[4, 4] world-from-eye transform (the eye frame of DESIGN.md)."""
-        b = self.eye_body[side]
-        T = np.eye(4)
-        T[:3, :3] = self.data.xmat[b].reshape(3, 3)
-        T[:3, 3] = self.data.xpos[b]
-        return T
+        return self.pose(self.eye_body[side])
 
     def head_pose(self) -> np.ndarray:
         """[4, 4] world-from-head transform, in the eye-frame convention (+z forward, +y up)."""
-        b = self.head_body
-        T = np.eye(4)
-        T[:3, :3] = self.data.xmat[b].reshape(3, 3) @ _scaffold_head_rotation().T @ EYE_REST_ROTATION
-        T[:3, 3] = self.data.xpos[b]
+        T = self.pose(self.head_body)
+        T[:3, :3] = T[:3, :3] @ SCAFFOLD_HEAD_ROTATION.T @ EYE_REST_ROTATION
         return T
 
     def eye_in_head(self, side: str) -> np.ndarray:

@@ -108,8 +108,14 @@ def experiments(args) -> dict:
                            "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials]))}}
     for omega in (15.0, 30.0):
         loop.reset(SETTLE_S)
-        _ORBIT.clear()
-        tr = run_scenario(loop, 1.2, ball=lambda tt: _orbit(body, np.radians(-18.0 + omega * tt)), progress=not args.no_progress)
+        # a circle of 1 m around the eyes' midpoint in the horizontal plane, fixed in the world as the head turns
+        mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
+
+        def orbit(tt, omega=omega, mid=mid):
+            yaw = np.radians(-18.0 + omega * tt)
+            return mid + np.array([np.sin(yaw), -np.cos(yaw), 0.0])
+
+        tr = run_scenario(loop, 1.2, ball=orbit, progress=not args.no_progress)
         sim += tr["t"][-1]
         late = tr["t"] > 0.3  # after the first saccade onto it
         out[f"tracking_{omega:g}deg_s"] = {"median_error_deg": {s: float(np.median(tr[f"error_{s}"][late])) for s in SIDES},
@@ -118,17 +124,6 @@ def experiments(args) -> dict:
     out["timing"] = {"sim_s": sim, "wall_s": wall, "sim_to_wall": sim / wall,
                      "share": {k: v / wall for k, v in loop.timing.items()}}
     return out
-
-
-_ORBIT: dict = {}
-
-
-def _orbit(body, yaw: float) -> np.ndarray:
-    """A point 1 m from the eyes' midpoint at ``yaw`` rad in the world's horizontal plane (fixed at the
-    first call, so the head's turning does not move it)."""
-    if "mid" not in _ORBIT:
-        _ORBIT["mid"] = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
-    return _ORBIT["mid"] + np.array([np.sin(yaw), -np.cos(yaw), 0.0])
 
 
 def demo(args) -> dict:
@@ -190,11 +185,8 @@ def demo(args) -> dict:
     fig.tight_layout()
     fig.savefig(os.path.join(args.out, "gaze_error.png"), dpi=110)
     plt.close(fig)
-    summary = {"launch_velocity_m_s": v.tolist(), "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES},
-               "timing_share": {k: v for k, v in loop.timing.items()}}
-    with open(os.path.join(args.out, "demo.json"), "w") as f:
-        json.dump(summary, f, indent=2)
-    return summary
+    return {"launch_velocity_m_s": v.tolist(), "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES},
+            "timing_s": dict(loop.timing)}
 
 
 def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov_deg: float) -> np.ndarray:

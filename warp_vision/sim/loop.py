@@ -14,7 +14,8 @@ frame, and the gaze controller turns that retinal error into a change of the com
   times ``LEAD``, and a slow integrator of the retinal error (``BIAS_GAIN`` per period) takes out the
   muscles' static error;
 - the vestibulo-ocular reflex: the head's rotation since the last period (from the neck joints) is taken
-  off the command, so gaze stays on the target while the head turns.
+  off the believed eye-in-head gaze, so the ball's estimated direction, and with it the command, stays
+  put in the world while the head turns.
 
 The oculomotor net maps (change of commanded gaze, current activations) to the next activations. The
 neck controller moves the head's target a fraction ``NECK_GAIN`` per period toward the eyes' mean gaze
@@ -28,13 +29,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import mujoco
 import numpy as np
 import torch
 
-from warp_vision.sim.body import SIDES, Body, gaze_angles, gaze_direction
-from warp_vision.sim.oculomotor import OculomotorNet, holding_activations
+from warp_vision.sim.body import SIDES, Body, gaze_direction
+from warp_vision.sim.oculomotor import holding_activations
 
 CONTROL_DT = 0.01  # s
 SACCADE_DEG = 2.0
@@ -68,9 +70,8 @@ class Foveator:
         from warp_vision.train.loop import build_model, load_best
 
         ck, cfg = load_best(run_dir, TrainConfig)
-        self.cfg = cfg
         self.retina = make_retina(cfg.data_config())
-        self.trained_eye = make_eye(cfg.data_config())
+        self.trained_eye = make_eye(cfg.data_config())  # the optical state its training ONVs were rendered with
         self.samples_per_receptor = cfg.samples_per_receptor
         self.model = build_model(cfg, self.retina, device).eval()
         self.model.load_state_dict(ck["model"])
@@ -91,12 +92,6 @@ class Foveator:
 #: passive arms' small joints barely move, and one BVH per MuJoCo body (100 objects) made each eye's
 #: render 10x slower (0.4 s against 0.04 s, measured).
 SCENE_ANCHORS = ("humerus_r", "ulna_r", "radius_r", "lunate_r", "humerus_l", "ulna_l", "radius_l", "lunate_l") + HIDDEN_FROM_EYES
-
-
-def _pose(d, b) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = d.xmat[b].reshape(3, 3), d.xpos[b]
-    return T
 
 
 def body_scene(body: Body, seed: int = 0):
@@ -127,7 +122,7 @@ def body_scene(body: Body, seed: int = 0):
             anchor = int(m.body_parentid[anchor])
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = d.geom_xmat[g].reshape(3, 3), d.geom_xpos[g]
-        mesh.apply_transform(np.linalg.inv(_pose(d, anchor)) @ T)
+        mesh.apply_transform(np.linalg.inv(body.pose(anchor)) @ T)
         # dimmed like the room (x ROOM_ALBEDO / 0.4), so the glowing ball stays the brightest thing in view
         rgb = np.clip(m.geom_rgba[g, :3], 0, 1) * min(1.0, ROOM_ALBEDO / 0.4)
         mesh.visual.vertex_colors = np.tile(np.r_[rgb * 255, 255].astype(np.uint8), (len(mesh.vertices), 1))
@@ -135,7 +130,7 @@ def body_scene(body: Body, seed: int = 0):
     sc._mj_bodies = []
     for b, meshes in parts.items():
         name = f"mj_{m.body(b).name}" if b else "mj_fixed"
-        sc.add(name, trimesh.util.concatenate(meshes), Material(vertex_colors=True), _pose(d, b), static=(b == 0))
+        sc.add(name, trimesh.util.concatenate(meshes), Material(vertex_colors=True), body.pose(b), static=(b == 0))
         if b:
             sc._mj_bodies.append((name, b))
     sc.add_sphere("mj_ball", m.geom_size[m.geom("ball").id, 0],
@@ -166,9 +161,8 @@ def _geom_mesh(m, g):
 
 def sync_scene(scene, body: Body) -> None:
     """Move the scene's body parts and ball to the MuJoCo state."""
-    d = body.data
     for name, b in scene._mj_bodies:
-        scene.set_transform(name, _pose(d, b))
+        scene.set_transform(name, body.pose(b))
     T = np.eye(4)
     T[:3, 3] = body.ball_position()
     scene.set_transform("mj_ball", T)
@@ -202,7 +196,7 @@ class VisuomotorLoop:
     """Both eyes, their foveation and oculomotor nets, the neck controller; :meth:`step` advances one
     control period. ``timing`` accumulates wall seconds per stage (render, nets, mujoco, control)."""
 
-    def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, pupil_reference_mm: float = 4.0):
+    def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0):
         self.body, self.fov, self.ocu = body, foveators, oculomotor
         self.scene = body_scene(body, seed)
         self.eyes = {s: EyeState() for s in SIDES}
@@ -318,25 +312,21 @@ class VisuomotorLoop:
         dist = vergence_distance(self.body)
         for s in SIDES:
             pupil, _ = self.body.intraocular(s)
-            mean = float(self.onv[s].mean()) * (4.0 / pupil) ** 2  # the scene's brightness, pupil factored out
-            lum = LUMINANCE_AT_TRAINING * mean / float(self.fov[s].norm["input_scale"])
+            trained = self.fov[s].trained_eye.pupil_diameter_mm
+            mean = float(self.onv[s].mean()) * (trained / pupil) ** 2  # as bright as through the training pupil
+            # a retina as bright as the training set's mean sees the luminance that gives the training pupil
+            lum = _luminance_for(trained) * mean / float(self.fov[s].norm["input_scale"])
             self.body.set_intraocular(s, pupil_mm=pupil_diameter_mm(lum), accommodation_D=1.0 / max(dist, 0.1))
 
 
-#: The luminance (cd/m^2) at which the Watson & Yellott pupil is 4 mm, the pupil the foveation data were
-#: rendered with: a retina as bright as the training set's mean is taken to see this luminance.
-LUMINANCE_AT_TRAINING = 0.0
-
-
+@lru_cache(maxsize=8)
 def _luminance_for(diameter_mm: float) -> float:
+    """The luminance (cd/m^2) at which the Watson & Yellott pupil has ``diameter_mm``."""
     from scipy.optimize import brentq
 
     from warp_vision.eye.pupil import pupil_diameter_mm
 
     return float(np.exp(brentq(lambda x: pupil_diameter_mm(np.exp(x)) - diameter_mm, -10, 15)))
-
-
-LUMINANCE_AT_TRAINING = _luminance_for(4.0)
 
 
 def gaze_line(body: Body, side: str) -> tuple[np.ndarray, np.ndarray]:
@@ -380,5 +370,3 @@ def point_at(body: Body, yaw_deg: float, pitch_deg: float, distance: float) -> n
     mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
     return mid + body.head_pose()[:3, :3] @ gaze_direction(np.radians(yaw_deg), np.radians(pitch_deg)) * distance
 
-
-__all__ = ["VisuomotorLoop", "Foveator", "OculomotorNet", "gaze_angles", "vergence_distance", "point_at", "gaze_error_deg", "line_distance", "body_scene", "sync_scene", "set_eye_view"]
