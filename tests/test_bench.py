@@ -61,12 +61,16 @@ def test_torch_baselines_agree_with_reference():
 
 
 def test_linet_bench_small_config_reports_agreement(tmp_path):
-    res = run_config(B=4, P=300, reduction=5, R=6, repeats=1, log=lambda *_: None)
+    res = run_config(B=8, P=300, reduction=5, R=6, repeats=1, log=lambda *_: None)
     assert res["N_in"] == 900 and res["N"] == 180
-    for name, impl in res["impls"].items():
-        assert impl["max_rel_err_vs_warp"] < 1e-5, name
-        assert impl["times"]["forward"]["median_ms"] > 0
-    assert set(res["speedup_of_warp"]) == {"forward", "backward", "forward_backward", "forward_backward_no_grad_x"}
+    assert set(res["layouts"]) == {"batch_major", "feature_major"}
+    for layout in res["layouts"].values():
+        for name, impl in layout["impls"].items():
+            assert impl["max_rel_err_vs_warp"] < 1e-5, name
+            assert impl["times"]["forward"]["median_ms"] > 0
+        assert set(layout["speedup_of_warp"]) == {
+            "forward", "backward", "forward_backward", "forward_backward_no_grad_x"
+        }
     path = write_json(tmp_path / "out.json", res)
     assert json.loads(path.read_text())["N"] == 180
 
@@ -97,3 +101,14 @@ def test_agreement_metric():
     inf = np.inf
     assert _agree(np.array([1.0, inf, 2.0]), np.array([1.00001, inf, 2.0])) == 1.0
     assert _agree(np.array([1.0, inf]), np.array([1.1, 3.0])) == 0.0
+
+
+def test_memory_bench_runs_small_sizes_and_plots_into_a_new_directory(tmp_path):
+    # one tiny size measured (each in a fresh subprocess), a huge FC one estimated, figure in a new dir
+    result = memory.run([999, 12_800_000], batch=4, budget_gib=0.05, log=lambda *_: None)
+    rows = {(r["model"], r["onv"]): r for r in result["rows"]}
+    assert not rows[("linet", 999)]["estimated"] and rows[("linet", 999)]["peak_bytes"] > 0
+    assert rows[("fc", 12_799_998)]["estimated"]  # sizes round down to whole photoreceptors
+    png = tmp_path / "new" / "memory.png"
+    memory.plot(result, str(png))
+    assert png.stat().st_size > 10_000

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from warp_vision.kernels import launch
-from warp_vision.kernels.linet import LinetPlan, build_plan, locally_connected, plan_for
+from warp_vision.kernels.linet import LinetPlan, build_plan, feature_major, locally_connected, plan_for
 from warp_vision.kernels.linet_ref import locally_connected_backward_ref, locally_connected_ref
 
 # Each output is a sum of R + 1 products. The kernel and the reference sum in different orders, so
@@ -43,8 +43,12 @@ def assert_close_abs(got, want, scale, dtype, what):
     assert worst <= 1.0, f"{what}: error {err.max().item():.3e} exceeds tolerance (worst ratio {worst:.2f})"
 
 
-def check_against_reference(B, n_in, N, R, dtype, device, relu=False, seed=0, unread=0, index_dtype=torch.int64):
+def check_against_reference(
+    B, n_in, N, R, dtype, device, relu=False, seed=0, unread=0, index_dtype=torch.int64, feature_major_x=False
+):
     x, w, b, index = make_case(B, n_in, N, R, dtype, device, seed, unread, index_dtype)
+    if feature_major_x:  # the same values, stored [n_in, B] as one liNet layer hands them to the next
+        x = x.t().contiguous().t()
     x.requires_grad_(True)
     w.requires_grad_(True)
     b.requires_grad_(True)
@@ -53,6 +57,8 @@ def check_against_reference(B, n_in, N, R, dtype, device, relu=False, seed=0, un
         pre = locally_connected_ref(x.double(), w.double(), b.double(), index)
         y_ref = torch.relu(pre) if relu else pre
     assert y.shape == (B, N) and y.dtype == dtype and y.device == x.device
+    # B a multiple of 64: y comes out feature-major (the vectorised layout), else batch-major
+    assert feature_major(y) if B % 64 == 0 else y.is_contiguous()
     assert_close_abs(y, y_ref, abs_bound_forward(x, w, b, index), dtype, "forward")
 
     gy = torch.randn(B, N, generator=torch.Generator().manual_seed(seed + 1), dtype=torch.float64).to(dtype).to(device)
@@ -86,14 +92,49 @@ def test_matches_reference(B, n_in, N, R, dtype, relu, device):
     check_against_reference(B, n_in, N, R, dtype, device, relu=relu, unread=min(3, n_in - 1))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("relu", [False, True])
+@pytest.mark.parametrize("feature_major_x", [False, True])
+@pytest.mark.parametrize("B,n_in,N,R", [(64, 1, 1, 1), (64, 300, 61, 9), (128, 2000, 400, 20), (192, 50, 70, 3)])
+def test_feature_major_path_matches_reference(B, n_in, N, R, dtype, relu, feature_major_x, device):
+    # B a multiple of 64: the 64-lane kernels (feature-major x) or the batch-major forward writing a
+    # feature-major y, and the feature-major backward kernels
+    check_against_reference(
+        B, n_in, N, R, dtype, device, relu=relu, unread=min(3, n_in - 1), feature_major_x=feature_major_x
+    )
+
+
+def test_feature_major_chain_matches_reference(device):
+    # Two fused-ReLU layers and a torch head: the liNet's data path, gradients through all of it
+    g = torch.Generator().manual_seed(11)
+    x = torch.randn(64, 500, generator=g, dtype=torch.float64).to(device).requires_grad_(True)
+    i1 = torch.randint(0, 500, (120, 9), generator=g).to(device)
+    i2 = torch.randint(0, 120, (30, 7), generator=g).to(device)
+    params = [torch.randn(*s, generator=g, dtype=torch.float64).to(device).requires_grad_(True)
+              for s in ((120, 9), (120,), (30, 7), (30,), (3, 30))]
+    w1, b1, w2, b2, head = params
+
+    def net(layer):
+        h = layer(x, w1, b1, i1, True)
+        return (layer(h, w2, b2, i2, True) @ head.t()).square().sum()
+
+    got = torch.autograd.grad(net(lambda *a: locally_connected(*a[:4], relu=a[4])), [x, *params])
+    want = torch.autograd.grad(net(lambda *a: torch.relu(locally_connected_ref(*a[:4]))), [x, *params])
+    for a, c in zip(got, want):
+        assert torch.allclose(a, c, rtol=1e-10, atol=1e-10)
+
+
 @pytest.mark.parametrize("index_dtype", [torch.int32, torch.int64])
 def test_large_layer_matches_reference(index_dtype, device):
     # ~1e5 units in, 2e4 out: large enough that CPU launches are split across threads.
     check_against_reference(4, 100_000, 20_000, 5, torch.float32, device, index_dtype=index_dtype, unread=7)
 
 
-def test_gradcheck_float64(device):
-    x, w, b, index = make_case(3, 11, 6, 4, torch.float64, device, seed=3)
+@pytest.mark.parametrize("B,feature_major_x", [(3, False), (64, False), (64, True)])
+def test_gradcheck_float64(B, feature_major_x, device):
+    x, w, b, index = make_case(B, 11, 6, 4, torch.float64, device, seed=3)
+    if feature_major_x:
+        x = x.t().contiguous().t()
     for relu in (False, True):
         inputs = tuple(t.clone().requires_grad_(True) for t in (x, w, b))
         assert torch.autograd.gradcheck(
@@ -114,8 +155,9 @@ def test_hypothesis_shapes(B, n_in, N, R, relu, seed):
     check_against_reference(B, n_in, N, R, torch.float32, "cpu", relu=relu, seed=seed)
 
 
-def test_split_launch_is_bit_identical_to_one_thread(monkeypatch):
-    x, w, b, index = make_case(11, 30_000, 9_000, 7, torch.float32, "cpu", seed=5)
+@pytest.mark.parametrize("B", [11, 64])
+def test_split_launch_is_bit_identical_to_one_thread(B, monkeypatch):
+    x, w, b, index = make_case(B, 30_000, 9_000, 7, torch.float32, "cpu", seed=5)
     for t in (x, w, b):
         t.requires_grad_(True)
     outs = []
@@ -219,9 +261,10 @@ def test_slices_cover_the_range_once():
 
 
 @pytest.mark.parametrize("relu", [False, True])
-def test_first_layer_gradients_without_grad_x(relu, device):
+@pytest.mark.parametrize("B", [10, 64])
+def test_first_layer_gradients_without_grad_x(relu, B, device):
     # x (an ONV) needs no gradient: the weight and bias kernels then mask the ReLU on the fly.
-    x, w, b, index = make_case(10, 500, 120, 7, torch.float64, device, seed=9)
+    x, w, b, index = make_case(B, 500, 120, 7, torch.float64, device, seed=9)
     w.requires_grad_(True)
     b.requires_grad_(True)
     y = locally_connected(x, w, b, index, relu=relu)
@@ -234,12 +277,10 @@ def test_first_layer_gradients_without_grad_x(relu, device):
     assert torch.allclose(gb, gb_ref, rtol=1e-12, atol=1e-12)
 
 
-def test_fused_relu_propagates_nan_like_torch():
-    from warp_vision.kernels.linet import locally_connected
-    from warp_vision.kernels.linet_ref import locally_connected_ref
-
+@pytest.mark.parametrize("B", [9, 64])
+def test_fused_relu_propagates_nan_like_torch(B):
     g = torch.Generator().manual_seed(3)
-    x = torch.randn(9, 30, generator=g)
+    x = torch.randn(B, 30, generator=g)
     x[2, 5] = float("nan")
     w = torch.randn(12, 4, generator=g)
     b = torch.randn(12, generator=g)
@@ -248,3 +289,30 @@ def test_fused_relu_propagates_nan_like_torch():
     ref = torch.relu(locally_connected_ref(x, w, b, idx))
     assert torch.equal(torch.isnan(y), torch.isnan(ref)) and torch.isnan(y).any()
     assert torch.allclose(y.nan_to_num(), ref.nan_to_num(), atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("B,F", [(64, 1), (64, 37), (128, 1000), (192, 16)])
+def test_transpose_kernel_matches_torch(B, F, dtype, device):
+    from warp_vision.kernels.linet import as_feature_major
+
+    x = torch.randn(B, F, generator=torch.Generator().manual_seed(B + F), dtype=dtype).to(device)
+    xt = as_feature_major(x)
+    assert feature_major(xt) and torch.equal(xt, x)
+    # a copy in the other layout (a single feature is already both layouts)
+    assert (xt is x) if F == 1 else (xt.data_ptr() != x.data_ptr())
+    assert as_feature_major(xt) is xt  # already feature-major: no copy
+    odd = x[:63]
+    assert as_feature_major(odd) is odd  # B not a multiple of 64: left batch-major
+
+
+@pytest.mark.parametrize("relu", [False, True])
+def test_huge_batch_major_input_is_read_in_place(relu, device, monkeypatch):
+    # Above TRANSPOSE_MAX_BYTES a batch-major x is not copied: the batch-major kernels read it and
+    # write a feature-major y, and the backward mixes the two families.
+    from warp_vision.kernels import linet as L
+
+    monkeypatch.setattr(L, "TRANSPOSE_MAX_BYTES", 0)
+    assert L.as_feature_major(torch.zeros(64, 10)).is_contiguous()
+    check_against_reference(64, 700, 90, 11, torch.float64, device, relu=relu, unread=2)
+    check_against_reference(128, 300, 61, 9, torch.float32, device, relu=relu)

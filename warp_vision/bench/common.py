@@ -40,6 +40,38 @@ def median_ms(fn: Callable[[], object], repeats: int = 15, warmup: int = 3, setu
     }
 
 
+def interleaved_ms(
+    cases: dict[str, tuple[Callable[[], object], Callable[[], object] | None]], repeats: int = 15, warmup: int = 3
+) -> dict[str, dict]:
+    """Time several ``(fn, setup)`` cases in interleaved rounds: each round times every case once,
+    starting from a rotating position, so drift in the machine's speed (other tenants, clocks,
+    caches) falls on all cases alike. Returns {name: median_ms's dict} per case.
+    """
+    names = list(cases)
+    for name in names:
+        fn, setup = cases[name]
+        for _ in range(warmup):
+            if setup:
+                setup()
+            fn()
+    times: dict[str, list[float]] = {k: [] for k in names}
+    for rep in range(repeats):
+        for j in range(len(names)):
+            name = names[(rep + j) % len(names)]
+            fn, setup = cases[name]
+            if setup:
+                setup()
+            sync()
+            t0 = time.perf_counter()
+            fn()
+            sync()
+            times[name].append((time.perf_counter() - t0) * 1e3)
+    return {
+        k: {"median_ms": float(np.median(v)), "min_ms": float(np.min(v)), "max_ms": float(np.max(v)), "repeats": repeats}
+        for k, v in times.items()
+    }
+
+
 def sync() -> None:
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         torch.cuda.synchronize()

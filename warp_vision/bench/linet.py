@@ -8,8 +8,10 @@ for x, weight and bias; and the first-layer case, where the ONV needs no gradien
 - ``torch_index_add``: gather forward, hand-written index_add / gather backward;
 - ``torch_csr``: torch.sparse CSR matmul forward and backward, sampled_addmm for grad_weight.
 
-All run in one process on the same inputs, medians after warm-up. It reports each torch variant's
-time over Warp's, and the memory bandwidth Warp achieves against the minimum bytes the op must move.
+All run in one process on the same inputs, medians after warm-up, for both input layouts (x
+batch-major, as an ONV batch arrives; x feature-major, as one liNet layer hands it to the next). It
+reports each torch variant's time over Warp's, and the memory bandwidth Warp achieves against the
+minimum bytes the op must move.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np
 import torch
 
 from warp_vision.bench import torch_baselines as tb
-from warp_vision.bench.common import median_ms, sync
+from warp_vision.bench.common import interleaved_ms, sync
 from warp_vision.kernels.linet import locally_connected, plan_for
 from warp_vision.nn.connectivity import build_connectivity, onv_positions
 
@@ -66,18 +68,56 @@ def min_bytes(B: int, n_in: int, N: int, R: int, itemsize: int = 4, grad_x: bool
     return {"forward": fwd, "backward": bwd, "forward_backward": fwd + bwd}
 
 
+def _layout(t: torch.Tensor, feature_major: bool) -> torch.Tensor:
+    """``t`` [B, F] batch-major (contiguous) or feature-major (a view of a contiguous [F, B] copy)."""
+    return t.t().contiguous().t() if feature_major else t.contiguous()
+
+
+def _phases(fn, threads, x, x_req, weight, bias, gy) -> dict:
+    """The four timed phases of one implementation as (call, untimed setup) pairs, each run under
+    its own thread setting."""
+    holder = {}
+
+    def under(f):
+        def call():
+            with _threads(threads):
+                f()
+        return call
+
+    def fwd_only():
+        with torch.no_grad():
+            fn(x)
+
+    def make_graph():
+        holder["y"] = fn(x_req)
+
+    return {
+        "forward": (under(fwd_only), None),
+        "backward": (under(lambda: torch.autograd.grad(holder["y"], (x_req, weight, bias), gy)), under(make_graph)),
+        "forward_backward": (under(lambda: torch.autograd.grad(fn(x_req), (x_req, weight, bias), gy)), None),
+        # the ONV layer: no gradient for x
+        "forward_backward_no_grad_x": (under(lambda: torch.autograd.grad(fn(x), (weight, bias), gy)), None),
+    }
+
+
 def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int = 0, log=print) -> dict:
-    """Benchmark one layer: ONV of P photoreceptors (N_in = 3P) -> N = N_in // reduction units."""
+    """Benchmark one layer: ONV of P photoreceptors (N_in = 3P) -> N = N_in // reduction units.
+
+    Both input layouts are timed, every implementation getting the same tensors: ``batch_major``
+    (x contiguous [B, N_in], as an ONV batch arrives) and ``feature_major`` (x a view of a contiguous
+    [N_in, B] buffer, as the Warp op hands its output to the next liNet layer). In backward each
+    implementation receives grad_y in the layout of its own output, as the next layer would return it.
+    """
     pos = onv_positions(log_polar_layout(P, seed))
     conn = build_connectivity(pos, layers=1, receptive_field=R, reduction=reduction, seed=seed)[0]
     n_in, N = pos.shape[0], conn.index.shape[0]
     g = torch.Generator().manual_seed(seed)
     index = torch.from_numpy(conn.index)
-    x = torch.rand(B, n_in, generator=g)
+    x_bm = torch.rand(B, n_in, generator=g)
     weight = (torch.randn(N, R, generator=g) * (2.0 / R) ** 0.5).requires_grad_(True)
     bias = torch.zeros(N).requires_grad_(True)
-    grad_y = torch.randn(B, N, generator=g)
-    x_req = x.clone().requires_grad_(True)
+    grad_y_bm = torch.randn(B, N, generator=g)
+    grad_y_fm = _layout(grad_y_bm, True)
 
     csr_plan = tb.CsrPlan(index, n_in)
     flat = index.reshape(-1).long().contiguous()
@@ -89,66 +129,56 @@ def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int =
         "torch_index_add": (lambda xx: tb.index_add(xx, weight, bias, flat), None),
         "torch_csr": (lambda xx: tb.csr_matmul(xx, weight, bias, csr_plan), None),
     }
-    # Agreement check before timing: every implementation against the Warp op.
-    y0 = locally_connected(x_req, weight, bias, index)
-    ref = (y0, *torch.autograd.grad(y0, (x_req, weight, bias), grad_y))
     result = {
         "B": B, "N_in": n_in, "N": N, "R": R, "P": P, "dtype": "float32",
-        "min_bytes": min_bytes(B, n_in, N, R), "impls": {},
+        "min_bytes": min_bytes(B, n_in, N, R), "layouts": {},
     }
-    for name, (fn, threads) in impls.items():
-        with _threads(threads):
-            y = fn(x_req)
-            got = (y, *torch.autograd.grad(y, (x_req, weight, bias), grad_y))
+    for layout in ("batch_major", "feature_major"):
+        log(f" x {layout.replace('_', '-')}:")
+        x = _layout(x_bm, layout == "feature_major")
+        x_req = _layout(x_bm, layout == "feature_major").requires_grad_(True)
+        # Agreement check before timing: every implementation against the Warp op.
+        y0 = locally_connected(x_req, weight, bias, index)
+        ref = (y0, *torch.autograd.grad(y0, (x_req, weight, bias), grad_y_bm))
+        per_layout, cases = {}, {name: {} for name in impls}
+        for name, (fn, threads) in impls.items():
+            with _threads(threads):
+                y = fn(x_req)
+                gy = grad_y_bm if y.is_contiguous() else grad_y_fm  # what the next layer would return
+                got = (y, *torch.autograd.grad(y, (x_req, weight, bias), gy))
             err = max(float((a - c).detach().abs().max() / (c.detach().abs().max() + 1e-30)) for a, c in zip(got, ref))
-            holder = {}
-
-            def fwd_only():
-                with torch.no_grad():
-                    fn(x)
-
-            def make_graph():
-                holder["y"] = fn(x_req)
-
-            def bwd_only():
-                torch.autograd.grad(holder["y"], (x_req, weight, bias), grad_y)
-
-            def fwd_bwd():
-                torch.autograd.grad(fn(x_req), (x_req, weight, bias), grad_y)
-
-            def fwd_bwd_first_layer():  # the ONV layer: no gradient for x
-                torch.autograd.grad(fn(x), (weight, bias), grad_y)
-
-            times = {
-                "forward": median_ms(fwd_only, repeats),
-                "backward": median_ms(bwd_only, repeats, setup=make_graph),
-                "forward_backward": median_ms(fwd_bwd, repeats),
-                "forward_backward_no_grad_x": median_ms(fwd_bwd_first_layer, repeats),
-            }
-        result["impls"][name] = {"max_rel_err_vs_warp": err, "times": times}
+            per_layout[name] = {"max_rel_err_vs_warp": err}
+            cases[name] = _phases(fn, threads, x, x_req, weight, bias, gy)
+        # Each phase interleaves the implementations round by round (drift falls on all alike).
+        for phase in ("forward", "backward", "forward_backward", "forward_backward_no_grad_x"):
+            timed = interleaved_ms({name: cases[name][phase] for name in impls}, repeats)
+            for name in impls:
+                per_layout[name].setdefault("times", {})[phase] = timed[name]
+        for name in impls:
+            times, err = per_layout[name]["times"], per_layout[name]["max_rel_err_vs_warp"]
+            log(
+                f"  {name:16s} fwd {times['forward']['median_ms']:8.2f} ms  bwd {times['backward']['median_ms']:8.2f} ms"
+                f"  fwd+bwd {times['forward_backward']['median_ms']:8.2f} ms"
+                f"  (no grad x {times['forward_backward_no_grad_x']['median_ms']:8.2f} ms)  rel.err {err:.1e}"
+            )
+        warp_t = per_layout["warp"]["times"]
+        torch_names = [k for k in impls if k.startswith("torch")]
+        ratios = {}
+        for phase in warp_t:
+            w_ms = warp_t[phase]["median_ms"]
+            per = {k: per_layout[k]["times"][phase]["median_ms"] / w_ms for k in torch_names}
+            best = min(per, key=per.get)
+            ratios[phase] = {"vs": per, "vs_best_torch": per[best], "best_torch": best}
+        mb = result["min_bytes"]
+        bw = {ph: mb[ph] / (warp_t[ph]["median_ms"] * 1e-3) / 1e9 for ph in ("forward", "backward", "forward_backward")}
+        result["layouts"][layout] = {
+            "impls": per_layout, "speedup_of_warp": ratios, "warp_achieved_GBps_vs_min_bytes": bw,
+        }
         log(
-            f"  {name:16s} fwd {times['forward']['median_ms']:8.2f} ms  bwd {times['backward']['median_ms']:8.2f} ms"
-            f"  fwd+bwd {times['forward_backward']['median_ms']:8.2f} ms"
-            f"  (no grad x {times['forward_backward_no_grad_x']['median_ms']:8.2f} ms)  rel.err {err:.1e}"
+            "  warp speed-up over the best torch: "
+            + ", ".join(f"{k} {v['vs_best_torch']:.2f}x" for k, v in ratios.items())
+            + f"; achieved {bw['forward_backward']:.2f} GB/s of minimum traffic (fwd+bwd)"
         )
-    warp_t = result["impls"]["warp"]["times"]
-    torch_names = [k for k in impls if k.startswith("torch")]
-    ratios = {}
-    for phase in warp_t:
-        w_ms = warp_t[phase]["median_ms"]
-        per = {k: result["impls"][k]["times"][phase]["median_ms"] / w_ms for k in torch_names}
-        ratios[phase] = {"vs": per, "vs_best_torch": min(per.values())}
-    result["speedup_of_warp"] = ratios
-    bw = {}
-    mb = result["min_bytes"]
-    for phase in ("forward", "backward", "forward_backward"):
-        bw[phase] = mb[phase] / (warp_t[phase]["median_ms"] * 1e-3) / 1e9
-    result["warp_achieved_GBps_vs_min_bytes"] = bw
-    log(
-        "  warp speed-up over the best torch: "
-        + ", ".join(f"{k} {v['vs_best_torch']:.2f}x" for k, v in ratios.items())
-        + f"; achieved {bw['forward_backward']:.2f} GB/s of minimum traffic (fwd+bwd)"
-    )
     sync()
     return result
 

@@ -23,6 +23,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 from typing import Sequence
 
 DEFAULT_SIZES = [1_000, 4_000, 10_000, 40_000, 100_000, 400_000, 1_000_000, 4_000_000, 12_800_000]
@@ -166,6 +167,7 @@ def plot(result: dict, path: str) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     tmp = path + ".tmp.png"
     fig.savefig(tmp, dpi=120)
     plt.close(fig)
