@@ -19,25 +19,7 @@ def median_ms(fn: Callable[[], object], repeats: int = 15, warmup: int = 3, setu
 
     Returns {"median_ms", "min_ms", "max_ms", "repeats"}.
     """
-    for _ in range(warmup):
-        if setup:
-            setup()
-        fn()
-    times = []
-    for _ in range(repeats):
-        if setup:
-            setup()
-        sync()
-        t0 = time.perf_counter()
-        fn()
-        sync()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return {
-        "median_ms": float(np.median(times)),
-        "min_ms": float(np.min(times)),
-        "max_ms": float(np.max(times)),
-        "repeats": repeats,
-    }
+    return interleaved_ms({"fn": (fn, setup)}, repeats, warmup)["fn"]
 
 
 def interleaved_ms(
