@@ -178,5 +178,16 @@ def test_faces_smoke_end_to_end_and_resume(tmp_path, ids, smoke_data, capsys):
     for k in a["model"]:
         assert torch.equal(a["model"][k], b["model"][k]), k
     assert resumed["test_accuracy"] == summary["test_accuracy"]
+    # resume with the epochs already done as the new cap: ends the run now, evaluated, with figures
+    cfg_d = face_smoke(tmp_path / "d", smoke_data, ids[1])
+    TF.run(cfg_d, progress=False, log=lambda *a: None, stop_after_epoch=1)
+    assert not (tmp_path / "d/summary.json").exists()
+    assert train_main(["faces", "--resume", str(tmp_path / "d"), "--epochs", "1", "--no-progress"]) == 0
+    ended = json.loads((tmp_path / "d/summary.json").read_text())
+    assert ended["epochs"] == 1 and ended["stopped"] == "max epochs"
+    assert json.loads((tmp_path / "d/config.json").read_text())["epochs"] == 1
+    assert (tmp_path / "d/figures/confusion_matrix.png").exists()
+    with pytest.raises(ValueError, match="epochs"):
+        TF.run(face_smoke(tmp_path / "e", smoke_data, ids[1]), progress=False, epochs=2)
     # bad input is refused with a message
     assert train_main(["faces", "--preset", "smoke", "--identities", "1", "--out", str(tmp_path / "c")]) == 2

@@ -1,9 +1,9 @@
 """Command line of ``python -m warp_vision.train``.
 
     python -m warp_vision.train [--preset smoke|default|paper] [--flag value ...]   train (the default)
-    python -m warp_vision.train --resume RUN_DIR                                       continue a stopped run
+    python -m warp_vision.train --resume RUN_DIR [--epochs N]                          continue a stopped run
     python -m warp_vision.train faces [--preset smoke|default|paper] [--flag value ...]  active face recognition
-    python -m warp_vision.train faces --resume RUN_DIR                                 continue a stopped AFR run
+    python -m warp_vision.train faces --resume RUN_DIR [--epochs N]                    continue a stopped AFR run
     python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (either task)
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """
@@ -18,7 +18,9 @@ from warp_vision.train import config as C
 
 def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The flags every training command has besides its config's."""
-    p.add_argument("--resume", metavar="RUN_DIR", default=None, help="continue the stopped run in RUN_DIR exactly")
+    p.add_argument("--resume", metavar="RUN_DIR", default=None,
+                   help="continue the stopped run in RUN_DIR exactly; with --epochs N, under a new epoch cap "
+                        "(N = the epochs done ends it now: the best checkpoint is evaluated, figures written)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
@@ -110,11 +112,11 @@ def main(argv: list[str] | None = None) -> int:
         from warp_vision.train import faces
 
         a = _faces_parser().parse_args(argv[1:])
-        return _guarded(lambda: faces.run(resume=a.resume, progress=not a.no_progress) if a.resume else
+        return _guarded(lambda: faces.run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs) if a.resume else
                         faces.run(C.from_args(a, C.FaceTrainConfig, C.FACE_PRESETS), progress=not a.no_progress,
                                   overwrite=a.overwrite))
     a = _train_parser().parse_args(argv)
-    return _guarded(lambda: loop.run(resume=a.resume, progress=not a.no_progress) if a.resume else
+    return _guarded(lambda: loop.run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs) if a.resume else
                     loop.run(C.from_args(a), progress=not a.no_progress, overwrite=a.overwrite))
 
 

@@ -115,11 +115,12 @@ def _shuffled_labels(ident, pose, tr, seed: int):
 
 
 def run(cfg: FaceTrainConfig | None = None, resume: str | None = None, progress: bool = True, log=print,
-        stop_after_epoch: int | None = None, overwrite: bool = False) -> dict:
-    """Train (or resume) an AFR run; returns the summary (also written to summary.json)."""
+        stop_after_epoch: int | None = None, overwrite: bool = False, epochs: int | None = None) -> dict:
+    """Train (or resume) an AFR run; returns the summary (also written to summary.json). ``epochs``
+    gives a resumed run a new epoch cap (the epochs already done: end it now, evaluated)."""
     from tqdm import tqdm
 
-    cfg, out = open_run(FaceTrainConfig, cfg, resume, overwrite)
+    cfg, out = open_run(FaceTrainConfig, cfg, resume, overwrite, epochs)
     device = pick_device(cfg.device)
     dd = _Dist(device)
     say = log if dd.rank == 0 else (lambda *a, **k: None)

@@ -82,14 +82,22 @@ def peak_rss_mib() -> float:
     return r / 2**20 if sys.platform == "darwin" else r / 1024
 
 
-def open_run(cls, cfg, resume: str | None, overwrite: bool):
+def open_run(cls, cfg, resume: str | None, overwrite: bool, epochs: int | None = None):
     """(validated config, output directory) of the run to resume (its config.json read as ``cls``) or
-    of the new run ``cfg`` (refusing an --out that holds a run unless ``overwrite``)."""
+    of the new run ``cfg`` (refusing an --out that holds a run unless ``overwrite``).
+
+    ``epochs`` (resume only) changes the resumed run's epoch cap: more to extend it, or the epochs
+    already done to end it now (the best checkpoint is then evaluated and the figures written).
+    """
     if resume:
         out = Path(resume)
         if not (out / "latest.pt").exists():
             raise FileNotFoundError(f"--resume {resume}: no latest.pt there to resume from")
         cfg = cls(**json.loads((out / "config.json").read_text()))
+        if epochs is not None:
+            cfg.epochs = epochs
+    elif epochs is not None:
+        raise ValueError("epochs: only a resumed run takes a new epoch cap; set it in the config otherwise")
     elif cfg is None:
         raise ValueError("run: give a config or a run directory to resume")
     else:
@@ -246,14 +254,15 @@ def build_model(cfg: TrainConfig, retina, device: str):
 
 
 def run(cfg: TrainConfig | None = None, resume: str | None = None, progress: bool = True, log=print,
-        stop_after_epoch: int | None = None, overwrite: bool = False) -> dict:
+        stop_after_epoch: int | None = None, overwrite: bool = False, epochs: int | None = None) -> dict:
     """Train (or resume) a foveation run; returns the summary dict (also written to summary.json).
 
     A new run refuses an output directory that already holds a run (its metrics or checkpoints) unless
-    ``overwrite``, which deletes them first."""
+    ``overwrite``, which deletes them first. ``epochs`` gives a resumed run a new epoch cap (see
+    :func:`open_run`; a cosine learning-rate schedule then spans the new count)."""
     from tqdm import tqdm
 
-    cfg, out = open_run(TrainConfig, cfg, resume, overwrite)
+    cfg, out = open_run(TrainConfig, cfg, resume, overwrite, epochs)
     device = pick_device(cfg.device)
     dd = _Dist(device)
     if dd.on and "WARP_VISION_THREADS" not in os.environ:
