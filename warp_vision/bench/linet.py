@@ -140,7 +140,7 @@ def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int =
         # Agreement check before timing: every implementation against the Warp op.
         y0 = locally_connected(x_req, weight, bias, index)
         ref = (y0, *torch.autograd.grad(y0, (x_req, weight, bias), grad_y_bm))
-        per_layout, cases = {}, {name: {} for name in impls}
+        per_layout, cases = {}, {}
         for name, (fn, threads) in impls.items():
             with _threads(threads):
                 y = fn(x_req)

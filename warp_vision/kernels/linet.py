@@ -606,13 +606,14 @@ def backward(
 def _backward_fm(x, weight, plan, grad_y, y, need, dev):
     """:func:`backward` for B a multiple of 64: feature-major gradients; y (if given) masks grad_y.
 
-    The feature-major kernels take an already masked gradient: it is materialised here unless the
-    input is batch-major and needs no gradient (the ONV layer), where the batch-major weight and
-    bias kernels mask on the fly instead of copying the net's largest activation gradient.
+    The feature-major kernels take an already masked gradient (:func:`backward` masks it when grad_x
+    is needed): it is materialised here for a feature-major x; for a batch-major x (the ONV layer)
+    the batch-major weight and bias kernels mask on the fly instead of copying the net's largest
+    activation gradient.
     """
     B, N = grad_y.shape
     R = plan.receptive_field
-    if y is not None and (need[0] or feature_major(x)):
+    if y is not None and feature_major(x):
         grad_y = torch.ops.aten.threshold_backward(grad_y, y, 0)
         y = None
     gT = grad_y.t().contiguous()  # a no-op when grad_y comes from the next liNet layer
@@ -621,9 +622,9 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev):
     if need[0]:
         gxT = torch.empty(plan.in_features, B, dtype=grad_y.dtype, device=grad_y.device)
         if N and plan.in_features:
+            t_offsets, t_entries, t_units = plan.transposed()
             _split(linet_grad_x_fm, plan.in_features,
-                   [g, _wp(weight.reshape(-1)), _wp(plan.t_offsets), _wp(plan.t_entries), _wp(plan.t_units)],
-                   [_vec(gxT)], dev)
+                   [g, _wp(weight.reshape(-1)), _wp(t_offsets), _wp(t_entries), _wp(t_units)], [_vec(gxT)], dev)
         else:
             gxT.zero_()
         grad_x = gxT.t()
