@@ -179,6 +179,26 @@ def test_only_requested_gradients_are_computed():
     assert x.grad is None and b.grad is None and w.grad is not None
 
 
+@pytest.mark.parametrize("feature_major_x", [False, True])
+@pytest.mark.parametrize("wants", [(True, False, False), (False, True, False), (False, False, True),
+                                   (False, True, True), (True, True, False), (True, False, True)])
+def test_any_subset_of_gradients_matches_reference(wants, feature_major_x, device):
+    # B = 128: the feature-major kernels; a frozen bias (the weight kernel's fused bias sum goes to
+    # scratch) and a frozen weight (the bias-only kernel) must leave the other gradients right.
+    B, n_in, N, R = 128, 300, 61, 9
+    x, w, b, index = make_case(B, n_in, N, R, torch.float64, device, seed=3)
+    if feature_major_x:
+        x = x.t().contiguous().t()
+    leaves = [t.requires_grad_(want) for t, want in zip((x, w, b), wants)]
+    y = locally_connected(x, w, b, index)
+    gy = torch.randn(B, N, generator=torch.Generator().manual_seed(4), dtype=torch.float64).to(device)
+    got = torch.autograd.grad(y, [t for t in leaves if t.requires_grad], gy)
+    want = locally_connected_backward_ref(x.detach(), w.detach(), index, gy)
+    assert len(got) == sum(wants)
+    for g, ref in zip(got, [r for r, wanted in zip(want, wants) if wanted]):
+        torch.testing.assert_close(g, ref, rtol=1e-10, atol=1e-10)
+
+
 def test_non_contiguous_input_is_accepted():
     x, w, b, index = make_case(6, 40, 10, 3, torch.float32, "cpu")
     xt = x.t().contiguous().t()  # same values, column-major
