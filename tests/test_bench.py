@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from warp_vision.bench import memory
@@ -73,6 +74,15 @@ def test_linet_bench_small_config_reports_agreement(tmp_path):
         }
     path = write_json(tmp_path / "out.json", res)
     assert json.loads(path.read_text())["N"] == 180
+
+
+def test_linet_bench_times_the_kernels_alone_at_a_feature_major_batch():
+    res = run_config(B=64, P=200, reduction=5, R=5, repeats=1, log=lambda *_: None)
+    k = res["warp_kernels_only_ms"]
+    assert {"forward", "grad_x", "grad_weight_bias"} <= set(k)
+    assert all(k[p] > 0 for p in ("forward", "grad_x", "grad_weight_bias"))
+    assert k["forward_backward"] == pytest.approx(k["forward"] + k["grad_x"] + k["grad_weight_bias"])
+    assert k["op_overhead_ms"] == pytest.approx(k["op_forward_backward_ms"] - k["forward_backward"])
 
 
 def test_log_polar_layout_is_foveated():

@@ -11,7 +11,9 @@ for x, weight and bias; and the first-layer case, where the ONV needs no gradien
 All run in one process on the same inputs, medians after warm-up, for both input layouts (x
 batch-major, as an ONV batch arrives; x feature-major, as one liNet layer hands it to the next). It
 reports each torch variant's time over Warp's, and the memory bandwidth Warp achieves against the
-minimum bytes the op must move.
+minimum bytes the op must move. Last, the op's three feature-major kernels are timed alone on
+preallocated outputs (``warp_kernels_only_ms``): how much of the op is kernel time, and the best
+torch time over that sum, the speed-up these kernels would give with no overhead at all.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import torch
 
 from warp_vision.bench import torch_baselines as tb
 from warp_vision.bench.common import interleaved_ms, sync
+from warp_vision.kernels import linet as L
 from warp_vision.kernels.linet import locally_connected, plan_for
 from warp_vision.nn.connectivity import build_connectivity, onv_positions
 
@@ -98,6 +101,47 @@ def _phases(fn, threads, x, x_req, weight, bias, gy) -> dict:
         # the ONV layer: no gradient for x
         "forward_backward_no_grad_x": (under(lambda: torch.autograd.grad(fn(x), (weight, bias), gy)), None),
     }
+
+
+def kernel_calls(x_bm: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, index: torch.Tensor,
+                 grad_y_bm: torch.Tensor) -> dict:
+    """The op's three feature-major kernel launches (forward, grad_x, grad_weight with grad_bias) as
+    callables on preallocated outputs: no allocation, autograd, checks or layout change. CPU only,
+    B a multiple of 64."""
+    B = x_bm.shape[0]
+    if B % L.LANES or x_bm.device.type != "cpu":
+        raise ValueError(f"kernel_calls: expected a CPU batch of a multiple of 64 rows, got {B} on {x_bm.device}")
+    L._launch.init()
+    plan = plan_for(index, x_bm.shape[1])
+    t_offsets, t_entries, t_units = plan.transposed()
+    xT, gT = x_bm.t().contiguous(), grad_y_bm.t().contiguous()
+    w, b = weight.detach().reshape(-1), bias.detach()
+    yT, gxT = torch.empty(plan.num_units, B), torch.empty(plan.in_features, B)
+    gw, gb = torch.empty_like(w), torch.empty_like(b)
+    fv, wa, chunks, R = L._flat_vec, L._wp, B // L.LANES, plan.receptive_field
+    idx = wa(plan.index.reshape(-1))
+    return {
+        "forward": lambda: L._split(L.linet_forward_fm, plan.num_units,
+                                    [fv(xT), wa(w), wa(b), idx, R, chunks, 0], [fv(yT)], "cpu"),
+        "grad_x": lambda: L._split(L.linet_grad_x_fm, plan.in_features,
+                                   [fv(gT), wa(w), wa(t_offsets), wa(t_entries), wa(t_units), chunks], [fv(gxT)], "cpu"),
+        "grad_weight_bias": lambda: L._split(L.linet_grad_weight_fm, plan.num_units,
+                                             [fv(xT), fv(gT), idx, R, chunks], [wa(gw), wa(gb)], "cpu"),
+    }
+
+
+def kernels_only(x_bm: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, index: torch.Tensor,
+                 grad_y_bm: torch.Tensor, repeats: int) -> dict:
+    """:func:`kernel_calls` timed in interleaved rounds (ms), with their sum: the fastest the op
+    could run between liNet layers with these kernels; the op's own time minus it is its overhead.
+    Empty for a batch that is not a multiple of 64."""
+    if x_bm.shape[0] % L.LANES:
+        return {}
+    calls = kernel_calls(x_bm, weight, bias, index, grad_y_bm)
+    timed = interleaved_ms({k: (f, None) for k, f in calls.items()}, repeats)
+    out = {k: v["median_ms"] for k, v in timed.items()}
+    out["forward_backward"] = sum(out.values())
+    return out
 
 
 def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int = 0, log=print) -> dict:
@@ -179,6 +223,21 @@ def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int =
             + ", ".join(f"{k} {v['vs_best_torch']:.2f}x" for k, v in ratios.items())
             + f"; achieved {bw['forward_backward']:.2f} GB/s of minimum traffic (fwd+bwd)"
         )
+    if x_bm.device.type == "cpu":
+        k = kernels_only(x_bm, weight, bias, index, grad_y_bm, repeats)
+        if k:
+            fm = result["layouts"]["feature_major"]
+            op_ms = fm["impls"]["warp"]["times"]["forward_backward"]["median_ms"]
+            best = fm["speedup_of_warp"]["forward_backward"]["best_torch"]
+            best_ms = fm["impls"][best]["times"]["forward_backward"]["median_ms"]
+            k.update({"op_forward_backward_ms": op_ms, "op_overhead_ms": op_ms - k["forward_backward"],
+                      "best_torch_over_kernels": best_ms / k["forward_backward"]})
+            result["warp_kernels_only_ms"] = k
+            log(
+                f" Warp kernels alone (feature-major, preallocated): fwd {k['forward']:.2f} + grad_x {k['grad_x']:.2f}"
+                f" + grad_weight/bias {k['grad_weight_bias']:.2f} = {k['forward_backward']:.2f} ms; the op"
+                f" {op_ms:.2f} ms; {best} over the kernels alone: {k['best_torch_over_kernels']:.2f}x"
+            )
     sync()
     return result
 
