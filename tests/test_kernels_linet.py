@@ -314,7 +314,7 @@ def test_fused_relu_propagates_nan_like_torch(B):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("B,F", [(64, 1), (64, 37), (128, 1000), (192, 16)])
 def test_transpose_kernel_matches_torch(B, F, dtype, device):
-    from warp_vision.kernels.linet import as_feature_major
+    from warp_vision.kernels.layout import as_feature_major
 
     x = torch.randn(B, F, generator=torch.Generator().manual_seed(B + F), dtype=dtype).to(device)
     xt = as_feature_major(x)
@@ -330,9 +330,9 @@ def test_transpose_kernel_matches_torch(B, F, dtype, device):
 def test_huge_batch_major_input_is_read_in_place(relu, device, monkeypatch):
     # Above TRANSPOSE_MAX_BYTES a batch-major x is not copied: the batch-major kernels read it and
     # write a feature-major y, and the backward mixes the two families.
-    from warp_vision.kernels import linet as L
+    from warp_vision.kernels import layout
 
-    monkeypatch.setattr(L, "TRANSPOSE_MAX_BYTES", 0)
-    assert L.as_feature_major(torch.zeros(64, 10)).is_contiguous()
+    monkeypatch.setattr(layout, "TRANSPOSE_MAX_BYTES", 0)
+    assert layout.as_feature_major(torch.zeros(64, 10)).is_contiguous()
     check_against_reference(64, 700, 90, 11, torch.float64, device, relu=relu, unread=2)
     check_against_reference(128, 300, 61, 9, torch.float32, device, relu=relu)

@@ -34,7 +34,8 @@ from warp_vision.bench import torch_baselines as tb
 from warp_vision.bench.common import interleaved_ms, machine_info, write_json
 from warp_vision.bench.linet import kernel_calls, log_polar_layout
 from warp_vision.kernels.launch import cpu_threads
-from warp_vision.kernels.linet import as_feature_major, locally_connected, plan_for
+from warp_vision.kernels.layout import as_feature_major
+from warp_vision.kernels.linet import locally_connected, plan_for
 from warp_vision.nn.connectivity import build_connectivity, onv_positions
 
 

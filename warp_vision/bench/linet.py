@@ -27,6 +27,7 @@ import torch
 from warp_vision.bench import torch_baselines as tb
 from warp_vision.bench.common import interleaved_ms, sync
 from warp_vision.kernels import linet as L
+from warp_vision.kernels.layout import LANES, flat_vectors
 from warp_vision.kernels.linet import locally_connected, plan_for
 from warp_vision.nn.connectivity import build_connectivity, onv_positions
 
@@ -109,7 +110,7 @@ def kernel_calls(x_bm: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, i
     callables on preallocated outputs: no allocation, autograd, checks or layout change. CPU only,
     B a multiple of 64."""
     B = x_bm.shape[0]
-    if B % L.LANES or x_bm.device.type != "cpu":
+    if B % LANES or x_bm.device.type != "cpu":
         raise ValueError(f"kernel_calls: expected a CPU batch of a multiple of 64 rows, got {B} on {x_bm.device}")
     L._launch.init()
     plan = plan_for(index, x_bm.shape[1])
@@ -118,7 +119,7 @@ def kernel_calls(x_bm: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, i
     w, b = weight.detach().reshape(-1), bias.detach()
     yT, gxT = torch.empty(plan.num_units, B), torch.empty(plan.in_features, B)
     gw, gb = torch.empty_like(w), torch.empty_like(b)
-    fv, wa, chunks, R = L._flat_vec, L._wp, B // L.LANES, plan.receptive_field
+    fv, wa, chunks, R = flat_vectors, L._wp, B // LANES, plan.receptive_field
     idx = wa(plan.index.reshape(-1))
     return {
         "forward": lambda: L._split(L.linet_forward_fm, plan.num_units,
@@ -135,7 +136,7 @@ def kernels_only(x_bm: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, i
     """:func:`kernel_calls` timed in interleaved rounds (ms), with their sum: the fastest the op
     could run between liNet layers with these kernels; the op's own time minus it is its overhead.
     Empty for a batch that is not a multiple of 64."""
-    if x_bm.shape[0] % L.LANES:
+    if x_bm.shape[0] % LANES:
         return {}
     calls = kernel_calls(x_bm, weight, bias, index, grad_y_bm)
     timed = interleaved_ms({k: (f, None) for k, f in calls.items()}, repeats)
