@@ -1,0 +1,90 @@
+"""Atomic file writes: the one way the package writes a file that a reader may open while it is written,
+or that must survive a crash whole (checkpoints, manifests, chunks, layouts, results, figures).
+
+A write goes to a temporary file in the destination's directory, is flushed and fsynced, and is then
+renamed over the destination (``os.replace``: atomic on POSIX), and the directory is fsynced. A reader
+sees the old file or the new one, never a part. When anything fails (the writer raises, the disk is full,
+the directory is read-only) the temporary file is removed and the error propagates: nothing is left
+behind under either name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from pathlib import Path
+from typing import Any, BinaryIO, Callable
+
+
+def temporary_path(final: str | os.PathLike) -> Path:
+    """A hidden, unique temporary name beside ``final`` (same directory, so the rename is atomic)."""
+    final = Path(final)
+    return final.with_name(f".{final.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+
+
+def fsync_dir(d: str | os.PathLike) -> None:
+    """fsync a directory (so a rename in it is durable); a no-op where the platform refuses."""
+    try:
+        fd = os.open(d, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: str | os.PathLike, content: str | bytes | Callable[[BinaryIO], Any],
+                 exclusive: bool = False, mkdir: bool = True) -> bool:
+    """Write ``content`` to ``path`` atomically.
+
+    Args:
+        path: the destination.
+        content: text (written as UTF-8), bytes, or a callable that writes to the binary file object it is
+            given (``lambda f: torch.save(obj, f)``, ``lambda f: fig.savefig(f, format="png")``).
+        exclusive: never replace an existing ``path`` (a hard link, then the temporary is unlinked); returns
+            False, writing nothing, if ``path`` already exists.
+        mkdir: create the destination's directory (and its parents) first.
+
+    Returns:
+        True when ``path`` now holds ``content``.
+    """
+    final = Path(path)
+    if mkdir:
+        final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_path(final)
+    try:
+        with open(tmp, "wb") as f:
+            if isinstance(content, str):
+                f.write(content.encode("utf-8"))
+            elif isinstance(content, (bytes, bytearray, memoryview)):
+                f.write(content)
+            else:
+                content(f)
+            f.flush()
+            os.fsync(f.fileno())
+        if exclusive:
+            try:
+                os.link(tmp, final)
+            except FileExistsError:
+                return False
+            except OSError:  # a file system without hard links: a plain rename after a check
+                if final.exists():
+                    return False
+                os.replace(tmp, final)
+        else:
+            os.replace(tmp, final)
+        fsync_dir(final.parent)
+        return True
+    finally:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+
+
+def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2, exclusive: bool = False,
+               allow_nan: bool = True) -> bool:
+    """``obj`` as JSON (a trailing newline) to ``path``, atomically (see :func:`atomic_write`)."""
+    return atomic_write(path, json.dumps(obj, indent=indent, allow_nan=allow_nan) + "\n", exclusive=exclusive)
