@@ -10,9 +10,10 @@ import torch
 
 from warp_vision.bench import memory
 from warp_vision.bench import torch_baselines as tb
-from warp_vision.bench.common import write_json
-from warp_vision.bench.linet import log_polar_layout, run_config
-from warp_vision.kernels.linet_ref import locally_connected_ref
+from warp_vision.bench.linet import run_config
+from warp_vision.eye.retina import Retina
+from warp_vision.fileio import write_json
+from warp_vision.kernels.linet.reference import locally_connected_ref
 from warp_vision.nn import LiNet, onv_positions
 
 
@@ -28,7 +29,7 @@ def test_fig4_parameter_counts_match_hand_count():
 
 
 def test_built_linet_has_the_counted_parameters():
-    pos = onv_positions(log_polar_layout(1_000, seed=2))
+    pos = onv_positions(Retina.log_polar(1_000, seed=2).domain_xy)
     net = LiNet(pos, layers=4, receptive_field=5, reduction=5)
     head = torch.nn.Linear(net.out_features, memory.OUTPUTS)
     built = net.num_parameters() + sum(p.numel() for p in head.parameters())
@@ -72,7 +73,8 @@ def test_linet_bench_small_config_reports_agreement(tmp_path):
         assert set(layout["speedup_of_warp"]) == {
             "forward", "backward", "forward_backward", "forward_backward_no_grad_x"
         }
-    path = write_json(tmp_path / "out.json", res)
+    path = tmp_path / "out.json"
+    assert write_json(path, res)
     assert json.loads(path.read_text())["N"] == 180
 
 
@@ -83,13 +85,6 @@ def test_linet_bench_times_the_kernels_alone_at_a_feature_major_batch():
     assert all(k[p] > 0 for p in ("forward", "grad_x", "grad_weight_bias"))
     assert k["forward_backward"] == pytest.approx(k["forward"] + k["grad_x"] + k["grad_weight_bias"])
     assert k["op_overhead_ms"] == pytest.approx(k["op_forward_backward_ms"] - k["forward_backward"])
-
-
-def test_log_polar_layout_is_foveated():
-    xy = log_polar_layout(5_000, seed=0)
-    r = np.hypot(xy[:, 0], xy[:, 1])
-    # log-spaced rings: as many receptors inside the geometric-mean radius as outside it
-    assert abs(np.mean(r < np.sqrt(0.01 * 1.0)) - 0.5) < 0.05
 
 
 def test_raytrace_bench_runs_small_and_agrees():

@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from warp_vision.kernels import raytrace as rt
-from warp_vision.kernels import raytrace_ref as ref
-from warp_vision.kernels.bvh import MAX_LEAF, build_bvh
-from warp_vision.scene import Material, Scene, translation
+from warp_vision.frames import translation
+from warp_vision.kernels import render as rt
+from warp_vision.kernels.render import reference as ref
+from warp_vision.kernels.render.bvh import MAX_LEAF, build_bvh
+from warp_vision.scene import Material, Scene
 
 
 def soup(n=3000, seed=0):

@@ -1,4 +1,4 @@
-"""The locally-connected Warp kernels against the plain-torch reference (kernels/linet_ref.py)."""
+"""The locally-connected Warp kernels against the plain-torch reference (kernels/linet/reference.py)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from warp_vision.kernels import launch
-from warp_vision.kernels.linet import LinetPlan, build_plan, feature_major, locally_connected, plan_for
-from warp_vision.kernels.linet_ref import locally_connected_backward_ref, locally_connected_ref
+from warp_vision.kernels.linet import locally_connected
+from warp_vision.kernels.linet.layout import feature_major
+from warp_vision.kernels.linet.op import LinetPlan, build_plan, plan_for
+from warp_vision.kernels.linet.reference import locally_connected_backward_ref, locally_connected_ref
 
 # Each output is a sum of R + 1 products. The kernel and the reference sum in different orders, so
 # they agree to a few ulps of the *absolute* sum: |a - b| <= RTOL * (sum of |terms|).
@@ -314,7 +316,7 @@ def test_fused_relu_propagates_nan_like_torch(B):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("B,F", [(64, 1), (64, 37), (128, 1000), (192, 16)])
 def test_transpose_kernel_matches_torch(B, F, dtype, device):
-    from warp_vision.kernels.layout import as_feature_major
+    from warp_vision.kernels.linet.layout import as_feature_major
 
     x = torch.randn(B, F, generator=torch.Generator().manual_seed(B + F), dtype=dtype).to(device)
     xt = as_feature_major(x)
@@ -330,7 +332,7 @@ def test_transpose_kernel_matches_torch(B, F, dtype, device):
 def test_huge_batch_major_input_is_read_in_place(relu, device, monkeypatch):
     # Above TRANSPOSE_MAX_BYTES a batch-major x is not copied: the batch-major kernels read it and
     # write a feature-major y, and the backward mixes the two families.
-    from warp_vision.kernels import layout
+    from warp_vision.kernels.linet import layout
 
     monkeypatch.setattr(layout, "TRANSPOSE_MAX_BYTES", 0)
     assert layout.as_feature_major(torch.zeros(64, 10)).is_contiguous()

@@ -11,7 +11,7 @@ import torch
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from warp_vision.kernels.linet_ref import locally_connected_ref
+from warp_vision.kernels.linet.reference import locally_connected_ref
 from warp_vision.nn import (
     FullyConnected,
     LiNet,

@@ -7,9 +7,10 @@ import trimesh
 
 from warp_vision.eye import optics
 from warp_vision.eye.optics import EYE_CENTRE_MM, RETINA_RADIUS_MM, NavarroEye
-from warp_vision.kernels import raytrace as rt
-from warp_vision.kernels import raytrace_ref as ref
-from warp_vision.scene import Material, Scene, translation
+from warp_vision.frames import eye_look_at, look_at, translation
+from warp_vision.kernels import render as rt
+from warp_vision.kernels.render import reference as ref
+from warp_vision.scene import Material, Scene
 
 
 def retina_points(rho_deg, theta_deg):
@@ -38,7 +39,7 @@ def small_scene(batch_ball=None):
     return sc
 
 
-EYE_POSE = rt.eye_look_at([0.0, -0.6, 1.1], [0.0, 1.0, 1.0])
+EYE_POSE = eye_look_at([0.0, -0.6, 1.1], [0.0, 1.0, 1.0])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -102,7 +103,7 @@ def test_closest_hit_matches_brute_force(device):
 def test_radiance_matches_the_reference(device):
     sc = small_scene()
     o, d = random_rays(1500, seed=1)
-    T = rt.look_at([0.3, -1.0, 1.3], [0.0, 1.0, 0.8])
+    T = look_at([0.3, -1.0, 1.3], [0.0, 1.0, 0.8])
     img = rt.render_camera(sc, T, 40, 30, fov_deg=70.0, device=device).cpu().numpy().reshape(-1, 3)
     # the same pixels' rays, built independently
     ys, xs = np.mgrid[0:30, 0:40]
@@ -123,7 +124,7 @@ def test_onv_matches_the_reference(device, max_depth):
     q = retina_points(rng.uniform(0, 60, 40), rng.uniform(0, 360, 40))
     eye = NavarroEye(pupil_diameter_mm=4.0)
     sc = small_scene()
-    poses = np.stack([EYE_POSE, rt.eye_look_at([0.2, -0.6, 1.0], [0.5, 2.0, 0.3])])
+    poses = np.stack([EYE_POSE, eye_look_at([0.2, -0.6, 1.0], [0.5, 2.0, 0.3])])
     onv = rt.render_onv(sc, q, eye, poses, samples_per_receptor=4, seed=5, device=device, max_depth=max_depth)
     assert onv.shape == (2, 120) and onv.dtype == torch.float32 and str(onv.device).startswith(device.split(":")[0])
     expect = ref.render_onv_ref(sc, q, eye, poses, 4, seed=5, max_depth=max_depth)
@@ -175,10 +176,10 @@ def test_thread_split_is_bit_identical(monkeypatch):
     eye = NavarroEye()
     sc = small_scene()
     monkeypatch.setenv("WARP_VISION_THREADS", "1")
-    rt._eye_cache.clear()
+    rt.clear_eye_ray_cache()
     one = rt.render_onv(sc, q, eye, np.repeat(EYE_POSE[None], 2, 0), 2)
     monkeypatch.setenv("WARP_VISION_THREADS", "2")
-    rt._eye_cache.clear()
+    rt.clear_eye_ray_cache()
     two = rt.render_onv(sc, q, eye, np.repeat(EYE_POSE[None], 2, 0), 2)
     assert torch.equal(one, two)
 

@@ -31,15 +31,16 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from warp_vision.bench import torch_baselines as tb
-from warp_vision.bench.common import interleaved_ms, machine_info, write_json
-from warp_vision.bench.linet import kernel_calls, log_polar_layout
+from warp_vision.bench.common import interleaved_ms, machine_info
+from warp_vision.bench.linet import kernel_calls, layer_inputs
+from warp_vision.fileio import write_json
 from warp_vision.kernels.launch import cpu_threads
-from warp_vision.kernels.layout import as_feature_major
-from warp_vision.kernels.linet import locally_connected, plan_for
-from warp_vision.nn.connectivity import build_connectivity, onv_positions
+from warp_vision.kernels.linet import locally_connected
+from warp_vision.kernels.linet.layout import as_feature_major
+from warp_vision.kernels.linet.op import plan_for
 
 
-def main() -> None:
+def _parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--photoreceptors", type=int, default=14_400)
     ap.add_argument("--receptive-field", type=int, default=20)
@@ -47,73 +48,78 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5, help="alternating rounds (median reported)")
     ap.add_argument("--repeats", type=int, default=15, help="timed repeats per measurement in a round")
     ap.add_argument("--out", default="bench_results/linet_floor.json")
-    args = ap.parse_args()
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        raise SystemExit("linet_floor: no C compiler (cc) on PATH")
+    return ap.parse_args()
 
-    B, R = 64, args.receptive_field
-    pos = onv_positions(log_polar_layout(args.photoreceptors, 0))
-    conn = build_connectivity(pos, layers=1, receptive_field=R, reduction=args.reduction, seed=0)[0]
-    index = torch.from_numpy(conn.index)
-    n_in, N = pos.shape[0], index.shape[0]
-    plan = plan_for(index, n_in)
-    g = torch.Generator().manual_seed(0)
-    x_bm = torch.rand(B, n_in, generator=g)
-    weight = (torch.randn(N, R, generator=g) * (2.0 / R) ** 0.5).requires_grad_(True)
-    bias = torch.zeros(N).requires_grad_(True)
-    grad_y = torch.randn(B, N, generator=g)
+
+def _timed_calls(inp: dict) -> dict:
+    """The Python-side cases, each forward+backward: the Warp kernels alone, the Warp op and torch's
+    CSR op from a feature-major and from a batch-major x, and the Warp transpose of a batch-major x."""
+    index, weight, bias, x_bm, grad_y = inp["index"], inp["weight"], inp["bias"], inp["x_bm"], inp["grad_y_bm"]
     x_fm = x_bm.t().contiguous().t().requires_grad_(True)
     gy_fm = grad_y.t().contiguous().t()
-    csr = tb.CsrPlan(index, n_in)
-
     x_bmr = x_bm.clone().requires_grad_(True)
-
-    def op():
-        torch.autograd.grad(locally_connected(x_fm, weight, bias, index), (x_fm, weight, bias), gy_fm)
-
-    def csr_op():
-        torch.autograd.grad(tb.csr_matmul(x_fm, weight, bias, csr), (x_fm, weight, bias), grad_y)
-
-    def op_bm():
-        torch.autograd.grad(locally_connected(x_bmr, weight, bias, index), (x_bmr, weight, bias), gy_fm)
-
-    def csr_op_bm():
-        torch.autograd.grad(tb.csr_matmul(x_bmr, weight, bias, csr), (x_bmr, weight, bias), grad_y)
-
-    def transpose():
-        as_feature_major(x_bm)
-
+    csr = tb.CsrPlan(index, inp["n_in"])
     calls = kernel_calls(x_bm, weight, bias, index, grad_y)
 
     def warp_kernels():
         for f in calls.values():
             f()
 
+    return {
+        "warp_kernels": warp_kernels,
+        "warp_op": lambda: torch.autograd.grad(locally_connected(x_fm, weight, bias, index), (x_fm, weight, bias), gy_fm),
+        "torch_csr_op": lambda: torch.autograd.grad(tb.csr_matmul(x_fm, weight, bias, csr), (x_fm, weight, bias), grad_y),
+        "warp_transpose": lambda: as_feature_major(x_bm),
+        "warp_op_bm": lambda: torch.autograd.grad(locally_connected(x_bmr, weight, bias, index), (x_bmr, weight, bias), gy_fm),
+        "torch_csr_op_bm": lambda: torch.autograd.grad(tb.csr_matmul(x_bmr, weight, bias, csr), (x_bmr, weight, bias), grad_y),
+    }
+
+
+def _build_c_kernels(cc: str, index: torch.Tensor, n_in: int, tmp: str) -> str:
+    """Writes the connectivity files the C program reads into ``tmp`` and compiles it there; returns
+    the executable's path."""
+    plan = plan_for(index, n_in)
+    t_offsets, t_entries, t_units = plan.transposed()
+    for name, t in (("index", plan.index), ("t_offsets", t_offsets), ("t_entries", t_entries), ("t_units", t_units)):
+        t.numpy().astype(np.int32).tofile(os.path.join(tmp, f"{name}.bin"))
+    exe = os.path.join(tmp, "linet_floor")
+    src = Path(__file__).with_name("linet_floor.c")
+    subprocess.run([cc, "-O3", "-march=native", "-fopenmp", str(src), "-o", exe], check=True)
+    return exe
+
+
+def _run_rounds(args, cc: str, inp: dict) -> dict:
+    """Alternating rounds of the C kernels and the Python-side cases, every call after a cache flush;
+    returns {case: [median ms per round]}."""
+    calls = _timed_calls(inp)
     flush_buf = torch.empty(16 << 20)  # 64 MiB
 
     def flush():
         flush_buf.fill_(1.0)
 
-    rows = {"c_avx2_kernels": [], "warp_kernels": [], "warp_op": [], "torch_csr_op": [],
-            "warp_transpose": [], "warp_op_bm": [], "torch_csr_op_bm": []}
+    rows = {"c_avx2_kernels": [], **{k: [] for k in calls}}
+    N, R = inp["index"].shape
     with tempfile.TemporaryDirectory() as tmp:
-        t_offsets, t_entries, t_units = plan.transposed()
-        for name, t in (("index", plan.index), ("t_offsets", t_offsets), ("t_entries", t_entries), ("t_units", t_units)):
-            t.numpy().astype(np.int32).tofile(os.path.join(tmp, f"{name}.bin"))
-        exe = os.path.join(tmp, "linet_floor")
-        src = Path(__file__).with_name("linet_floor.c")
-        subprocess.run([cc, "-O3", "-march=native", "-fopenmp", str(src), "-o", exe], check=True)
+        exe = _build_c_kernels(cc, inp["index"], inp["n_in"], tmp)
         for r in range(args.rounds):
-            out = subprocess.run([exe, tmp, str(N), str(R), str(n_in), str(cpu_threads()), str(args.repeats)],
+            out = subprocess.run([exe, tmp, str(N), str(R), str(inp["n_in"]), str(cpu_threads()), str(args.repeats)],
                                  check=True, capture_output=True, text=True).stdout
             rows["c_avx2_kernels"].append(json.loads(out)["forward_backward"])
-            ops = interleaved_ms({"warp_kernels": (warp_kernels, flush), "warp_op": (op, flush),
-                                  "torch_csr_op": (csr_op, flush), "warp_transpose": (transpose, flush),
-                                  "warp_op_bm": (op_bm, flush), "torch_csr_op_bm": (csr_op_bm, flush)}, args.repeats)
+            ops = interleaved_ms({k: (f, flush) for k, f in calls.items()}, args.repeats)
             for k, v in ops.items():
                 rows[k].append(v["median_ms"])
             print(f"round {r + 1}: " + "  ".join(f"{k} {v[-1]:.2f} ms" for k, v in rows.items()), flush=True)
+    return rows
+
+
+def main() -> None:
+    args = _parse_args()
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        raise SystemExit("linet_floor: no C compiler (cc) on PATH")
+    B, R = 64, args.receptive_field
+    inp = layer_inputs(B, args.photoreceptors, args.reduction, R, seed=0)
+    rows = _run_rounds(args, cc, inp)
     med = {k: float(np.median(v)) for k, v in rows.items()}
     # The most any implementation of these gathers could gain over torch's CSR here: CSR's whole op
     # over the C kernels alone (plus, from a batch-major ONV, the Warp transpose to the vector layout).
@@ -125,11 +131,11 @@ def main() -> None:
     for lay in ("batch_major", "feature_major"):
         print(f"x {lay.replace('_', '-')}: torch CSR over the Warp op {achieved[lay]:.2f}x; the bound (CSR over the C"
               f" kernels{' + the transpose' if lay == 'batch_major' else ''}) {bound[lay]:.2f}x")
-    path = write_json(args.out, {
-        "benchmark": "linet_floor", "machine": machine_info(), "B": B, "N_in": n_in, "N": N, "R": R,
+    write_json(args.out, {
+        "benchmark": "linet_floor", "machine": machine_info(), "B": B, "N_in": inp["n_in"], "N": inp["N"], "R": R,
         "rounds": rows, "median_ms": med, "csr_over_warp_op": achieved, "csr_over_c_kernels_bound": bound,
     })
-    print(f"results: {path}")
+    print(f"results: {args.out}")
 
 
 if __name__ == "__main__":

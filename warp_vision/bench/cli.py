@@ -7,7 +7,8 @@ import json
 import time
 from pathlib import Path
 
-from warp_vision.bench.common import machine_info, write_json
+from warp_vision.bench.common import machine_info
+from warp_vision.fileio import write_json
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -76,6 +77,6 @@ def main(argv: list[str] | None = None) -> int:
         result["figure"] = png
         print(f"figure: {png}")
     result = {"benchmark": args.bench, "machine": info, "seconds": time.time() - t0, **result}
-    path = write_json(args.out, result)
-    print(f"results: {path}")
+    write_json(args.out, result)
+    print(f"results: {args.out}")
     return 0

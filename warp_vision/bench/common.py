@@ -1,13 +1,11 @@
-"""Shared benchmark plumbing: timing with medians, machine info, atomic JSON output."""
+"""Shared benchmark plumbing: timing with medians, machine info. Results are written with
+:func:`warp_vision.fileio.write_json` (atomic)."""
 
 from __future__ import annotations
 
-import json
 import os
 import platform
-import tempfile
 import time
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -92,15 +90,3 @@ def machine_info() -> dict:
     if torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(0)
     return info
-
-
-def write_json(path: str | os.PathLike, payload: dict) -> Path:
-    """Write ``payload`` as indented JSON atomically (temporary file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(payload, f, indent=2)
-        f.write("\n")
-    os.replace(tmp, path)
-    return path

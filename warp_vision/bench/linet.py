@@ -3,12 +3,14 @@
 For each configuration (B, N_in -> N, R) it times forward, backward and forward+backward (gradients
 for x, weight and bias; and the first-layer case, where the ONV needs no gradient) of:
 
-- ``warp``: ``kernels.linet.locally_connected`` on 1 thread and on all cores;
+- ``warp``: :func:`warp_vision.kernels.linet.locally_connected` on 1 thread and on all cores;
 - ``torch_gather``: advanced-index gather + sum, autograd backward;
 - ``torch_index_add``: gather forward, hand-written index_add / gather backward;
 - ``torch_csr``: torch.sparse CSR matmul forward and backward, sampled_addmm for grad_weight.
 
-All run in one process on the same inputs, medians after warm-up, for both input layouts (x
+The layer's inputs are the ONV of the paper's noisy log-polar retina (:meth:`Retina.log_polar
+<warp_vision.eye.retina.Retina.log_polar>`, default eye). All run in one process on the same inputs,
+medians after warm-up, for both input layouts (x
 batch-major, as an ONV batch arrives; x feature-major, as one liNet layer hands it to the next). It
 reports each torch variant's time over Warp's, and the memory bandwidth Warp achieves against the
 minimum bytes the op must move. Last, the op's three feature-major kernels are timed alone on
@@ -21,30 +23,17 @@ from __future__ import annotations
 import os
 from contextlib import contextmanager
 
-import numpy as np
 import torch
 
 from warp_vision.bench import torch_baselines as tb
 from warp_vision.bench.common import interleaved_ms, sync
-from warp_vision.kernels import linet as L
-from warp_vision.kernels.layout import LANES, flat_vectors
-from warp_vision.kernels.linet import locally_connected, plan_for
+from warp_vision.eye.retina import Retina
+from warp_vision.kernels import launch
+from warp_vision.kernels.linet import locally_connected
+from warp_vision.kernels.linet.kernels import linet_forward_fm, linet_grad_weight_fm, linet_grad_x_fm
+from warp_vision.kernels.linet.layout import LANES, flat_vectors, warp_array
+from warp_vision.kernels.linet.op import launch_kernel, plan_for
 from warp_vision.nn.connectivity import build_connectivity, onv_positions
-
-
-def log_polar_layout(P: int, seed: int = 0, rho_min: float = 0.01, rho_max: float = 1.0) -> np.ndarray:
-    """A noisy log-polar photoreceptor layout in the retinal domain, ordered ring by ring: [P, 2]."""
-    rng = np.random.default_rng(seed)
-    # Isotropic sampling: the log step between rings equals the angular step within a ring.
-    rings = max(1, int(round(np.sqrt(P * np.log(rho_max / rho_min) / (2 * np.pi)))))
-    per_ring = int(np.ceil(P / rings))
-    ring = np.repeat(np.arange(rings), per_ring)[:P]
-    k = np.tile(np.arange(per_ring), rings)[:P]
-    rho = rho_min * (rho_max / rho_min) ** ((ring + 0.5) / rings)
-    theta = 2 * np.pi * (k + 0.5 * (ring % 2)) / per_ring
-    xy = np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=1)
-    spacing = rho * 2 * np.pi / per_ring
-    return xy + rng.normal(scale=0.15, size=xy.shape) * spacing[:, None]
 
 
 @contextmanager
@@ -112,22 +101,23 @@ def kernel_calls(x_bm: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, i
     B = x_bm.shape[0]
     if B % LANES or x_bm.device.type != "cpu":
         raise ValueError(f"kernel_calls: expected a CPU batch of a multiple of 64 rows, got {B} on {x_bm.device}")
-    L._launch.init()
+    launch.init()
     plan = plan_for(index, x_bm.shape[1])
     t_offsets, t_entries, t_units = plan.transposed()
     xT, gT = x_bm.t().contiguous(), grad_y_bm.t().contiguous()
     w, b = weight.detach().reshape(-1), bias.detach()
     yT, gxT = torch.empty(plan.num_units, B), torch.empty(plan.in_features, B)
     gw, gb = torch.empty_like(w), torch.empty_like(b)
-    fv, wa, chunks, R = flat_vectors, L._wp, B // LANES, plan.receptive_field
+    fv, wa, chunks, R = flat_vectors, warp_array, B // LANES, plan.receptive_field
     idx = wa(plan.index.reshape(-1))
     return {
-        "forward": lambda: L._split(L.linet_forward_fm, plan.num_units,
-                                    [fv(xT), wa(w), wa(b), idx, R, chunks, 0], [fv(yT)], "cpu"),
-        "grad_x": lambda: L._split(L.linet_grad_x_fm, plan.in_features,
-                                   [fv(gT), wa(w), wa(t_offsets), wa(t_entries), wa(t_units), chunks], [fv(gxT)], "cpu"),
-        "grad_weight_bias": lambda: L._split(L.linet_grad_weight_fm, plan.num_units,
-                                             [fv(xT), fv(gT), idx, R, chunks], [wa(gw), wa(gb)], "cpu"),
+        "forward": lambda: launch_kernel(linet_forward_fm, plan.num_units,
+                                         [fv(xT), wa(w), wa(b), idx, R, chunks, 0], [fv(yT)], "cpu"),
+        "grad_x": lambda: launch_kernel(linet_grad_x_fm, plan.in_features,
+                                        [fv(gT), wa(w), wa(t_offsets), wa(t_entries), wa(t_units), chunks], [fv(gxT)],
+                                        "cpu"),
+        "grad_weight_bias": lambda: launch_kernel(linet_grad_weight_fm, plan.num_units,
+                                                  [fv(xT), fv(gT), idx, R, chunks], [wa(gw), wa(gb)], "cpu"),
     }
 
 
@@ -145,6 +135,111 @@ def kernels_only(x_bm: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, i
     return out
 
 
+def layer_inputs(B: int, P: int, reduction: int, R: int, seed: int = 0) -> dict:
+    """One layer's connectivity and seeded tensors: the ONV of a log-polar retina of P photoreceptors
+    (N_in = 3P) -> N = N_in // reduction units of R connections. Returns {"n_in", "N", "index" [N, R],
+    "x_bm" [B, N_in] (batch-major), "weight" [N, R] and "bias" [N] (requiring grad), "grad_y_bm" [B, N]}."""
+    pos = onv_positions(Retina.log_polar(P, seed=seed).domain_xy)
+    conn = build_connectivity(pos, layers=1, receptive_field=R, reduction=reduction, seed=seed)[0]
+    N = conn.index.shape[0]
+    g = torch.Generator().manual_seed(seed)
+    inputs = {"n_in": pos.shape[0], "N": N, "index": torch.from_numpy(conn.index)}
+    inputs["x_bm"] = torch.rand(B, inputs["n_in"], generator=g)
+    inputs["weight"] = (torch.randn(N, R, generator=g) * (2.0 / R) ** 0.5).requires_grad_(True)
+    inputs["bias"] = torch.zeros(N).requires_grad_(True)
+    inputs["grad_y_bm"] = torch.randn(B, N, generator=g)
+    return inputs
+
+
+def _implementations(weight: torch.Tensor, bias: torch.Tensor, index: torch.Tensor, n_in: int) -> dict:
+    """name -> (fn(x) -> y, CPU threads or None for all): the Warp op and the torch baselines, each
+    with its per-index preparation done here (outside the timed region)."""
+    csr_plan = tb.CsrPlan(index, n_in)
+    flat = index.reshape(-1).long().contiguous()
+    plan_for(index, n_in)  # the Warp op's per-index plan, cached like the torch variants' preparation
+    return {
+        "warp_1thread": (lambda xx: locally_connected(xx, weight, bias, index), 1),
+        "warp": (lambda xx: locally_connected(xx, weight, bias, index), None),
+        "torch_gather": (lambda xx: tb.gather_sum(xx, weight, bias, index), None),
+        "torch_index_add": (lambda xx: tb.index_add(xx, weight, bias, flat), None),
+        "torch_csr": (lambda xx: tb.csr_matmul(xx, weight, bias, csr_plan), None),
+    }
+
+
+def _time_layout(impls: dict, inp: dict, feature_major: bool, repeats: int, log) -> dict:
+    """Every implementation on x in one layout: its largest relative error against the Warp op, then
+    its four phases timed in interleaved rounds. Returns {name: {"max_rel_err_vs_warp", "times"}}."""
+    weight, bias, grad_y_bm = inp["weight"], inp["bias"], inp["grad_y_bm"]
+    grad_y_fm = _layout(grad_y_bm, True)
+    x = _layout(inp["x_bm"], feature_major)
+    x_req = _layout(inp["x_bm"], feature_major).requires_grad_(True)
+    # Agreement check before timing: every implementation against the Warp op.
+    y0 = locally_connected(x_req, weight, bias, inp["index"])
+    ref = (y0, *torch.autograd.grad(y0, (x_req, weight, bias), grad_y_bm))
+    per_layout, cases = {}, {}
+    for name, (fn, threads) in impls.items():
+        with _threads(threads):
+            y = fn(x_req)
+            gy = grad_y_bm if y.is_contiguous() else grad_y_fm  # what the next layer would return
+            got = (y, *torch.autograd.grad(y, (x_req, weight, bias), gy))
+        err = max(float((a - c).detach().abs().max() / (c.detach().abs().max() + 1e-30)) for a, c in zip(got, ref))
+        per_layout[name] = {"max_rel_err_vs_warp": err}
+        cases[name] = _phases(fn, threads, x, x_req, weight, bias, gy)
+    # Each phase interleaves the implementations round by round (drift falls on all alike).
+    for phase in ("forward", "backward", "forward_backward", "forward_backward_no_grad_x"):
+        timed = interleaved_ms({name: cases[name][phase] for name in impls}, repeats)
+        for name in impls:
+            per_layout[name].setdefault("times", {})[phase] = timed[name]
+    for name in impls:
+        times, err = per_layout[name]["times"], per_layout[name]["max_rel_err_vs_warp"]
+        log(
+            f"  {name:16s} fwd {times['forward']['median_ms']:8.2f} ms  bwd {times['backward']['median_ms']:8.2f} ms"
+            f"  fwd+bwd {times['forward_backward']['median_ms']:8.2f} ms"
+            f"  (no grad x {times['forward_backward_no_grad_x']['median_ms']:8.2f} ms)  rel.err {err:.1e}"
+        )
+    return per_layout
+
+
+def _layout_summary(per_layout: dict, mb: dict, log) -> dict:
+    """Warp's speed-up over each torch variant per phase, and the bandwidth it achieves against the
+    minimum bytes ``mb`` each phase must move."""
+    warp_t = per_layout["warp"]["times"]
+    torch_names = [k for k in per_layout if k.startswith("torch")]
+    ratios = {}
+    for phase in warp_t:
+        w_ms = warp_t[phase]["median_ms"]
+        per = {k: per_layout[k]["times"][phase]["median_ms"] / w_ms for k in torch_names}
+        best = min(per, key=per.get)
+        ratios[phase] = {"vs": per, "vs_best_torch": per[best], "best_torch": best}
+    bw = {ph: mb[ph] / (warp_t[ph]["median_ms"] * 1e-3) / 1e9 for ph in ("forward", "backward", "forward_backward")}
+    log(
+        "  warp speed-up over the best torch: "
+        + ", ".join(f"{k} {v['vs_best_torch']:.2f}x" for k, v in ratios.items())
+        + f"; achieved {bw['forward_backward']:.2f} GB/s of minimum traffic (fwd+bwd)"
+    )
+    return {"impls": per_layout, "speedup_of_warp": ratios, "warp_achieved_GBps_vs_min_bytes": bw}
+
+
+def _add_kernels_only(result: dict, inp: dict, repeats: int, log) -> None:
+    """Times the op's kernels alone (CPU, B a multiple of 64) into ``result["warp_kernels_only_ms"]``,
+    beside the feature-major op and the best torch variant."""
+    k = kernels_only(inp["x_bm"], inp["weight"], inp["bias"], inp["index"], inp["grad_y_bm"], repeats)
+    if not k:
+        return
+    fm = result["layouts"]["feature_major"]
+    op_ms = fm["impls"]["warp"]["times"]["forward_backward"]["median_ms"]
+    best = fm["speedup_of_warp"]["forward_backward"]["best_torch"]
+    best_ms = fm["impls"][best]["times"]["forward_backward"]["median_ms"]
+    k.update({"op_forward_backward_ms": op_ms, "op_overhead_ms": op_ms - k["forward_backward"],
+              "best_torch_over_kernels": best_ms / k["forward_backward"]})
+    result["warp_kernels_only_ms"] = k
+    log(
+        f" Warp kernels alone (feature-major, preallocated): fwd {k['forward']:.2f} + grad_x {k['grad_x']:.2f}"
+        f" + grad_weight/bias {k['grad_weight_bias']:.2f} = {k['forward_backward']:.2f} ms; the op"
+        f" {op_ms:.2f} ms; {best} over the kernels alone: {k['best_torch_over_kernels']:.2f}x"
+    )
+
+
 def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int = 0, log=print) -> dict:
     """Benchmark one layer: ONV of P photoreceptors (N_in = 3P) -> N = N_in // reduction units.
 
@@ -153,92 +248,19 @@ def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int =
     [N_in, B] buffer, as the Warp op hands its output to the next liNet layer). In backward each
     implementation receives grad_y in the layout of its own output, as the next layer would return it.
     """
-    pos = onv_positions(log_polar_layout(P, seed))
-    conn = build_connectivity(pos, layers=1, receptive_field=R, reduction=reduction, seed=seed)[0]
-    n_in, N = pos.shape[0], conn.index.shape[0]
-    g = torch.Generator().manual_seed(seed)
-    index = torch.from_numpy(conn.index)
-    x_bm = torch.rand(B, n_in, generator=g)
-    weight = (torch.randn(N, R, generator=g) * (2.0 / R) ** 0.5).requires_grad_(True)
-    bias = torch.zeros(N).requires_grad_(True)
-    grad_y_bm = torch.randn(B, N, generator=g)
-    grad_y_fm = _layout(grad_y_bm, True)
-
-    csr_plan = tb.CsrPlan(index, n_in)
-    flat = index.reshape(-1).long().contiguous()
-    plan_for(index, n_in)  # the Warp op's per-index plan, cached like the torch variants' preparation
-    impls = {
-        "warp_1thread": (lambda xx: locally_connected(xx, weight, bias, index), 1),
-        "warp": (lambda xx: locally_connected(xx, weight, bias, index), None),
-        "torch_gather": (lambda xx: tb.gather_sum(xx, weight, bias, index), None),
-        "torch_index_add": (lambda xx: tb.index_add(xx, weight, bias, flat), None),
-        "torch_csr": (lambda xx: tb.csr_matmul(xx, weight, bias, csr_plan), None),
-    }
+    inp = layer_inputs(B, P, reduction, R, seed)
+    n_in, N = inp["n_in"], inp["N"]
+    impls = _implementations(inp["weight"], inp["bias"], inp["index"], n_in)
     result = {
         "B": B, "N_in": n_in, "N": N, "R": R, "P": P, "dtype": "float32",
         "min_bytes": min_bytes(B, n_in, N, R), "layouts": {},
     }
     for layout in ("batch_major", "feature_major"):
         log(f" x {layout.replace('_', '-')}:")
-        x = _layout(x_bm, layout == "feature_major")
-        x_req = _layout(x_bm, layout == "feature_major").requires_grad_(True)
-        # Agreement check before timing: every implementation against the Warp op.
-        y0 = locally_connected(x_req, weight, bias, index)
-        ref = (y0, *torch.autograd.grad(y0, (x_req, weight, bias), grad_y_bm))
-        per_layout, cases = {}, {}
-        for name, (fn, threads) in impls.items():
-            with _threads(threads):
-                y = fn(x_req)
-                gy = grad_y_bm if y.is_contiguous() else grad_y_fm  # what the next layer would return
-                got = (y, *torch.autograd.grad(y, (x_req, weight, bias), gy))
-            err = max(float((a - c).detach().abs().max() / (c.detach().abs().max() + 1e-30)) for a, c in zip(got, ref))
-            per_layout[name] = {"max_rel_err_vs_warp": err}
-            cases[name] = _phases(fn, threads, x, x_req, weight, bias, gy)
-        # Each phase interleaves the implementations round by round (drift falls on all alike).
-        for phase in ("forward", "backward", "forward_backward", "forward_backward_no_grad_x"):
-            timed = interleaved_ms({name: cases[name][phase] for name in impls}, repeats)
-            for name in impls:
-                per_layout[name].setdefault("times", {})[phase] = timed[name]
-        for name in impls:
-            times, err = per_layout[name]["times"], per_layout[name]["max_rel_err_vs_warp"]
-            log(
-                f"  {name:16s} fwd {times['forward']['median_ms']:8.2f} ms  bwd {times['backward']['median_ms']:8.2f} ms"
-                f"  fwd+bwd {times['forward_backward']['median_ms']:8.2f} ms"
-                f"  (no grad x {times['forward_backward_no_grad_x']['median_ms']:8.2f} ms)  rel.err {err:.1e}"
-            )
-        warp_t = per_layout["warp"]["times"]
-        torch_names = [k for k in impls if k.startswith("torch")]
-        ratios = {}
-        for phase in warp_t:
-            w_ms = warp_t[phase]["median_ms"]
-            per = {k: per_layout[k]["times"][phase]["median_ms"] / w_ms for k in torch_names}
-            best = min(per, key=per.get)
-            ratios[phase] = {"vs": per, "vs_best_torch": per[best], "best_torch": best}
-        mb = result["min_bytes"]
-        bw = {ph: mb[ph] / (warp_t[ph]["median_ms"] * 1e-3) / 1e9 for ph in ("forward", "backward", "forward_backward")}
-        result["layouts"][layout] = {
-            "impls": per_layout, "speedup_of_warp": ratios, "warp_achieved_GBps_vs_min_bytes": bw,
-        }
-        log(
-            "  warp speed-up over the best torch: "
-            + ", ".join(f"{k} {v['vs_best_torch']:.2f}x" for k, v in ratios.items())
-            + f"; achieved {bw['forward_backward']:.2f} GB/s of minimum traffic (fwd+bwd)"
-        )
-    if x_bm.device.type == "cpu":
-        k = kernels_only(x_bm, weight, bias, index, grad_y_bm, repeats)
-        if k:
-            fm = result["layouts"]["feature_major"]
-            op_ms = fm["impls"]["warp"]["times"]["forward_backward"]["median_ms"]
-            best = fm["speedup_of_warp"]["forward_backward"]["best_torch"]
-            best_ms = fm["impls"][best]["times"]["forward_backward"]["median_ms"]
-            k.update({"op_forward_backward_ms": op_ms, "op_overhead_ms": op_ms - k["forward_backward"],
-                      "best_torch_over_kernels": best_ms / k["forward_backward"]})
-            result["warp_kernels_only_ms"] = k
-            log(
-                f" Warp kernels alone (feature-major, preallocated): fwd {k['forward']:.2f} + grad_x {k['grad_x']:.2f}"
-                f" + grad_weight/bias {k['grad_weight_bias']:.2f} = {k['forward_backward']:.2f} ms; the op"
-                f" {op_ms:.2f} ms; {best} over the kernels alone: {k['best_torch_over_kernels']:.2f}x"
-            )
+        per_layout = _time_layout(impls, inp, layout == "feature_major", repeats, log)
+        result["layouts"][layout] = _layout_summary(per_layout, result["min_bytes"], log)
+    if inp["x_bm"].device.type == "cpu":
+        _add_kernels_only(result, inp, repeats, log)
     sync()
     return result
 

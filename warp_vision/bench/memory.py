@@ -23,8 +23,9 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 from typing import Sequence
+
+from warp_vision.fileio import atomic_write
 
 DEFAULT_SIZES = [1_000, 4_000, 10_000, 40_000, 100_000, 400_000, 1_000_000, 4_000_000, 12_800_000]
 OUTPUTS = 2  # the (yaw, pitch) head of the foveation net
@@ -73,7 +74,7 @@ def worker(model: str, onv: int, batch: int, seed: int = 0) -> dict:
     import numpy as np
     import torch
 
-    from warp_vision.bench.linet import log_polar_layout
+    from warp_vision.eye.retina import Retina
     from warp_vision.nn.connectivity import onv_positions
     from warp_vision.nn.linet import FullyConnected, LiNet
 
@@ -86,7 +87,7 @@ def worker(model: str, onv: int, batch: int, seed: int = 0) -> dict:
     gc.collect()
     rss0 = _rss_bytes("VmRSS")
     if model == "linet":
-        positions = onv_positions(log_polar_layout(onv // 3, seed))
+        positions = onv_positions(Retina.log_polar(onv // 3, seed=seed).domain_xy)
         backbone = LiNet(positions, layers=4, receptive_field=5, reduction=5, seed=seed)
         sizes = list(backbone.layer_sizes)
     else:
@@ -167,8 +168,7 @@ def plot(result: dict, path: str) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    tmp = path + ".tmp.png"
-    fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=120))
+    finally:
+        plt.close(fig)

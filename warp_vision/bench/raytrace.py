@@ -21,9 +21,10 @@ import warp as wp
 from warp_vision.bench.common import median_ms
 from warp_vision.eye.optics import NavarroEye
 from warp_vision.eye.retina import Retina
+from warp_vision.frames import eye_look_at
 from warp_vision.kernels import launch as _launch
-from warp_vision.kernels import raytrace as rt
-from warp_vision.kernels.eye_rays import _eye_cache, eye_rays
+from warp_vision.kernels import render as rt
+from warp_vision.kernels.render.shade import closest_hit_kernel
 from warp_vision.scene import Material
 from warp_vision.scene.room import make_room
 
@@ -63,8 +64,8 @@ def big_scene(seed: int = 0, detail: int = 6):
 def _eye_world_rays(P: int, S: int, seed: int):
     retina = Retina.log_polar(P, seed=seed)
     eye = NavarroEye()
-    rays = eye_rays(retina, eye, S, seed)
-    T = rt.eye_look_at(EYE_CENTRE, EYE_TARGET)
+    rays = rt.eye_rays(retina, eye, S, seed)
+    T = eye_look_at(EYE_CENTRE, EYE_TARGET)
     o = rays.origins.numpy().astype(np.float64) @ T[:3, :3].T + T[:3, 3]
     d = rays.directions.numpy().astype(np.float64) @ T[:3, :3].T
     keep = rays.weights.numpy() > 0
@@ -114,7 +115,8 @@ def closest_hit_rates(repeats: int = 5, P: int = 14_400, S: int = 16, seed: int 
         res = {"rays": n}
 
         def packet(threads):
-            _launch.launch_split(rt.closest_hit_kernel, (n + 7) // 8, [sd, oa, da, 0], [t, obj, face], "cpu", threads=threads, **rt._SPLIT)
+            _launch.launch_split(closest_hit_kernel, (n + 7) // 8, [sd, oa, da, 0], [t, obj, face], "cpu", threads=threads,
+                                 **rt.TRACE_SPLIT)
 
         for th in (1, 2):
             m = median_ms(lambda: packet(th), repeats, warmup=1)
@@ -154,8 +156,8 @@ def onv_rate(P: int = 14_400, S: int = 16, batch: int = 4, repeats: int = 5, see
     retina = Retina.log_polar(P, seed=seed)
     eye = NavarroEye()
     sc = make_room(seed=seed)
-    poses = np.repeat(rt.eye_look_at(EYE_CENTRE, EYE_TARGET)[None], batch, axis=0)
-    m_eye = median_ms(lambda: eye_rays(retina, eye, S, seed), repeats, warmup=1, setup=_eye_cache.clear)
+    poses = np.repeat(eye_look_at(EYE_CENTRE, EYE_TARGET)[None], batch, axis=0)
+    m_eye = median_ms(lambda: rt.eye_rays(retina, eye, S, seed), repeats, warmup=1, setup=rt.clear_eye_ray_cache)
     m = median_ms(lambda: rt.render_onv(sc, retina, eye, poses, S, seed), repeats, warmup=1)
     res = {
         "P": P,

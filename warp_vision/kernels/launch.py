@@ -8,9 +8,9 @@ their last input (``offset: int``) and compute ``t = offset + wp.tid()``.
 
 Never split a kernel that scatters with ``wp.atomic_add``: on the CPU it is not atomic.
 
-A ``wp.launch`` costs about 0.2 ms of Python on this project's CPU (argument type inference and
-packing), as much as a small kernel. :func:`launch_split` therefore records each (kernel, argument
-types, size, slicing) launch once and afterwards only rebinds its arguments (a few microseconds each).
+A ``wp.launch`` spends as much Python time (argument type inference and packing) as a small kernel
+takes to run. :func:`launch_split` therefore records each (kernel, argument types, size, slicing)
+launch once and afterwards only rebinds its arguments, which costs far less.
 """
 
 from __future__ import annotations

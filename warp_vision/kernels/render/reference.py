@@ -1,4 +1,5 @@
-"""Plain numpy reference for kernels/raytrace.py: brute-force triangles, float64, written for clarity.
+"""Plain numpy reference for the ONV renderer (:mod:`warp_vision.kernels.render`): brute-force triangles,
+float64, written for clarity.
 
 The eye part reuses :class:`warp_vision.eye.optics.NavarroEye` (exact float64 tracing); the scene part
 tests every ray against every triangle (Moller-Trumbore) and shades with the same Phong model, shadow
@@ -13,7 +14,8 @@ import numpy as np
 
 from warp_vision.eye import optics
 from warp_vision.eye.optics import CHANNEL_WAVELENGTHS_NM, NavarroEye
-from warp_vision.kernels.raytrace import RAY_EPSILON_M, pupil_samples
+from warp_vision.kernels.render.eye_rays import pupil_samples
+from warp_vision.kernels.render.shade import RAY_EPSILON_M
 
 
 def eye_rays_ref(retina_mm: np.ndarray, eye: NavarroEye, samples_per_receptor: int, seed: int = 0):

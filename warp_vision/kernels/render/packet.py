@@ -1,4 +1,4 @@
-"""Packet ray queries against the BVHs of :mod:`warp_vision.kernels.bvh`, in Warp.
+"""Packet ray queries against the BVHs of :mod:`warp_vision.kernels.render.bvh`, in Warp.
 
 A *packet* is 8 rays held as ``vec8`` lanes (origins, directions, per-lane t limits). One traversal
 visits a node when any lane's ray enters its box, so coherent rays (a photoreceptor's rays through the
@@ -7,9 +7,9 @@ the triangle loads. A lane whose limit ``t < 0`` is dead: it never hits anything
 
 The per-lane inner loops (ray-box slabs, Moller-Trumbore) are ``wp.func_native`` snippets: plain C++
 loops over the 8 lanes that the compiler turns into SIMD code. Written with Warp's vector builtins
-they ran 3x slower, because Warp's vector ``min``/``max`` follow C's NaN-aware ``fmin``/``fmax`` and
-do not vectorise. The snippets are portable C++, so CUDA compiles them too. The reference for every
-query here is the brute-force numpy in ``raytrace_ref.py``.
+they would not vectorise: Warp's vector ``min``/``max`` follow C's NaN-aware ``fmin``/``fmax``. The
+snippets are portable C++, so CUDA compiles them too. The reference for every query here is the
+brute-force numpy in :mod:`warp_vision.kernels.render.reference`.
 
 Several instances (BVHs, each with a per-batch rigid transform) are queried one after another with
 the packet moved into each instance's frame; rigid transforms keep ``t`` in world units.
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from warp_vision.kernels.bvh import BVH
+from warp_vision.kernels.render.bvh import BVH
 
 wp.set_module_options({"enable_backward": False})
 

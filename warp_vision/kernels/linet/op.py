@@ -1,21 +1,20 @@
-"""Locally-connected irregular layer (the liNet layer): Warp forward and backward kernels in torch autograd.
+"""Locally-connected irregular layer (the liNet layer): the Warp kernels of
+:mod:`warp_vision.kernels.linet.kernels` as a differentiable torch op.
 
     y[b, n] = bias[n] + sum_r weight[n, r] * x[b, index[n, r]]        (optionally followed by ReLU)
 
-Every kernel here is a *gather*: each Warp thread writes only its own output element, so launches are
-deterministic and can be split across CPU threads (``kernels.launch.launch_split``). The gradient with
-respect to ``x`` is a gather over the transposed connectivity, a CSR structure built once per index
-tensor and cached (:func:`plan_for`). No ``[B, N, R]`` intermediate is ever formed.
+:func:`locally_connected` validates its arguments, looks up the connectivity's plan (the validated
+int32 index and, for grad_x, its CSR transpose: built once per index tensor and cached,
+:func:`plan_for`), and runs :func:`forward` and :func:`backward` inside a ``torch.autograd.Function``.
+The kernels are gathers, so every launch is split across CPU threads with bit-identical results.
 
-Two kernel families share that maths. With B a multiple of 64 activations are *feature-major*
+Two kernel families share the maths. With B a multiple of 64 activations are *feature-major*
 (``[features, B]`` in memory, handed on as ``[B, features]`` views) and the ``*_fm`` kernels read
 each input's 64 batch rows as one vector: one contiguous load, 8-wide SIMD arithmetic, and no index
-arithmetic per element. A batch-major x is transposed to that layout first (``kernels.layout.as_feature_major``)
-unless it is huge. Other batch sizes use the batch-major kernels, which take any strides.
-
-The backward passes are written by hand: Warp's automatic adjoints are not trusted for loops whose
-trip count is not a compile-time constant (DESIGN.md). ``linet_ref.py`` holds the plain-torch maths
-the tests compare against.
+arithmetic per element. A batch-major x is transposed to that layout first
+(:func:`warp_vision.kernels.linet.layout.as_feature_major`) unless it is huge. Other batch sizes use
+the batch-major kernels, which take any strides. :mod:`warp_vision.kernels.linet.reference` holds the
+plain-torch maths the tests compare against.
 """
 
 from __future__ import annotations
@@ -26,319 +25,25 @@ from typing import Any
 
 import numpy as np
 import torch
-import warp as wp
 from torch import Tensor
 
 from warp_vision.kernels import launch as _launch
-from warp_vision.kernels.layout import LANES, VEC_TYPES, as_feature_major, feature_major, flat_vectors
-
-wp.set_module_options({"enable_backward": False})
+from warp_vision.kernels.linet.kernels import (
+    BATCH_BLOCK,
+    CONN_BLOCK,
+    linet_forward,
+    linet_forward_fm,
+    linet_grad_bias,
+    linet_grad_bias_fm,
+    linet_grad_weight,
+    linet_grad_weight_fm,
+    linet_grad_x,
+    linet_grad_x_fm,
+)
+from warp_vision.kernels.linet.layout import LANES, as_feature_major, feature_major, flat_vectors, warp_array
 
 _FLOATS = (torch.float32, torch.float64)
 _INDEX_DTYPES = (torch.int32, torch.int64)
-
-
-# --------------------------------------------------------------------------------------------------
-# Kernels (1D launches over flattened outputs; ``offset`` is the first thread of a split launch)
-# --------------------------------------------------------------------------------------------------
-
-
-#: Batch rows one forward / grad_x thread handles: eight independent accumulators hide the latency
-#: of the strided gathers (measured 5x faster than one row per thread on the CPU backend).
-#: The kernels spell it as the literal 8: keep the two in step.
-BATCH_BLOCK = 8
-#: Connections one grad_weight thread handles (one load of the upstream gradient serves four products).
-CONN_BLOCK = 4
-
-
-@wp.kernel
-def linet_forward(
-    x: wp.array2d(dtype=Any),
-    weight: wp.array2d(dtype=Any),
-    bias: wp.array(dtype=Any),
-    index: wp.array2d(dtype=wp.int32),
-    relu: int,
-    offset: int,
-    y_out: wp.array2d(dtype=Any),
-):
-    """y_out[b, n] = (ReLU of) bias[n] + sum_r weight[n, r] * x[b, index[n, r]].
-
-    Thread t = blk * N + n computes rows b = 8 blk .. 8 blk + 7 of unit n (rows past B read row
-    B - 1 and are never stored). The constant-length loops over the 8 rows are unrolled by Warp.
-    """
-    t = offset + wp.tid()
-    num_units = weight.shape[0]
-    blk = t // num_units
-    n = t - blk * num_units
-    last = x.shape[0] - 1
-    b0 = blk * 8
-    acc = wp.vector(bias[n], length=8)
-    for r in range(weight.shape[1]):
-        i = index[n, r]
-        w = weight[n, r]
-        for k in range(8):
-            acc[k] += w * x[wp.min(b0 + k, last), i]
-    for k in range(8):
-        if b0 + k <= last:
-            v = acc[k]
-            if relu != 0 and v < y_out.dtype(0.0):
-                v = y_out.dtype(0.0)  # not wp.max: NaN must stay NaN, as in torch.relu
-            y_out[b0 + k, n] = v
-
-
-@wp.kernel
-def linet_grad_x(
-    grad_y: wp.array2d(dtype=Any),
-    weight_flat: wp.array(dtype=Any),
-    t_offsets: wp.array(dtype=wp.int32),
-    t_entries: wp.array(dtype=wp.int32),
-    receptive_field: int,
-    offset: int,
-    grad_x_out: wp.array2d(dtype=Any),
-):
-    """grad_x[b, i] = sum over connections e = n * R + r that read input i of weight[e] * grad_y[b, n].
-
-    ``t_offsets``/``t_entries`` are the CSR transpose of the index matrix. Thread t = blk * N_in + i
-    computes rows b = 8 blk .. 8 blk + 7 (clamped as in the forward kernel).
-    """
-    t = offset + wp.tid()
-    num_in = grad_x_out.shape[1]
-    blk = t // num_in
-    i = t - blk * num_in
-    last = grad_y.shape[0] - 1
-    b0 = blk * 8
-    acc = wp.vector(grad_x_out.dtype(0.0), length=8)
-    for k in range(t_offsets[i], t_offsets[i + 1]):
-        e = t_entries[k]
-        n = e // receptive_field
-        w = weight_flat[e]
-        for j in range(8):
-            acc[j] += w * grad_y[wp.min(b0 + j, last), n]
-    for j in range(8):
-        if b0 + j <= last:
-            grad_x_out[b0 + j, i] = acc[j]
-
-
-@wp.func
-def _masked(g: Any, y: Any, relu: int):
-    """The upstream gradient g, zeroed where a fused ReLU clamped the output y to zero."""
-    if relu != 0 and y <= type(y)(0.0):
-        return type(y)(0.0)
-    return g
-
-
-@wp.kernel
-def linet_grad_weight(
-    x: wp.array2d(dtype=Any),
-    grad_y: wp.array2d(dtype=Any),
-    y: wp.array2d(dtype=Any),
-    index: wp.array2d(dtype=wp.int32),
-    relu: int,
-    offset: int,
-    grad_weight_out: wp.array2d(dtype=Any),
-):
-    """grad_weight[n, r] = sum_b g[b, n] * x[b, index[n, r]], g = grad_y masked by y > 0 if ``relu``.
-
-    Thread t = n * ceil(R / 4) + q computes connections r = 4 q .. 4 q + 3 of unit n (clamped to
-    R - 1, never stored past it).
-    """
-    t = offset + wp.tid()
-    R = index.shape[1]
-    groups = (R + 3) // 4
-    n = t // groups
-    r0 = (t - n * groups) * 4
-    cols = wp.vector(index[n, r0], length=4)
-    for k in range(1, 4):
-        cols[k] = index[n, wp.min(r0 + k, R - 1)]
-    acc = wp.vector(grad_weight_out.dtype(0.0), length=4)
-    for b in range(x.shape[0]):
-        g = _masked(grad_y[b, n], y[b, n], relu)
-        for k in range(4):
-            acc[k] += g * x[b, cols[k]]
-    for k in range(4):
-        if r0 + k < R:
-            grad_weight_out[n, r0 + k] = acc[k]
-
-
-@wp.kernel
-def linet_grad_bias(
-    grad_y: wp.array2d(dtype=Any),
-    y: wp.array2d(dtype=Any),
-    relu: int,
-    offset: int,
-    grad_bias_out: wp.array(dtype=Any),
-):
-    """grad_bias[n] = sum_b g[b, n], g = grad_y masked by y > 0 if ``relu``; thread t = n."""
-    n = offset + wp.tid()
-    acc = grad_bias_out.dtype(0.0)
-    for b in range(grad_y.shape[0]):
-        acc += _masked(grad_y[b, n], y[b, n], relu)
-    grad_bias_out[n] = acc
-
-
-# Feature-major kernels: activations stored as [features, B] (``y.t()`` contiguous), B a multiple of 64
-# (the layout, its vector types and transposes: kernels/layout.py).
-# One array element is a vector of 64 batch rows, so a gathered input row is one contiguous 256-byte
-# (float32) load with no per-element index arithmetic, and the arithmetic compiles to 8-wide SIMD on
-# the CPU. Measured on the CPU against 8-row vectors with eight accumulators per thread: forward 1.45
-# vs 2.39 ms on one thread at (64, 43,200 -> 8,640, R=20).
-
-
-@wp.func
-def _relu_lanes(v: Any):
-    """Component-wise ReLU of a vector; NaN stays NaN, as in torch.relu."""
-    out = v
-    for k in range(64):
-        if v[k] < type(v[k])(0.0):
-            out[k] = type(v[k])(0.0)
-    return out
-
-
-@wp.func
-def _lane_sum(v: Any):
-    """Sum of a 64-lane vector by halving (each step independent lane adds: SIMD, not a serial chain)."""
-    h = v
-    for k in range(32):
-        h[k] = h[k] + h[k + 32]
-    for k in range(16):
-        h[k] = h[k] + h[k + 16]
-    for k in range(8):
-        h[k] = h[k] + h[k + 8]
-    for k in range(4):
-        h[k] = h[k] + h[k + 4]
-    return (h[0] + h[2]) + (h[1] + h[3])
-
-
-@wp.kernel
-def linet_forward_fm(
-    xT: wp.array(dtype=Any),
-    weight: wp.array(dtype=Any),
-    bias: wp.array(dtype=Any),
-    index: wp.array(dtype=wp.int32),
-    receptive_field: int,
-    chunks: int,
-    relu: int,
-    offset: int,
-    yT_out: wp.array(dtype=Any),
-):
-    """yT_out[n, c] = (ReLU of) bias[n] + sum_r weight[n, r] * xT[index[n, r], c]; c a vector of 64 rows.
-
-    Every array is flat (1D): ``xT`` and ``yT_out`` hold ``chunks`` = B / 64 vectors per feature,
-    ``weight`` and ``index`` are [N, R] flattened. Flat arrays cost one address computation per
-    access (2D arrays add a stride multiply and a negative-index wrap per dimension): measured 18%
-    faster than 2D at (64, 43,200 -> 8,640, R=20), and the while loops 10-15% faster than range()
-    (cold caches, one thread). Thread t = n loops over the row's vectors (no integer division per
-    thread: on the CPU a division costs more than a unit's 20 vector FMAs).
-    """
-    n = offset + wp.tid()
-    e0 = n * receptive_field
-    for c in range(chunks):
-        acc = yT_out.dtype(bias[n])
-        e = e0
-        while e < e0 + receptive_field:  # a while loop: leaner than range()'s runtime-step iterator
-            acc += weight[e] * xT[index[e] * chunks + c]
-            e += 1
-        if relu != 0:
-            acc = _relu_lanes(acc)
-        yT_out[n * chunks + c] = acc
-
-
-@wp.kernel
-def linet_grad_x_fm(
-    gT: wp.array(dtype=Any),
-    weight: wp.array(dtype=Any),
-    t_offsets: wp.array(dtype=wp.int32),
-    t_entries: wp.array(dtype=wp.int32),
-    t_units: wp.array(dtype=wp.int32),
-    chunks: int,
-    offset: int,
-    gxT_out: wp.array(dtype=Any),
-):
-    """gxT_out[i, c] = sum over connections e = n * R + r reading input i of weight[e] * gT[n, c].
-
-    Feature-major twin of :func:`linet_grad_x` on flat arrays (as :func:`linet_forward_fm`);
-    thread t = i. ``t_units`` holds each transposed connection's unit n (= e // R, precomputed:
-    no division in the loop).
-    """
-    i = offset + wp.tid()
-    k0 = t_offsets[i]
-    k1 = t_offsets[i + 1]
-    for c in range(chunks):
-        acc = gxT_out.dtype(weight.dtype(0.0))
-        k = k0
-        while k < k1:
-            acc += weight[t_entries[k]] * gT[t_units[k] * chunks + c]
-            k += 1
-        gxT_out[i * chunks + c] = acc
-
-
-@wp.kernel
-def linet_grad_weight_fm(
-    xT: wp.array(dtype=Any),
-    gT: wp.array(dtype=Any),
-    index: wp.array(dtype=wp.int32),
-    receptive_field: int,
-    chunks: int,
-    offset: int,
-    grad_weight_out: wp.array(dtype=Any),
-    grad_bias_out: wp.array(dtype=Any),
-):
-    """grad_weight[n, r] = sum_b g[b, n] x[b, index[n, r]] and grad_bias[n] = sum_b g[b, n] (g already
-    masked); feature-major, flat arrays (``grad_weight_out`` is [N, R] flattened).
-
-    Thread t = n: the bias sum first (the row of g is then in cache), then for each connection
-    lane-wise products accumulated over the row's vectors and the lanes summed. Fusing the bias
-    saves a launch and a pass over g.
-    """
-    n = offset + wp.tid()
-    bacc = gT.dtype(grad_bias_out.dtype(0.0))
-    for c in range(chunks):
-        bacc += gT[n * chunks + c]
-    grad_bias_out[n] = _lane_sum(bacc)
-    e = n * receptive_field
-    while e < (n + 1) * receptive_field:
-        i = index[e] * chunks
-        acc = gT.dtype(grad_weight_out.dtype(0.0))
-        for c in range(chunks):
-            acc += wp.cw_mul(gT[n * chunks + c], xT[i + c])
-        grad_weight_out[e] = _lane_sum(acc)
-        e += 1
-
-
-@wp.kernel
-def linet_grad_bias_fm(
-    gT: wp.array(dtype=Any),
-    chunks: int,
-    offset: int,
-    grad_bias_out: wp.array(dtype=Any),
-):
-    """grad_bias[n] = sum_b g[b, n] (g already masked); feature-major, flat; thread t = n. For a
-    frozen weight: otherwise :func:`linet_grad_weight_fm` computes it."""
-    n = offset + wp.tid()
-    acc = gT.dtype(grad_bias_out.dtype(0.0))
-    for c in range(chunks):
-        acc += gT[n * chunks + c]
-    grad_bias_out[n] = _lane_sum(acc)
-
-
-def _overload_all() -> None:
-    for wdt in (wp.float32, wp.float64):
-        a1, a2 = wp.array(dtype=wdt), wp.array2d(dtype=wdt)
-        i1, i2 = wp.array(dtype=wp.int32), wp.array2d(dtype=wp.int32)
-        wp.overload(linet_forward, [a2, a2, a1, i2, int, int, a2])
-        wp.overload(linet_grad_x, [a2, a1, i1, i1, int, int, a2])
-        wp.overload(linet_grad_weight, [a2, a2, a2, i2, int, int, a2])
-        wp.overload(linet_grad_bias, [a2, a2, int, int, a1])
-        v1 = wp.array(dtype=VEC_TYPES[wdt])
-        wp.overload(linet_forward_fm, [v1, a1, a1, i1, int, int, int, int, v1])
-        wp.overload(linet_grad_x_fm, [v1, a1, i1, i1, i1, int, int, v1])
-        wp.overload(linet_grad_weight_fm, [v1, v1, i1, int, int, int, a1, a1])
-        wp.overload(linet_grad_bias_fm, [v1, int, int, a1])
-
-
-
-
-_overload_all()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -476,15 +181,13 @@ def _check_tensor(name: str, t: Any, rank: int, like: Tensor | None = None) -> N
             raise ValueError(f"{name}: expected device {like.device} (the device of x), got {t.device}")
 
 
-def _wp(t: Tensor) -> wp.array:
-    return wp.from_torch(t, requires_grad=False)
-
-
 #: Fewest threads per CPU slice for the feature-major kernels, whose threads each do a whole row.
 FM_MIN_PER_SLICE = 256
 
 
-def _split(kernel, dim: int, inputs: list, outputs: list, device: str) -> None:
+def launch_kernel(kernel, dim: int, inputs: list, outputs: list, device: str) -> None:
+    """Launch one of the liNet kernels over ``dim`` threads, split across CPU threads as the op does
+    (``inputs`` without the trailing ``offset``)."""
     heavy = kernel in (linet_forward_fm, linet_grad_x_fm, linet_grad_weight_fm, linet_grad_bias_fm)
     _launch.launch_split(kernel, dim, inputs, outputs, device,
                          min_per_slice=FM_MIN_PER_SLICE if heavy else _launch.MIN_THREADS_PER_SLICE)
@@ -507,21 +210,21 @@ def forward(x: Tensor, weight: Tensor, bias: Tensor, plan: LinetPlan, relu: bool
     if B and B % LANES == 0:
         yT = torch.empty(N, B, dtype=x.dtype, device=x.device)
         if N and feature_major(x):
-            _split(linet_forward_fm, N,
-                   [flat_vectors(x.t()), _wp(weight.reshape(-1)), _wp(bias), _wp(plan.index.reshape(-1)),
+            launch_kernel(linet_forward_fm, N,
+                   [flat_vectors(x.t()), warp_array(weight.reshape(-1)), warp_array(bias), warp_array(plan.index.reshape(-1)),
                     plan.receptive_field, B // LANES, int(relu)],
                    [flat_vectors(yT)], dev)
         elif N:
-            _split(linet_forward, _blocks(B, BATCH_BLOCK) * N,
-                   [_wp(x), _wp(weight), _wp(bias), _wp(plan.index), int(relu)], [_wp(yT.t())], dev)
+            launch_kernel(linet_forward, _blocks(B, BATCH_BLOCK) * N,
+                   [warp_array(x), warp_array(weight), warp_array(bias), warp_array(plan.index), int(relu)], [warp_array(yT.t())], dev)
         return yT.t()
     y = torch.empty(B, N, dtype=x.dtype, device=x.device)
     if B and N:
-        _split(
+        launch_kernel(
             linet_forward,
             _blocks(B, BATCH_BLOCK) * N,
-            [_wp(x), _wp(weight), _wp(bias), _wp(plan.index), int(relu)],
-            [_wp(y)],
+            [warp_array(x), warp_array(weight), warp_array(bias), warp_array(plan.index), int(relu)],
+            [warp_array(y)],
             dev,
         )
     return y
@@ -556,27 +259,27 @@ def backward(
     if B and B % LANES == 0:
         return _backward_fm(x, weight, plan, grad_y, y if relu else None, need, dev)
     grad_y = grad_y.contiguous()
-    g = _wp(grad_y)
-    yy = _wp(y) if relu else g  # unread when relu == 0
+    g = warp_array(grad_y)
+    yy = warp_array(y) if relu else g  # unread when relu == 0
     grad_x = grad_w = grad_b = None
     if need[0]:
         grad_x = torch.empty(B, plan.in_features, dtype=grad_y.dtype, device=grad_y.device)
         if B and plan.in_features:
-            _split(
+            launch_kernel(
                 linet_grad_x,
                 _blocks(B, BATCH_BLOCK) * plan.in_features,
-                [g, _wp(weight.reshape(-1)), _wp(plan.t_offsets), _wp(plan.t_entries), R],
-                [_wp(grad_x)],
+                [g, warp_array(weight.reshape(-1)), warp_array(plan.t_offsets), warp_array(plan.t_entries), R],
+                [warp_array(grad_x)],
                 dev,
             )
     if need[1]:
         grad_w = torch.zeros(N, R, dtype=grad_y.dtype, device=grad_y.device)
         if B and N and R:
             groups = _blocks(R, CONN_BLOCK)
-            _split(linet_grad_weight, N * groups, [_wp(x), g, yy, _wp(plan.index), relu], [_wp(grad_w)], dev)
+            launch_kernel(linet_grad_weight, N * groups, [warp_array(x), g, yy, warp_array(plan.index), relu], [warp_array(grad_w)], dev)
     if need[2]:
         grad_b = torch.empty(N, dtype=grad_y.dtype, device=grad_y.device)
-        _split(linet_grad_bias, N, [g, yy, relu], [_wp(grad_b)], dev)
+        launch_kernel(linet_grad_bias, N, [g, yy, relu], [warp_array(grad_b)], dev)
     return grad_x, grad_w, grad_b
 
 
@@ -601,8 +304,8 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev):
         gxT = torch.empty(plan.in_features, B, dtype=grad_y.dtype, device=grad_y.device)
         if N and plan.in_features:
             t_offsets, t_entries, t_units = plan.transposed()
-            _split(linet_grad_x_fm, plan.in_features,
-                   [g, _wp(weight.reshape(-1)), _wp(t_offsets), _wp(t_entries), _wp(t_units), chunks],
+            launch_kernel(linet_grad_x_fm, plan.in_features,
+                   [g, warp_array(weight.reshape(-1)), warp_array(t_offsets), warp_array(t_entries), warp_array(t_units), chunks],
                    [flat_vectors(gxT)], dev)
         else:
             gxT.zero_()
@@ -617,19 +320,19 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev):
     if need[1] and R and feature_major(x):
         # the bias gradient comes with the weight gradient (into scratch when it is not wanted)
         gb = grad_b if grad_b is not None else torch.empty(N, dtype=grad_y.dtype, device=grad_y.device)
-        _split(linet_grad_weight_fm, N,
-               [flat_vectors(x.t()), g, _wp(plan.index.reshape(-1)), R, chunks], [_wp(grad_w.reshape(-1)), _wp(gb)], dev)
+        launch_kernel(linet_grad_weight_fm, N,
+               [flat_vectors(x.t()), g, warp_array(plan.index.reshape(-1)), R, chunks], [warp_array(grad_w.reshape(-1)), warp_array(gb)], dev)
         return grad_x, grad_w, grad_b
-    g_bm = _wp(gT.t())  # the same memory, seen [B, N] by the batch-major kernels
-    y_bm = _wp(y) if relu else g_bm  # unread when relu == 0
+    g_bm = warp_array(gT.t())  # the same memory, seen [B, N] by the batch-major kernels
+    y_bm = warp_array(y) if relu else g_bm  # unread when relu == 0
     if need[1] and R:
-        _split(linet_grad_weight, N * _blocks(R, CONN_BLOCK), [_wp(x), g_bm, y_bm, _wp(plan.index), relu],
-               [_wp(grad_w)], dev)
+        launch_kernel(linet_grad_weight, N * _blocks(R, CONN_BLOCK), [warp_array(x), g_bm, y_bm, warp_array(plan.index), relu],
+               [warp_array(grad_w)], dev)
     if need[2]:
         if relu:
-            _split(linet_grad_bias, N, [g_bm, y_bm, relu], [_wp(grad_b)], dev)
+            launch_kernel(linet_grad_bias, N, [g_bm, y_bm, relu], [warp_array(grad_b)], dev)
         else:
-            _split(linet_grad_bias_fm, N, [g, chunks], [_wp(grad_b)], dev)
+            launch_kernel(linet_grad_bias_fm, N, [g, chunks], [warp_array(grad_b)], dev)
     return grad_x, grad_w, grad_b
 
 

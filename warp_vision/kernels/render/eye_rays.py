@@ -11,7 +11,7 @@ so a photoreceptor's value, the weighted sum of its rays' radiances, is its irra
 the pupil's area and a blocked ray carries nothing. The rays depend only on the retina and the eye's
 state (accommodation, pupil), not on the scene, so :func:`eye_rays` caches them.
 
-Ray k = (p * 3 + c) * S + s; rays are in the eye frame (m, DESIGN.md).
+Ray k = (p * 3 + c) * S + s; rays are in the eye frame (m, docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations
@@ -254,6 +254,13 @@ class EyeRays:
 _eye_cache: OrderedDict = OrderedDict()
 _eye_cache_lock = threading.Lock()
 _EYE_CACHE_SIZE = 8
+
+
+def clear_eye_ray_cache() -> None:
+    """Forget every cached :class:`EyeRays`: the next :func:`eye_rays` call traces its rays afresh
+    (benchmarks time that; tests compare fresh traces)."""
+    with _eye_cache_lock:
+        _eye_cache.clear()
 
 
 def _retina_positions(retina) -> np.ndarray:

@@ -2,7 +2,7 @@
 
     y[b, n] = bias[n] + sum_r weight[n, r] * x[b, index[n, r]]
 
-Tests and benchmarks compare ``warp_vision.kernels.linet`` against these functions.
+Tests and benchmarks compare :mod:`warp_vision.kernels.linet.op` against these functions.
 """
 
 from __future__ import annotations
