@@ -1,4 +1,5 @@
-"""warp_vision.nn.connectivity: kNN receptive fields, unit positions and ordering of liNet layers."""
+"""warp_vision.nn.connectivity (kNN receptive fields, unit positions and ordering of liNet layers) on a
+log-polar retina, and warp_vision.frames.morton_order."""
 
 from __future__ import annotations
 
@@ -9,36 +10,21 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
+from warp_vision.eye.retina import Retina
+from warp_vision.frames import morton_order
 from warp_vision.nn.connectivity import (
     LayerConnectivity,
     build_connectivity,
-    morton_order,
     onv_positions,
     receptive_field_radius,
 )
 
 
-def log_polar_layout(num: int = 2000, rings: int = 40, seed: int = 0) -> np.ndarray:
-    """A noisy log-polar photoreceptor layout, [num, 2], eccentricity in (0, ~1], listed ring by ring.
-
-    Ring k has radius q^k / q^(rings-1) with q = exp(2 pi / m) (m = num / rings points per ring), so the
-    cells are about square and the density falls as 1/rho^2; every point gets Gaussian noise of 10 % of
-    its ring spacing. (A stand-in for warp_vision.eye.retina, which does not exist yet.)
-    """
-    rng = np.random.default_rng(seed)
-    per_ring = num // rings
-    q = math.exp(2 * math.pi / per_ring)
-    rho_of_ring = q ** np.arange(rings) / q ** (rings - 1)
-    ring, j = np.divmod(np.arange(rings * per_ring), per_ring)
-    theta = 2 * np.pi * (j + 0.5 * (ring % 2)) / per_ring
-    rho = rho_of_ring[ring]
-    xy = np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=1)
-    return xy + rng.normal(scale=0.1 * (q - 1) * rho[:, None], size=xy.shape)
-
-
 @pytest.fixture(scope="module")
 def retina() -> np.ndarray:
-    return log_polar_layout()
+    """The photoreceptor positions [2000, 2] (retinal domain, rad) of the paper's noisy log-polar retina:
+    a foveal disk and rings whose density falls as 1/rho^2, Morton-ordered."""
+    return Retina.log_polar(2000, seed=0).domain_xy
 
 
 @pytest.fixture(scope="module")

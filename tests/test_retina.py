@@ -1,4 +1,4 @@
-"""Tests for warp_vision.eye.retina: photoreceptor layouts and the Retina container."""
+"""Tests for warp_vision.eye.layouts and warp_vision.eye.retina: photoreceptor layouts and the Retina container."""
 
 from __future__ import annotations
 
@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from warp_vision.eye.retina import (
+from warp_vision.eye.layouts import (
     CONE_DENSITY_TABLE,
-    Retina,
     cone_density_layout,
     cone_density_per_mm2,
     noisy_log_polar,
 )
-from warp_vision.nn.connectivity import morton_order
+from warp_vision.eye.retina import Retina
+from warp_vision.frames import morton_order
 
 RHO_MAX = 1.7  # rad: about the Navarro eye's lit retina for a 167.5 deg field
 R_MM = 12.0  # retina radius, written out here independently of the module
@@ -370,7 +370,9 @@ def test_load_rejects_non_archives(tmp_path):
 
 
 def test_plot_returns_figure_with_two_axes(retina):
-    fig = retina.plot()
+    from warp_vision.viz import plot_retina_layout
+
+    fig = plot_retina_layout(retina)
     assert isinstance(fig, Figure) and len(fig.axes) == 2
     full, zoom = fig.axes
     assert full.get_aspect() == 1.0 and zoom.get_aspect() == 1.0
@@ -382,7 +384,7 @@ def test_plot_returns_figure_with_two_axes(retina):
     # One axes given: only the full layout, drawn on it.
     single = Figure()
     ax = single.add_subplot()
-    assert retina.plot(ax=ax) is single and len(single.axes) == 1
+    assert plot_retina_layout(retina, ax=ax) is single and len(single.axes) == 1
 
 
 # --- validation ------------------------------------------------------------------------------------------

@@ -11,7 +11,6 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from warp_vision.nn.connectivity import receptive_field_radius
 
 __all__ = ["plot_receptive_fields", "plot_retina_layout", "tone_map", "plot_onv", "plot_eye_rays", "plot_image"]
 
@@ -46,7 +45,7 @@ def plot_receptive_fields(
     """Draw the receptive fields of some units of one liNet layer over its input units (paper, Fig. 3).
 
     The previous layer's units are small black dots; for each drawn unit, a circle of its receptive-field
-    radius (:func:`warp_vision.nn.connectivity.receptive_field_radius`) is centred at the unit's
+    radius (``LayerConnectivity.radius``) is centred at the unit's
     position, with thin lines from the unit to its R_h members. On a foveated layout the circles
     overlap and grow with eccentricity.
 
@@ -62,36 +61,10 @@ def plot_receptive_fields(
     Returns:
         The figure holding ``ax``. Exactly one ``Circle`` patch is added per drawn unit.
     """
-    if isinstance(linet_or_connectivity, Sequence):
-        conns = list(linet_or_connectivity)
-        num_layers = len(conns)
-    else:  # a LiNet: read its (possibly loaded) buffers
-        net = linet_or_connectivity
-        conns = net.connectivity()
-        num_layers = len(conns)
-        in_positions = net.layer_positions(0).detach().cpu().numpy()
-    if isinstance(layer, bool) or not isinstance(layer, (int, np.integer)) or not 1 <= layer <= num_layers:
-        raise ValueError(f"layer: expected an int in [1, {num_layers}], got {layer!r}")
-    if layer == 1:
-        if in_positions is None:
-            raise ValueError("in_positions: expected the [N_0, 2] input positions to draw layer 1, got None")
-        prev = np.asarray(in_positions, dtype=np.float64)
-    else:
-        prev = np.asarray(conns[layer - 2].positions, dtype=np.float64)
-    conn = conns[layer - 1]
-    radius = receptive_field_radius(prev, conn)
+    conn, prev = _layer_and_inputs(linet_or_connectivity, layer, in_positions)
+    radius = conn.radius(prev)
     positions = np.asarray(conn.positions, dtype=np.float64)
-    if isinstance(units, (int, np.integer)) and not isinstance(units, bool):
-        if units < 1:
-            raise ValueError(f"units: expected a count >= 1 or a sequence of unit indexes, got {units!r}")
-        chosen = _spread_units(positions, radius, int(units), seed)
-    else:
-        chosen = np.asarray(units, dtype=np.int64).reshape(-1)
-        if chosen.size and (chosen.min() < 0 or chosen.max() >= len(positions)):
-            raise ValueError(
-                f"units: expected indexes in [0, {len(positions)}) (units of layer {layer}), "
-                f"got values in [{chosen.min()}, {chosen.max()}]"
-            )
+    chosen = _chosen_units(units, positions, radius, seed, layer)
 
     if ax is None:
         fig = Figure(figsize=(6.0, 6.0), layout="constrained")
@@ -117,6 +90,44 @@ def plot_receptive_fields(
         f"Layer {layer} receptive fields: {len(chosen)} of {conn.num_units} units, R = {conn.receptive_field}"
     )
     return ax.get_figure()
+
+
+def _layer_and_inputs(linet_or_connectivity, layer, in_positions):
+    """(layer ``layer``'s LayerConnectivity, its input positions [N_{h-1}, 2] float64) for
+    :func:`plot_receptive_fields`."""
+    if isinstance(linet_or_connectivity, Sequence):
+        conns = list(linet_or_connectivity)
+        num_layers = len(conns)
+    else:  # a LiNet: read its (possibly loaded) buffers
+        net = linet_or_connectivity
+        conns = net.connectivity()
+        num_layers = len(conns)
+        in_positions = net.layer_positions(0).detach().cpu().numpy()
+    if isinstance(layer, bool) or not isinstance(layer, (int, np.integer)) or not 1 <= layer <= num_layers:
+        raise ValueError(f"layer: expected an int in [1, {num_layers}], got {layer!r}")
+    if layer == 1:
+        if in_positions is None:
+            raise ValueError("in_positions: expected the [N_0, 2] input positions to draw layer 1, got None")
+        prev = np.asarray(in_positions, dtype=np.float64)
+    else:
+        prev = np.asarray(conns[layer - 2].positions, dtype=np.float64)
+    return conns[layer - 1], prev
+
+
+def _chosen_units(units, positions: np.ndarray, radius: np.ndarray, seed: int, layer: int) -> np.ndarray:
+    """The indexes of the units :func:`plot_receptive_fields` draws: ``units`` spread ones for a count,
+    else the given indexes (checked)."""
+    if isinstance(units, (int, np.integer)) and not isinstance(units, bool):
+        if units < 1:
+            raise ValueError(f"units: expected a count >= 1 or a sequence of unit indexes, got {units!r}")
+        return _spread_units(positions, radius, int(units), seed)
+    chosen = np.asarray(units, dtype=np.int64).reshape(-1)
+    if chosen.size and (chosen.min() < 0 or chosen.max() >= len(positions)):
+        raise ValueError(
+            f"units: expected indexes in [0, {len(positions)}) (units of layer {layer}), "
+            f"got values in [{chosen.min()}, {chosen.max()}]"
+        )
+    return chosen
 
 
 def plot_retina_layout(
@@ -165,16 +176,7 @@ def plot_retina_layout(
     elif not np.isfinite(fovea_radius_deg) or fovea_radius_deg <= 0:
         raise ValueError(f"fovea_radius_deg: expected a positive number of degrees, got {fovea_radius_deg!r}")
 
-    if ax is None:
-        fig = Figure(figsize=(11.0, 5.5), layout="constrained")
-        axes = list(fig.subplots(1, 2))
-    elif isinstance(ax, Axes):
-        axes = [ax]
-    else:
-        axes = list(ax)
-        if len(axes) != 2 or not all(isinstance(a, Axes) for a in axes):
-            raise ValueError(f"ax: expected None, one Axes or a pair of Axes, got {ax!r}")
-
+    axes = _layout_axes(ax)
     shown = np.arange(P)
     if P > max_points:
         shown = np.sort(np.random.default_rng(seed).choice(P, size=int(max_points), replace=False))
@@ -193,20 +195,38 @@ def plot_retina_layout(
     full.set_title(f"{retina.layout} retina: P = {P:,}{subset}, rho_max = {rho_max_deg:.1f} deg")
 
     if len(axes) == 2:
-        zoom = axes[1]
-        near = rho_deg <= 1.05 * fovea_radius_deg
-        n_near = int(near.sum())
-        zoom_size = float(np.clip(4000.0 / max(n_near, 1), 2.0, 30.0))
-        zoom.scatter(xy[near, 0], xy[near, 1], s=zoom_size, c="black", linewidths=0)
-        zoom.add_patch(Circle((0.0, 0.0), fovea_radius_deg, fill=False, edgecolor="C3", linewidth=0.8))
-        zoom.set_xlim(-fovea_radius_deg, fovea_radius_deg)
-        zoom.set_ylim(-fovea_radius_deg, fovea_radius_deg)
-        zoom.set_aspect("equal")
-        zoom.set_xlabel("x [deg of eccentricity]")
-        zoom.set_ylabel("y [deg of eccentricity]")
-        inside = int((rho_deg < fovea_radius_deg).sum())
-        zoom.set_title(f"fovea: rho < {fovea_radius_deg:.3g} deg ({inside:,} photoreceptors)")
+        _draw_fovea_zoom(axes[1], xy, rho_deg, fovea_radius_deg)
     return axes[0].get_figure()
+
+
+def _layout_axes(ax) -> list[Axes]:
+    """The axes of :func:`plot_retina_layout`: two new side-by-side panels for None, else ``ax`` (one or
+    a pair)."""
+    if ax is None:
+        fig = Figure(figsize=(11.0, 5.5), layout="constrained")
+        return list(fig.subplots(1, 2))
+    if isinstance(ax, Axes):
+        return [ax]
+    axes = list(ax)
+    if len(axes) != 2 or not all(isinstance(a, Axes) for a in axes):
+        raise ValueError(f"ax: expected None, one Axes or a pair of Axes, got {ax!r}")
+    return axes
+
+
+def _draw_fovea_zoom(zoom: Axes, xy: np.ndarray, rho_deg: np.ndarray, fovea_radius_deg: float) -> None:
+    """The right panel of :func:`plot_retina_layout`: the photoreceptors within ``fovea_radius_deg``."""
+    near = rho_deg <= 1.05 * fovea_radius_deg
+    n_near = int(near.sum())
+    zoom_size = float(np.clip(4000.0 / max(n_near, 1), 2.0, 30.0))
+    zoom.scatter(xy[near, 0], xy[near, 1], s=zoom_size, c="black", linewidths=0)
+    zoom.add_patch(Circle((0.0, 0.0), fovea_radius_deg, fill=False, edgecolor="C3", linewidth=0.8))
+    zoom.set_xlim(-fovea_radius_deg, fovea_radius_deg)
+    zoom.set_ylim(-fovea_radius_deg, fovea_radius_deg)
+    zoom.set_aspect("equal")
+    zoom.set_xlabel("x [deg of eccentricity]")
+    zoom.set_ylabel("y [deg of eccentricity]")
+    inside = int((rho_deg < fovea_radius_deg).sum())
+    zoom.set_title(f"fovea: rho < {fovea_radius_deg:.3g} deg ({inside:,} photoreceptors)")
 
 
 # --------------------------------------------------------------------------------------------------

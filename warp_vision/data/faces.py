@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from warp_vision.data.store import ChunkedStore
-from warp_vision.scene.scene import look_rotation
+from warp_vision.fileio import atomic_write
+from warp_vision.frames import look_rotation
 
 #: Bump when identities or renders change for the same config (caches are keyed by it).
 GENERATOR_VERSION = 1
@@ -146,13 +147,14 @@ class FaceIdentities:
                                process=False)
 
     def save(self, path) -> None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez_compressed(tmp, vertices=self.vertices, faces=self.faces, colours=self.colours.astype(np.float16),
-                            pivot=self.pivot, face_centre=self.face_centre, params=self.params,
-                            param_names=np.array(self.param_names))
-        tmp.replace(path)
+        """Write the identities to ``path`` (a compressed .npz; its directory is created), atomically."""
+
+        def write(f) -> None:
+            np.savez_compressed(f, vertices=self.vertices, faces=self.faces, colours=self.colours.astype(np.float16),
+                                pivot=self.pivot, face_centre=self.face_centre, params=self.params,
+                                param_names=np.array(self.param_names))
+
+        atomic_write(path, write)
 
     @classmethod
     def load(cls, path) -> "FaceIdentities":
@@ -387,7 +389,7 @@ def make_scene(ids: FaceIdentities):
 def render_samples(cfg: FaceDataConfig, indices, ids: FaceIdentities, scene, retina, eye, device: str = "cpu") -> dict:
     """Render samples ``indices`` in one batch: {"onv": [B, 3P] float16, "identity": [B], "pose": [B, 2]
     (yaw, pitch) degrees}."""
-    from warp_vision.kernels.raytrace import render_onv
+    from warp_vision.kernels.render import render_onv
 
     labels = [cfg.sample_labels(i) for i in indices]
     B = len(labels)

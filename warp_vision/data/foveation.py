@@ -8,14 +8,13 @@ within ``max_field_deg`` of the optical axis, sometimes half hidden
 behind a panel, never wholly hidden (a sample whose ball no line of sight reaches is redrawn); the lights
 change colour and intensity. The target is (yaw, pitch) in radians, eye frame:
 ``yaw = atan2(x, z)`` (turning about the eye's +y axis, toward +x) and ``pitch = atan2(y, hypot(x, z))``
-(elevation) of the ball centre's direction. Every sample's parameters come from its own generator,
-seeded with (dataset seed, sample index, attempt), so a sample does not depend on the batch, chunk or shard that
-renders it: the same seed gives the same ONVs.
+(elevation) of the ball centre's direction (:func:`warp_vision.frames.gaze_angles`). Every sample's
+parameters come from its own generator, seeded with (dataset seed, sample index, attempt), so a sample
+does not depend on the batch, chunk or shard that renders it: the same seed gives the same ONVs.
 
 ONVs are stored as float16, which halves the dataset: the relative rounding error is at most 2^-11
-(4.9e-4), which moves the net's standardised inputs by at most 0.003 of their spread and a trained
-foveation net's predictions by 0.015 degrees (median; 0.03 at most; measured with generator v2 and the
-linear read-out, whose error was 15 degrees; the closing notes of the foveation issue have the numbers).
+(4.9e-4), which moves the net's standardised inputs by at most 0.003 of their spread, and a trained
+foveation net's predictions by far less than its error (README has the measurement).
 """
 
 from __future__ import annotations
@@ -29,7 +28,7 @@ from functools import lru_cache
 import numpy as np
 
 from warp_vision.data.store import ChunkedStore
-from warp_vision.scene.scene import look_rotation
+from warp_vision.frames import gaze_angles, gaze_directions, look_rotation
 
 #: Bump when the scene generator changes what a config renders (datasets are cached by config + version).
 GENERATOR_VERSION = 7
@@ -43,8 +42,8 @@ BALL_RADII = tuple(float(r) for r in np.geomspace(0.04, 0.2, 8))
 #: BALL_EMISSION (radiance, on top of the light it reflects), so the ball is the brightest thing in view
 #: as in the paper's set-up (Fig. 7: a white ball on a dark retina) rather than one grey among many: a
 #: point lamp's inverse-square fall-off otherwise makes a wall near the lamp brighter than a lit ball
-#: far from it. Measured on 400 samples: the brightest photoreceptor lies on the ball in 37% of them
-#: with albedo 0.35 and no emission, 98% with these values.
+#: far from it. With the room's full albedo and no emission the brightest photoreceptor missed the ball
+#: in most samples; with these values it nearly always lies on it (README has the measurement).
 ROOM_ALBEDO = 0.1
 BALL_EMISSION = 2.0
 _HIDDEN = np.array([0.0, 0.0, -10.0])
@@ -123,13 +122,12 @@ def make_scene(seed: int):
 
 #: The ball's apparent diameter is at least this (deg), and at least MIN_RECEPTORS_ACROSS times the
 #: photoreceptor spacing where it lies (v7): a smaller ball falls between the periphery's photoreceptors
-#: and leaves no trace in the ONV, making its target noise. With v6's flat 1.5 deg, balls of 1.5 to 3 deg
-#: at 30 to 46 deg eccentricity (spacing about 1.8 deg there) were most of the worst 2% of a trained net's
-#: training errors (up to 67 deg), which carried 92% of its training MSE (measured on runs/foveation, v6).
+#: and leaves no trace in the ONV, making its target noise. With v6's flat 1.5 deg, small balls far in the
+#: periphery (where the spacing is about 1.8 deg) were most of a trained net's worst training errors.
 MIN_APPARENT_DIAMETER_DEG = 1.5
 MIN_RECEPTORS_ACROSS = 3.0
 #: ... and at most this (deg, v7): a ball 0.3 m away filled up to 84 deg of the field, and those, mostly
-#: half hidden, were the rest of the worst 2% (its centre is where nothing of it is seen).
+#: half hidden, were the rest of the worst errors (its centre is where nothing of it is seen).
 MAX_APPARENT_DIAMETER_DEG = 30.0
 
 
@@ -143,7 +141,7 @@ def _spacing_profile(photoreceptors: int, eye: str, accommodation_D: float, pupi
                               pupil_diameter_mm=pupil_diameter_mm)
     ang = make_retina(cfg).visual_angles(make_eye(cfg))
     ang = ang[np.all(np.isfinite(ang), axis=1)]
-    d = np.stack([np.sin(ang[:, 0]) * np.cos(ang[:, 1]), np.sin(ang[:, 1]), np.cos(ang[:, 0]) * np.cos(ang[:, 1])], 1)
+    d = gaze_directions(ang)
     if len(d) < 2:
         return np.array([0.0, np.pi]), np.array([np.pi, np.pi])
     chord, _ = cKDTree(d).query(d, k=2)
@@ -214,8 +212,7 @@ def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dic
     Tp[:3, 3] = panel
     light_colour = rng.uniform(0.6, 1.0, 3)
     light_intensity = float(rng.uniform(3.0, 15.0))
-    yaw = float(np.arctan2(u_eye[0], u_eye[2]))
-    pitch = float(np.arctan2(u_eye[1], np.hypot(u_eye[0], u_eye[2])))
+    yaw, pitch = (float(a) for a in gaze_angles(u_eye))
     Te = np.eye(4)
     Te[:3, :3] = R
     Te[:3, 3] = eye
@@ -251,7 +248,7 @@ def ball_sight_fraction(scene, p: dict, batch: int, rings=(0.8,), per_ring: int 
     """Share of lines of sight from the eye that reach the ball first in batch element ``batch`` of the
     placed ``scene``: one to the ball's centre and ``per_ring`` to points at each of ``rings`` (fractions of
     its apparent radius)."""
-    from warp_vision.kernels.raytrace import closest_hit
+    from warp_vision.kernels.render import closest_hit
 
     eye = p["eye_pose"][:3, 3]
     fwd = p["ball"] - eye
@@ -276,7 +273,7 @@ def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device
     A sample whose ball no line of sight reaches (behind a piece of furniture, or the panel) is redrawn
     (``attempt`` + 1) until one does: a hidden ball has no place to foveate, and its target would be noise.
     """
-    from warp_vision.kernels.raytrace import render_onv
+    from warp_vision.kernels.render import render_onv
 
     attempts = [0] * len(indices)
     ps = [sample_params(cfg, int(i)) for i in indices]

@@ -1,9 +1,9 @@
 """The Navarro (1985) accommodating schematic eye, traced exactly in float64 numpy.
 
-Frames and units (DESIGN.md): everything in this module is in millimetres in the *optical frame*
-(origin at the corneal apex, +z pointing into the eye, +y up, +x = y cross z). The eye frame used by the
-rest of the package (metres, origin at the eyeball centre, +z out of the pupil) is reached only through
-:func:`eye_from_optical` / :func:`optical_from_eye` and their direction variants.
+Frames and units (docs/ARCHITECTURE.md): everything in this module is in millimetres in the *optical
+frame* (origin at the corneal apex, +z pointing into the eye, +y up, +x = y cross z). The eye frame used
+by the rest of the package (metres, origin at the eyeball centre, +z out of the pupil) is reached only
+through :func:`eye_from_optical` / :func:`optical_from_eye` and their direction variants.
 
 Surfaces are conicoids of revolution with vertex ``z0``, vertex radius ``R`` and conic constant ``Q``::
 
@@ -13,8 +13,8 @@ whose vertex sheet is the sag ``s = r^2 / (R (1 + sqrt(1 - (1 + Q) r^2 / R^2)))`
 with the vector form of Snell's law; total internal reflection, missing a surface, leaving its aperture
 or hitting the iris makes a ray invalid.
 
-The Warp ray tracer (kernels/raytrace.py) implements the same optics in float32 and is tested against
-this module.
+The Warp ray tracer (:mod:`warp_vision.kernels.render`) implements the same optics in float32 and is
+tested against this module.
 """
 
 from __future__ import annotations

@@ -3,7 +3,6 @@
 from warp_vision.nn.connectivity import (
     LayerConnectivity,
     build_connectivity,
-    morton_order,
     onv_positions,
     receptive_field_radius,
 )
@@ -23,7 +22,6 @@ __all__ = [
     "build_connectivity",
     "fc_param_count",
     "linet_param_count",
-    "morton_order",
     "onv_positions",
     "receptive_field_radius",
 ]

@@ -1,8 +1,8 @@
 """liNet connectivity: unit positions and k-nearest-neighbour receptive fields per layer (paper, IV.A).
 
-All positions live in the 2D retinal domain (DESIGN.md: the azimuthal-equidistant projection of the
-retina around the fovea), in whatever units the caller's positions use; Euclidean distance there is
-the paper's (rho, theta) domain. Layer 0 is the input (the ONV: element 3p + c sits at photoreceptor
+All positions live in the 2D retinal domain (docs/ARCHITECTURE.md: the azimuthal-equidistant projection
+of the retina around the fovea), in whatever units the caller's positions use; Euclidean distance there
+is the paper's (rho, theta) domain. Layer 0 is the input (the ONV: element 3p + c sits at photoreceptor
 p's position, :func:`onv_positions`); layers h = 1..H are hidden layers of N_h = floor(N_{h-1} / f)
 units, each connected to its R_h nearest units of layer h - 1.
 
@@ -18,16 +18,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from warp_vision.frames import check_positions, morton_order
+
 __all__ = [
     "LayerConnectivity",
     "build_connectivity",
-    "morton_order",
     "onv_positions",
     "receptive_field_radius",
 ]
-
-#: Bits per axis of the quantised Morton (Z-order) key; two axes fill 62 bits of a uint64.
-_MORTON_BITS = 31
 
 
 @dataclass
@@ -53,18 +51,9 @@ class LayerConnectivity:
         """R_h."""
         return int(self.index.shape[1])
 
-
-def _check_positions(name: str, positions: np.ndarray) -> np.ndarray:
-    """Validate [N, 2] finite positions (N >= 1); returns them as a float64 array."""
-    arr = np.asarray(positions)
-    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < 1:
-        raise ValueError(f"{name}: expected shape [N, 2] with N >= 1, got shape {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
-        raise ValueError(f"{name}: expected real numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64, copy=False)
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name}: expected finite values, got {int((~np.isfinite(arr)).sum())} NaN/inf entries")
-    return arr
+    def radius(self, layer_prev_positions: np.ndarray) -> np.ndarray:
+        """[N_h] radius of each unit's receptive field: :func:`receptive_field_radius`."""
+        return receptive_field_radius(layer_prev_positions, self)
 
 
 def onv_positions(photoreceptor_xy: np.ndarray) -> np.ndarray:
@@ -76,41 +65,8 @@ def onv_positions(photoreceptor_xy: np.ndarray) -> np.ndarray:
     Returns:
         [3P, 2] float64, each row of ``photoreceptor_xy`` repeated 3 times in place.
     """
-    xy = _check_positions("photoreceptor_xy", photoreceptor_xy)
+    xy = check_positions("photoreceptor_xy", photoreceptor_xy)
     return np.repeat(xy, 3, axis=0)
-
-
-def _spread_bits(v: np.ndarray) -> np.ndarray:
-    """Insert a zero bit above each of the low 32 bits of uint64 ``v`` (bit i moves to bit 2i)."""
-    v = v & np.uint64(0x00000000FFFFFFFF)
-    v = (v | (v << np.uint64(16))) & np.uint64(0x0000FFFF0000FFFF)
-    v = (v | (v << np.uint64(8))) & np.uint64(0x00FF00FF00FF00FF)
-    v = (v | (v << np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-    v = (v | (v << np.uint64(2))) & np.uint64(0x3333333333333333)
-    v = (v | (v << np.uint64(1))) & np.uint64(0x5555555555555555)
-    return v
-
-
-def morton_order(positions: np.ndarray) -> np.ndarray:
-    """The permutation that sorts points along a Morton (Z-order) curve.
-
-    Positions are quantised to a square grid of 2^31 cells per side over their bounding box; ties
-    (points in one cell) keep their input order.
-
-    Args:
-        positions: [N, 2] finite positions.
-
-    Returns:
-        [N] int64 permutation: ``positions[order]`` is in Z-order.
-    """
-    pos = _check_positions("positions", positions)
-    lo = pos.min(axis=0)
-    span = float((pos.max(axis=0) - lo).max())
-    top = float(2**_MORTON_BITS - 1)
-    scale = top / span if span > 0 else 0.0
-    q = np.clip(np.floor((pos - lo) * scale), 0.0, top).astype(np.uint64)
-    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1))
-    return np.argsort(code, kind="stable").astype(np.int64)
 
 
 def _jitter_duplicates(centres: np.ndarray, prev: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -192,7 +148,7 @@ def build_connectivity(
         ValueError: naming the argument, what was expected and what came (bad shapes, non-finite
         positions, H < 1, f < 1, a receptive field larger than its previous layer, an empty layer).
     """
-    prev = _check_positions("in_positions", in_positions)
+    prev = check_positions("in_positions", in_positions)
     if isinstance(layers, bool) or not isinstance(layers, (int, np.integer)) or layers < 1:
         raise ValueError(f"layers: expected an int >= 1, got {layers!r}")
     rfs = _receptive_fields(receptive_field, int(layers))
@@ -243,7 +199,7 @@ def receptive_field_radius(layer_prev_positions: np.ndarray, conn: LayerConnecti
     Returns:
         [N_h] float64, in the units of the positions.
     """
-    prev = _check_positions("layer_prev_positions", layer_prev_positions)
+    prev = check_positions("layer_prev_positions", layer_prev_positions)
     index = np.asarray(conn.index)
     if index.size and (index.min() < 0 or index.max() >= len(prev)):
         raise ValueError(

@@ -1,5 +1,5 @@
 """What is rendered: meshes with materials, point lights, per-batch rigid transforms."""
 
-from warp_vision.scene.scene import Material, PointLight, Scene, SceneObject, look_rotation, translation
+from warp_vision.scene.scene import Material, PointLight, Scene, SceneObject
 
-__all__ = ["Material", "PointLight", "Scene", "SceneObject", "look_rotation", "translation"]
+__all__ = ["Material", "PointLight", "Scene", "SceneObject"]

@@ -34,7 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     from warp_vision import viz
     from warp_vision.eye.optics import NavarroEye
     from warp_vision.eye.retina import Retina
-    from warp_vision.kernels import raytrace as rt
+    from warp_vision.frames import eye_look_at, look_at
+    from warp_vision.kernels.render import render_camera, render_onv
     from warp_vision.scene.room import make_room
 
     if args.photoreceptors < 1 or args.samples < 1:
@@ -46,22 +47,22 @@ def main(argv: list[str] | None = None) -> int:
     retina = make(args.photoreceptors, seed=args.seed, eye=eye)
     room = make_room(seed=args.seed)
     eye_centre, ball = np.array([0.0, -1.5, 1.2]), np.array([0.0, 1.5, 1.2])
-    pose = rt.eye_look_at(eye_centre, ball)
+    pose = eye_look_at(eye_centre, ball)
     t0 = time.perf_counter()
-    onv = rt.render_onv(room, retina, eye, pose[None], args.samples, args.seed, device=args.device)
+    onv = render_onv(room, retina, eye, pose[None], args.samples, args.seed, device=args.device)
     t1 = time.perf_counter()
-    onv = rt.render_onv(room, retina, eye, pose[None], args.samples, args.seed, device=args.device)
+    onv = render_onv(room, retina, eye, pose[None], args.samples, args.seed, device=args.device)
     t2 = time.perf_counter()
     print(f"ONV: P={retina.P:,}, S={args.samples}: {t1 - t0:.2f} s first (eye rays + BVH), {t2 - t1:.3f} s again")
     np.save(out / "onv.npy", onv[0].cpu().numpy())
     files = {
         "onv.png": viz.plot_onv(retina, onv[0], title=f"ONV of the room, looking at the ball (P = {retina.P:,})"),
         "camera.png": viz.plot_image(
-            rt.render_camera(room, rt.look_at([2.4, -2.6, 2.2], [0.0, 0.5, 1.0]), 480, 360, 70.0, device=args.device),
+            render_camera(room, look_at([2.4, -2.6, 2.2], [0.0, 0.5, 1.0]), 480, 360, 70.0, device=args.device),
             title="third-person view",
         ),
         "eye_rays.png": viz.plot_eye_rays(eye),
-        "retina.png": retina.plot(),
+        "retina.png": viz.plot_retina_layout(retina),
     }
     for name, fig in files.items():
         fig.savefig(out / name, dpi=120, bbox_inches="tight")

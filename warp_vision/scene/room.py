@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from warp_vision.scene.scene import Material, Scene, translation
+from warp_vision.frames import translation
+from warp_vision.scene.scene import Material, Scene
 
 
 def make_room(

@@ -7,7 +7,7 @@ B different ball positions) only changes a transform. Objects added with ``stati
 furniture) are merged into one BVH in the world frame, so a ray pays one traversal for all of them
 instead of one per object; moving a static object rebuilds that merged BVH.
 
-Units: metres and the world frame of DESIGN.md (+z up). Radiance is linear, in arbitrary but
+Units: metres and the world frame of docs/ARCHITECTURE.md (+z up). Radiance is linear, in arbitrary but
 consistent units: a point light of ``intensity`` I and ``color`` c gives irradiance I c / d^2 at
 distance d.
 """
@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
+
+from warp_vision.frames import translation
 
 
 @dataclass
@@ -93,29 +95,8 @@ def _as_transforms(name: str, T) -> np.ndarray:
     return T
 
 
-def look_rotation(forward, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """The [3, 3] world-from-eye rotation whose +z is ``forward`` and whose +y is as close to ``up`` as
-    possible (+x = +y cross +z); ``forward`` must not be parallel to ``up``."""
-    z = np.asarray(forward, dtype=np.float64)
-    z = z / np.linalg.norm(z)
-    x = np.cross(np.asarray(up, dtype=np.float64), z)
-    n = np.linalg.norm(x)
-    if not n > 1e-12:
-        raise ValueError("look_rotation: forward is parallel to up")
-    x /= n
-    return np.stack([x, np.cross(z, x), z], axis=1)
-
-
-def translation(xyz) -> np.ndarray:
-    """A [4, 4] (or [B, 4, 4] for xyz [B, 3]) pure translation."""
-    xyz = np.asarray(xyz, dtype=np.float64)
-    T = np.broadcast_to(np.eye(4), xyz.shape[:-1] + (4, 4)).copy()
-    T[..., :3, 3] = xyz
-    return T
-
-
 class Scene:
-    """Meshes, materials, point lights and ambient light, rendered by :mod:`warp_vision.kernels.raytrace`.
+    """Meshes, materials, point lights and ambient light, rendered by :mod:`warp_vision.kernels.render`.
 
     ambient: RGB ambient irradiance (multiplies each surface's albedo).
     background: RGB radiance of rays that escape the scene.

@@ -14,10 +14,11 @@
   accommodation (dioptres): first-order filters whose state (``data.act``) is the eye's optical state.
 - A cannon (a static barrel) and a ball on a free joint that it launches.
 
-Frames: world +z up (DESIGN.md); the body faces -y; its left is +x. At rest each eye's body frame is
-the eye frame of DESIGN.md (+z the optical axis, +y up, +x = +y cross +z = the body's left), so the ball
-joint's quaternion is the eye-in-head rotation. Gaze angles (yaw, pitch) follow the foveation data:
-yaw = atan2(x, z) toward +x, pitch = atan2(y, hypot(x, z)) upward. SI units throughout.
+Frames: world +z up (docs/ARCHITECTURE.md); the body faces -y; its left is +x. At rest each eye's body
+frame is the eye frame of docs/ARCHITECTURE.md (+z the optical axis, +y up, +x = +y cross +z = the body's
+left), so the ball joint's quaternion is the eye-in-head rotation. Gaze angles (yaw, pitch) follow the
+foveation data (:mod:`warp_vision.frames`): yaw = atan2(x, z) toward +x, pitch = atan2(y, hypot(x, z))
+upward. SI units throughout.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from functools import lru_cache
 
 import mujoco
 import numpy as np
+
+from warp_vision.frames import fick_rotation, gaze_angles, gaze_direction, torsion_angle
 
 EYE_RADIUS = 0.012  # m
 EYE_MASS = 0.0075  # kg
@@ -114,7 +117,8 @@ def _nasal_sign(side: str) -> float:
     return {"left": -1.0, "right": 1.0}[side]
 
 
-def _quat_from_matrix(R) -> np.ndarray:
+def quat_from_matrix(R) -> np.ndarray:
+    """MuJoCo's unit quaternion (w, x, y, z) of a [3, 3] rotation matrix (``mju_mat2Quat``)."""
     q = np.zeros(4)
     mujoco.mju_mat2Quat(q, np.asarray(R, float).reshape(9))
     return q
@@ -149,7 +153,7 @@ def _bare_spec() -> mujoco.MjSpec:
     torso = spec.worldbody.add_body(name="torso", pos=[0, 0.1, PELVIS_HEIGHT])
     torso.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.16, 0.1, 0.28], pos=[0, 0, 0.28], rgba=[0.8, 0.7, 0.6, 1],
                    contype=0, conaffinity=0)
-    head = torso.add_body(name="head", pos=[0, 0.009, 0.601], quat=_quat_from_matrix(SCAFFOLD_HEAD_ROTATION))
+    head = torso.add_body(name="head", pos=[0, 0.009, 0.601], quat=quat_from_matrix(SCAFFOLD_HEAD_ROTATION))
     head.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.075, 0, 0], pos=[0.03, 0.08, 0], mass=2.1,
                   rgba=[0.9, 0.85, 0.8, 1], contype=0, conaffinity=0, group=0)
     return spec
@@ -166,7 +170,7 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
     lat = {"left": 1.0, "right": -1.0}[side] * INTEROCULAR / 2  # world x of the eye centre
     centre_world = np.array([lat, -ORBIT_FORWARD_OF_HEAD, ORBIT_HEIGHT_ABOVE_HEAD])
     # an "orbit" frame in the head, aligned with the eye at rest; the eye body sits at its origin
-    orbit = head.add_body(name=f"orbit_{side}", pos=Rh.T @ centre_world, quat=_quat_from_matrix(Rh.T @ EYE_REST_ROTATION))
+    orbit = head.add_body(name=f"orbit_{side}", pos=Rh.T @ centre_world, quat=quat_from_matrix(Rh.T @ EYE_REST_ROTATION))
     eye = orbit.add_body(name=f"eye_{side}")
     eye.add_joint(name=f"eye_{side}", type=mujoco.mjtJoint.mjJNT_BALL, stiffness=EYE_STIFFNESS, damping=EYE_DAMPING,
                   range=[0, _angle(spec, np.radians(EYE_RANGE_DEG))], limited=mujoco.mjtLimited.mjLIMITED_TRUE, armature=1e-7)
@@ -229,7 +233,7 @@ def _add_world(spec: mujoco.MjSpec, cfg: BodyConfig) -> None:
                 pos=[0, 0.06, STOOL_HEIGHT / 2], rgba=[0.45, 0.3, 0.2, 1], contype=0, conaffinity=0, group=0)
     muzzle = np.asarray(cfg.cannon_position, float)
     aim = _unit(np.array([0, 0, 1.2]) - muzzle)  # the barrel points roughly at the head
-    cannon = wb.add_body(name="cannon", pos=muzzle - 0.25 * aim, quat=_quat_from_matrix(_frame_z(aim)))
+    cannon = wb.add_body(name="cannon", pos=muzzle - 0.25 * aim, quat=quat_from_matrix(_frame_z(aim)))
     cannon.add_geom(name="barrel", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.07, 0.25, 0], rgba=[0.2, 0.2, 0.22, 1],
                     contype=0, conaffinity=0, group=0)
     cannon.add_site(name="muzzle", pos=[0, 0, 0.25])
@@ -297,7 +301,7 @@ def _eye_lengths() -> dict:
             d = gaze_direction(np.arctan2(np.sin(ecc[k]) * np.cos(phi[k]), np.cos(ecc[k])), np.arcsin(np.sin(ecc[k]) * np.sin(phi[k])))
             yaw, pitch = gaze_angles(d)
             R = fick_rotation(yaw, pitch) @ _rot_z(tor[k])
-            data.qpos[adr:adr + 4] = _quat_from_matrix(R)
+            data.qpos[adr:adr + 4] = quat_from_matrix(R)
             mujoco.mj_fwdPosition(model, data)
             L[k] = data.ten_length[tid]
         for j, m in enumerate(EYE_MUSCLE_NAMES):
@@ -416,7 +420,7 @@ class Body:
         return T
 
     def eye_pose(self, side: str) -> np.ndarray:
-        """[4, 4] world-from-eye transform (the eye frame of DESIGN.md)."""
+        """[4, 4] world-from-eye transform (the eye frame of docs/ARCHITECTURE.md)."""
         return self.pose(self.eye_body[side])
 
     def head_pose(self) -> np.ndarray:
@@ -478,30 +482,3 @@ def _check_activations(name: str, a, n: int) -> np.ndarray:
     if not np.all(np.isfinite(a)) or a.min() < 0 or a.max() > 1:
         raise ValueError(f"{name}: expected values in [0, 1], got min {a.min():.3g}, max {a.max():.3g}")
     return a
-
-
-def gaze_angles(direction) -> np.ndarray:
-    """(yaw, pitch) radians of a direction [..., 3] in an eye-convention frame (+z forward, +y up)."""
-    d = np.asarray(direction, float)
-    return np.stack([np.arctan2(d[..., 0], d[..., 2]), np.arctan2(d[..., 1], np.hypot(d[..., 0], d[..., 2]))], -1)
-
-
-def gaze_direction(yaw, pitch) -> np.ndarray:
-    """The unit direction [..., 3] of (yaw, pitch) radians: the inverse of :func:`gaze_angles`."""
-    yaw, pitch = np.asarray(yaw, float), np.asarray(pitch, float)
-    return np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
-
-
-def fick_rotation(yaw: float, pitch: float) -> np.ndarray:
-    """The [3, 3] rotation turning +z to (yaw, pitch): about +y by yaw, then about the turned -x by pitch
-    (a Fick gimbal: no torsion by construction)."""
-    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
-    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    Rx = np.array([[1, 0, 0], [0, cp, sp], [0, -sp, cp]])  # +z -> (0, sin p, cos p)
-    return Ry @ Rx
-
-
-def torsion_angle(R, yaw: float, pitch: float) -> float:
-    """The rotation about the line of sight (rad, + about +z) that takes Fick's (yaw, pitch) to ``R``."""
-    Rt = fick_rotation(yaw, pitch).T @ np.asarray(R, float)
-    return float(np.arctan2(Rt[1, 0], Rt[0, 0]))
