@@ -117,7 +117,7 @@ def test_face_onvs_differ_by_identity_and_pose_and_reproduce(ids):
     for i in range(3):
         scene.set_visible(f"head_{i}", False)
         scene.set_transform(f"head_{i}", np.eye(4))
-    from warp_vision.kernels.raytrace import render_onv
+    from warp_vision.kernels.render import render_onv
 
     empty = render_onv(scene, retina, eye, FA.eye_pose(cfg, ids, 0, np.eye(4))[None], 2).numpy()[0]
     central = np.repeat(retina.rho < np.radians(5), 3)
@@ -144,7 +144,7 @@ def test_shuffled_labels_permute_only_the_training_split():
     ident = torch.arange(20)
     pose = torch.stack([ident.float(), -ident.float()], 1)
     tr = np.arange(5, 20)
-    a, b = TF._shuffled_labels(ident, pose, tr, seed=0)
+    a, b = TF.shuffled_labels(ident, pose, tr, seed=0)
     assert torch.equal(a[:5], ident[:5]) and sorted(a[5:].tolist()) == list(range(5, 20))
     assert not torch.equal(a[5:], ident[5:])
     assert torch.equal(b[:, 0].long(), a)  # identity and pose move together

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from warp_vision.sim.body import (EYE_MUSCLE_NAMES, NECK_MUSCLE_NAMES, SIDES, Body, BodyConfig, SimulationError,
-                                  fick_rotation, gaze_angles, torsion_angle)
+from warp_vision.frames import fick_rotation, gaze_angles, torsion_angle
+from warp_vision.sim.body import EYE_MUSCLE_NAMES, NECK_MUSCLE_NAMES, SIDES, Body, BodyConfig, SimulationError
 
 
 @pytest.fixture(scope="module")
@@ -193,23 +193,6 @@ def test_scene_follows_the_body_and_eyes_do_not_see_the_head(body):
     assert not any(sc.objects[sc.index(f"mj_{n}")].visible.any() for n in HIDDEN_FROM_EYES if f"mj_{n}" in names)
     set_eye_view(sc, False)
     assert sc.objects[i].visible.all()
-
-
-def test_oculomotor_net_learns_the_inverse(body):
-    """A small oculomotor net trained on the body's own holding activations drives the eye near the gaze
-    asked for on held-out transitions, also when it is applied to its own output step after step; a net
-    given shuffled targets does not."""
-    from warp_vision.sim.oculomotor import OculomotorConfig, evaluate_on_body, synthesize, train
-
-    cfg = OculomotorConfig(gazes=400, transitions=20_000, epochs=15, seed=3)
-    data = synthesize(body, "left", cfg, progress=False)
-    net, metrics = train(data, cfg, progress=False)
-    ev = evaluate_on_body(net, body, "left", data, n=20)
-    assert metrics["test_activation_rmse"] < 0.05 and ev["gaze_error_deg_median"] < 3.0, (metrics, ev)
-    assert ev["pursuit_chain_error_deg_median"] < 5.0, ev  # 30 steps of 0.5 deg: the path is 15 deg long
-    shuffled = dict(data, act=data["act"][np.random.default_rng(0).permutation(len(data["act"]))])
-    bad, _ = train(shuffled, cfg, progress=False)
-    assert evaluate_on_body(bad, body, "left", data, n=20)["gaze_error_deg_median"] > 2 * ev["gaze_error_deg_median"]
 
 
 def test_the_full_body_builds_from_pip_packages_and_runs():

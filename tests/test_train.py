@@ -11,7 +11,8 @@ import torch
 
 from warp_vision.data.foveation import FoveationDataConfig, sample_params, synthesize
 from warp_vision.data.store import ChunkedStore, CorruptChunkError
-from warp_vision.train import loop
+from warp_vision.frames import gaze_directions
+from warp_vision.train import foveation, harness
 from warp_vision.train.cli import main as train_main
 from warp_vision.train.config import resolve
 
@@ -35,7 +36,7 @@ def test_targets_point_the_axis_at_the_ball():
         T = p["eye_pose"]
         u = T[:3, :3].T @ (p["ball"] - T[:3, 3])
         u /= np.linalg.norm(u)
-        g = loop.directions(torch.tensor(p["target"][None], dtype=torch.float64))[0].numpy()
+        g = gaze_directions(torch.tensor(p["target"][None], dtype=torch.float64))[0].numpy()
         assert np.allclose(u, g, atol=1e-6)
         assert np.degrees(np.arccos(u[2])) <= cfg.max_field_deg + 1e-6
         assert 0.3 <= p["meta"][0] <= 5.0
@@ -83,7 +84,7 @@ def test_the_panel_partly_hides_the_ball():
 
 
 def test_smoke_preset_end_to_end(tmp_path, smoke_data, capsys):
-    summary = loop.run(smoke(tmp_path, smoke_data), progress=False)
+    summary = foveation.run(smoke(tmp_path, smoke_data), progress=False)
     run = tmp_path / "run"
     for name in ("config.json", "latest.pt", "best.pt", "metrics.jsonl", "summary.json",
                  "figures/loss_curves.png", "figures/predicted_vs_true.png", "figures/retina_images.png"):
@@ -100,17 +101,17 @@ def test_smoke_preset_end_to_end(tmp_path, smoke_data, capsys):
     assert summary["peak_rss_mib"] > 0 and summary["model_state_mib"] > 0
     # a second run into the same directory is refused, not appended to the first's metrics
     with pytest.raises(ValueError, match="already holds a run"):
-        loop.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)
-    loop.run(smoke(tmp_path, smoke_data, epochs=1), progress=False, log=lambda *a: None, overwrite=True)
+        foveation.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)
+    foveation.run(smoke(tmp_path, smoke_data, epochs=1), progress=False, log=lambda *a: None, overwrite=True)
     assert len((run / "metrics.jsonl").read_text().splitlines()) == 1
 
 
 def test_resume_equals_an_uninterrupted_run(tmp_path, smoke_data):
-    full = loop.run(smoke(tmp_path / "a", smoke_data), progress=False, log=lambda *a: None)
+    full = foveation.run(smoke(tmp_path / "a", smoke_data), progress=False, log=lambda *a: None)
     cfg_b = smoke(tmp_path / "b", smoke_data)
-    assert loop.run(cfg_b, progress=False, log=lambda *a: None, stop_after_epoch=1) == {"interrupted": True}
+    assert foveation.run(cfg_b, progress=False, log=lambda *a: None, stop_after_epoch=1) == {"interrupted": True}
     assert torch.load(tmp_path / "b/run/latest.pt", weights_only=True)["epoch"] == 0
-    resumed = loop.run(resume=str(tmp_path / "b/run"), progress=False, log=lambda *a: None)
+    resumed = foveation.run(resume=str(tmp_path / "b/run"), progress=False, log=lambda *a: None)
     a = torch.load(tmp_path / "a/run/latest.pt", weights_only=True)
     b = torch.load(tmp_path / "b/run/latest.pt", weights_only=True)
     for k in a["model"]:
@@ -129,11 +130,11 @@ def test_a_corrupted_chunk_is_detected(tmp_path, smoke_data):
     raw[-7] ^= 0xFF
     victim.write_bytes(bytes(raw))
     with pytest.raises(CorruptChunkError, match=victim.name):
-        loop.run(smoke(tmp_path, d), progress=False, log=lambda *a: None)
+        foveation.run(smoke(tmp_path, d), progress=False, log=lambda *a: None)
 
 
 def test_nan_loss_stops_with_the_last_good_checkpoint(tmp_path, smoke_data, monkeypatch):
-    real = loop.net_input
+    real = foveation.net_input
     calls = {"n": 0}
 
     def poisoned(onv, norm, device):
@@ -141,9 +142,9 @@ def test_nan_loss_stops_with_the_last_good_checkpoint(tmp_path, smoke_data, monk
         x = real(onv, norm, device)
         return x * float("nan") if calls["n"] > 12 else x  # epoch 1 has 8 steps + 1 validation batch
 
-    monkeypatch.setattr(loop, "net_input", poisoned)
-    with pytest.raises(loop.NonFiniteLoss, match="latest.pt"):
-        loop.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)
+    monkeypatch.setattr(foveation, "net_input", poisoned)
+    with pytest.raises(harness.NonFiniteLoss, match="latest.pt"):
+        foveation.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)
     ck = torch.load(tmp_path / "run/latest.pt", weights_only=True)
     assert ck["epoch"] == 0 and all(torch.isfinite(v).all() for v in ck["model"].values() if v.is_floating_point())
 
@@ -182,7 +183,7 @@ def test_learning_rate_schedule(tmp_path, smoke_data):
     assert resolve("default", {"lr_schedule": "constant"}).epoch_lr(7) == cfg.lr
     with pytest.raises(ValueError, match="lr_schedule"):
         resolve("default", {"lr_schedule": "step"})
-    loop.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)  # the optimiser follows it
+    foveation.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)  # the optimiser follows it
     rows = [json.loads(x) for x in (tmp_path / "run/metrics.jsonl").read_text().splitlines()]
     sm = resolve("smoke", {})
     assert [r["lr"] for r in rows] == [sm.epoch_lr(e) for e in range(3)]
@@ -193,16 +194,16 @@ def test_learning_rate_schedule(tmp_path, smoke_data):
 def test_plateau_schedule_lowers_the_rate_when_validation_stalls(tmp_path, smoke_data, monkeypatch):
     # one stalled epoch lowers the rate here, and the rate is high for 128 ONVs, so the run stalls at
     # least once whatever the data (with the default 3 epochs whether it stalls depends on the generator)
-    monkeypatch.setattr(loop, "PLATEAU_EPOCHS", 1)
+    monkeypatch.setattr(harness, "PLATEAU_EPOCHS", 1)
     cfg = smoke(tmp_path, smoke_data, lr_schedule="plateau", epochs=8, patience=8, lr=1e-1)
-    loop.run(cfg, progress=False, log=lambda *a: None)
+    foveation.run(cfg, progress=False, log=lambda *a: None)
     rows = [json.loads(x) for x in (tmp_path / "run/metrics.jsonl").read_text().splitlines()]
     lr, best, bad = cfg.lr, float("inf"), 0
     for r in rows:  # the rule, replayed from the validation losses
         assert r["lr"] == pytest.approx(lr)
         best, bad = (r["val_loss"], 0) if r["val_loss"] < best else (best, bad + 1)
-        if bad and bad % loop.PLATEAU_EPOCHS == 0:
-            lr *= loop.PLATEAU_FACTOR
+        if bad and bad % harness.PLATEAU_EPOCHS == 0:
+            lr *= harness.PLATEAU_FACTOR
     assert len(rows) == 8 or bad >= cfg.patience
     assert any(r["lr"] < cfg.lr for r in rows)  # the rule was exercised
 
@@ -210,7 +211,7 @@ def test_plateau_schedule_lowers_the_rate_when_validation_stalls(tmp_path, smoke
 @pytest.mark.parametrize("model,head,loss", [("linet", "linear", "mse"), ("fc", "auto", "huber")])
 def test_other_read_outs_train(tmp_path, smoke_data, model, head, loss):
     """The paper's linear read-out and MSE loss, and the FC baseline, train and evaluate too."""
-    summary = loop.run(smoke(tmp_path, smoke_data, model=model, head=head, loss=loss, epochs=2), progress=False,
+    summary = foveation.run(smoke(tmp_path, smoke_data, model=model, head=head, loss=loss, epochs=2), progress=False,
                        log=lambda *a: None)
     assert summary["head"] == "linear" and summary["model"] == model and summary["loss"] == loss
     rows = [json.loads(x) for x in (tmp_path / "run/metrics.jsonl").read_text().splitlines()]
@@ -219,7 +220,7 @@ def test_other_read_outs_train(tmp_path, smoke_data, model, head, loss):
     else:  # Huber is at most half the squared error
         assert all(r["val_loss"] <= 0.5 * r["val_mse"] + 1e-9 for r in rows)
     assert np.isfinite(summary["test_median_deg"])
-    assert loop.evaluate_run(str(tmp_path / "run"), log=lambda *a: None)["median_deg"] == pytest.approx(summary["test_median_deg"])
+    assert foveation.evaluate_run(str(tmp_path / "run"), log=lambda *a: None)["median_deg"] == pytest.approx(summary["test_median_deg"])
 
 
 def test_torchrun_two_processes(tmp_path, smoke_data):
@@ -235,7 +236,7 @@ def test_torchrun_two_processes(tmp_path, smoke_data):
 
 
 def test_compare_figure(tmp_path, smoke_data):
-    loop.run(smoke(tmp_path, smoke_data, epochs=2), progress=False, log=lambda *a: None)
+    foveation.run(smoke(tmp_path, smoke_data, epochs=2), progress=False, log=lambda *a: None)
     fig = tmp_path / "cmp.png"
     assert train_main(["compare", str(tmp_path / "run"), "--out", str(fig)]) == 0
     assert fig.stat().st_size > 1000

@@ -1,12 +1,12 @@
-"""Task heads on a backbone: the foveation net (ONV -> eye yaw and pitch) and the face-recognition net (ONV -> identity and pose).
+"""Task heads: the foveation net (ONV -> eye yaw and pitch), the face-recognition net (ONV -> identity and
+pose) on a liNet backbone, and the oculomotor net (change of gaze, activations -> next activations).
 
 Two read-outs of a backbone's hidden layers are available:
 
 - ``"linear"``: the paper's Fig. 5, one fully-connected layer from the last hidden layer to
   (yaw, pitch). It learns localisation slowly: a ReLU net must divide by the target's total response
   to turn "which units fire" into an angle that does not depend on the ball's size and brightness, and
-  a ball's localised response shrinks layer by layer under random weights (measured in the closing note
-  of the foveation issue).
+  a ball's localised response shrinks layer by layer under random weights.
 - ``"softargmax"`` (liNet only): every layer h = 0..H (0: the ONV itself) votes for a gaze direction,
   the softmax-weighted mean of its units' visual directions (spatial soft-argmax), with weights
   ``softmax_n(exp(log_temperature_h) * a_h[n] + bias_h[n])``; a unit's visual direction is the mean of
@@ -206,7 +206,7 @@ class OculomotorNet(nn.Module):
     J times the change of gaze: no change asks for none, a small change is met by the local Jacobian of the
     activations that hold a gaze (a smooth function of them), and a saccade by a secant. Applied to its own
     output every control period it does not drift, as a net that predicts the activations outright does
-    (measured with :func:`warp_vision.sim.oculomotor.evaluate_on_body`, pursuit chains).
+    (:func:`warp_vision.sim.oculomotor.evaluate_on_body` measures such pursuit chains).
     """
 
     def __init__(self, hidden: int = 256):

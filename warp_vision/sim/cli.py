@@ -5,7 +5,8 @@
                moments (Fig. 7) and the gaze error over time.
   experiments  saccades to a ball appearing at 20 deg in eight directions, vergence at 1 m, tracking a
                ball moving at 15 and 30 deg/s, the loop's time shares. Writes experiments.json.
-  oculomotor   synthesise the holding activations and train both eyes' oculomotor nets (about 6 minutes).
+  oculomotor   both eyes' oculomotor nets: runs 'python -m warp_vision.train oculomotor --eye left|right'
+               for each eye whose net is missing (about 6 minutes for both).
 
 The foveation nets come from ``python -m warp_vision.train --eye left --out runs/foveation_left`` and
 ``--eye right --out runs/foveation_right`` (about 8 minutes each on a 2-core CPU).
@@ -20,6 +21,7 @@ import time
 
 import numpy as np
 
+from warp_vision.fileio import write_json
 from warp_vision.sim.body import SIDES, Body, BodyConfig
 
 SETTLE_S = 0.2  # s of simulation before a scenario starts: the passive arms settle under gravity
@@ -27,19 +29,35 @@ SETTLE_S = 0.2  # s of simulation before a scenario starts: the passive arms set
 
 def _setup(args):
     from warp_vision.sim.loop import Foveator, VisuomotorLoop
-    from warp_vision.sim.oculomotor import load_oculomotor, train_oculomotor
+    from warp_vision.sim.oculomotor import load_oculomotor
 
     for side, run in (("left", args.left), ("right", args.right)):
         if not os.path.exists(os.path.join(run, "best.pt")):
             raise SystemExit(f"--{side} {run}: no trained foveation net there; make one with\n"
                              f"  python -m warp_vision.train --eye {side} --out {run}")
-    if not os.path.exists(os.path.join(args.oculomotor, "left.pt")):
-        print(f"training the oculomotor nets into {args.oculomotor} (about 6 minutes)")
-        train_oculomotor(args.oculomotor, progress=not args.no_progress)
+    provide_oculomotor(args.oculomotor, progress=not args.no_progress)
     body = Body(BodyConfig(arms=not args.no_arms))
     body.step(int(SETTLE_S / body.model.opt.timestep))
     fov = {"left": Foveator(args.left), "right": Foveator(args.right)}
     return body, VisuomotorLoop(body, fov, load_oculomotor(args.oculomotor), seed=args.seed)
+
+
+def provide_oculomotor(root: str, progress: bool = True) -> None:
+    """Train each eye's oculomotor net that ``root/<eye>`` lacks, with the training command (a process of
+    its own: the simulation does not import the training code)."""
+    import subprocess
+    import sys
+
+    for side in SIDES:
+        out = os.path.join(root, side)
+        if os.path.exists(os.path.join(out, "best.pt")):
+            continue
+        cmd = [sys.executable, "-m", "warp_vision.train", "oculomotor", "--eye", side, "--out", out]
+        if os.path.exists(os.path.join(out, "latest.pt")):
+            cmd = [sys.executable, "-m", "warp_vision.train", "oculomotor", "--resume", out]
+        print(f"training the {side} eye's oculomotor net into {out} (about 3 minutes): {' '.join(cmd[1:])}", flush=True)
+        if subprocess.run(cmd + ([] if progress else ["--no-progress"])).returncode != 0:
+            raise SystemExit(f"training the {side} eye's oculomotor net failed (see above)")
 
 
 def run_scenario(loop, duration: float, ball=None, record=None, progress: bool = True) -> dict:
@@ -133,7 +151,8 @@ def demo(args) -> dict:
     import matplotlib.pyplot as plt
     from PIL import Image
 
-    from warp_vision.kernels.raytrace import look_at, render_camera
+    from warp_vision.frames import look_at
+    from warp_vision.kernels.render import render_camera
     from warp_vision.sim.loop import set_eye_view, sync_scene
     from warp_vision.viz import plot_onv, tone_map
 
@@ -216,7 +235,7 @@ def main(argv=None) -> None:
     sub = ap.add_subparsers(dest="command", required=True)
     for name in ("demo", "experiments", "oculomotor"):
         p = sub.add_parser(name)
-        p.add_argument("--oculomotor", default="runs/oculomotor", help="oculomotor nets' directory (trained there if missing)")
+        p.add_argument("--oculomotor", default="runs/oculomotor", help="the oculomotor runs' directory: <dir>/left, <dir>/right (trained there if missing)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         if name == "oculomotor":
             continue
@@ -234,12 +253,9 @@ def main(argv=None) -> None:
             p.add_argument("--frame-every", type=int, default=2, help="GIF frame every N control periods (10 ms)")
     args = ap.parse_args(argv)
     if args.command == "oculomotor":
-        from warp_vision.sim.oculomotor import train_oculomotor
-
-        print(json.dumps(train_oculomotor(args.oculomotor, progress=not args.no_progress), indent=2))
+        provide_oculomotor(args.oculomotor, progress=not args.no_progress)
+        print(json.dumps({s: json.loads(open(os.path.join(args.oculomotor, s, "summary.json")).read()) for s in SIDES}, indent=2))
         return
     result = demo(args) if args.command == "demo" else experiments(args)
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, f"{args.command}.json"), "w") as f:
-        json.dump(result, f, indent=2)
+    write_json(os.path.join(args.out, f"{args.command}.json"), result)
     print(json.dumps(result, indent=2))

@@ -35,7 +35,8 @@ import mujoco
 import numpy as np
 import torch
 
-from warp_vision.sim.body import SIDES, Body, gaze_direction
+from warp_vision.frames import gaze_direction
+from warp_vision.sim.body import SIDES, Body
 from warp_vision.sim.oculomotor import holding_activations
 
 CONTROL_DT = 0.01  # s
@@ -48,10 +49,10 @@ MAX_TARGET_SPEED = np.radians(90.0)  # rad/s: the velocity estimate is clipped t
 POST_SACCADE = 0.08  # s after a saccade's command during which the eye is still moving: no velocity or bias learning
 NECK_GAIN = 0.02
 MAX_GAZE_DEG = 35.0
-#: The holding activations change by 0.014 per degree of gaze between neighbouring gazes (median; 99th
-#: percentile 0.11, measured over the 35 deg disc), so an oculomotor net's output that moves a muscle
-#: faster is off the activations it was trained on: fed back period after period, such an output once sent
-#: both obliques from 0.06 to 0.45 on a 1 deg correction and lost the ball (measured). The loop clips it.
+#: The most a muscle's holding activation changes per degree of gaze between neighbouring gazes (above the
+#: 99th percentile over the 35 deg disc): an oculomotor net's output that moves a muscle faster is off the
+#: activations it was trained on, and fed back period after period it can run away with the obliques and
+#: lose the ball. The loop clips each period's change to this rate.
 ACTIVATION_PER_DEG = 0.12
 ACTIVATION_SLACK = 0.005
 OPTICS_STEP_D = 0.5
@@ -65,22 +66,20 @@ class Foveator:
     """An eye's trained foveation liNet: ONV [B, 3P] -> the ball's (yaw, pitch) in the eye frame, rad."""
 
     def __init__(self, run_dir: str, device: str = "cpu"):
-        from warp_vision.data.foveation import make_eye, make_retina
-        from warp_vision.train.config import TrainConfig
-        from warp_vision.train.loop import build_model, load_best
+        from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
+        from warp_vision.nn.trained import load_net
 
-        ck, cfg = load_best(run_dir, TrainConfig)
-        self.retina = make_retina(cfg.data_config())
-        self.trained_eye = make_eye(cfg.data_config())  # the optical state its training ONVs were rendered with
-        self.samples_per_receptor = cfg.samples_per_receptor
-        self.model = build_model(cfg, self.retina, device).eval()
-        self.model.load_state_dict(ck["model"])
+        self.model, ck = load_net(run_dir, device)
+        data = FoveationDataConfig(**ck["data"])
+        self.retina = make_retina(data)
+        self.trained_eye = make_eye(data)  # the optical state its training ONVs were rendered with
+        self.samples_per_receptor = data.samples_per_receptor
         self.norm = ck["norm"]
         self.device = device
 
     @torch.no_grad()
     def __call__(self, onv: torch.Tensor) -> np.ndarray:
-        from warp_vision.train.loop import net_input
+        from warp_vision.nn.trained import net_input
 
         z = self.model(net_input(onv, self.norm, self.device)).cpu()
         return (z * self.norm["target_std"] + self.norm["target_mean"]).numpy()
@@ -89,8 +88,8 @@ class Foveator:
 #: Bodies whose parts move together in the scene: each arm's humerus, ulna, radius and hand (the carpals
 #: with the fingers), and the head, neck and eyes; everything else (the fixed torso scaffold, clavicles,
 #: scapulae, stool, cannon) is baked into the static BVH at the pose it has when the scene is built. The
-#: passive arms' small joints barely move, and one BVH per MuJoCo body (100 objects) made each eye's
-#: render 10x slower (0.4 s against 0.04 s, measured).
+#: passive arms' small joints barely move, and one BVH per MuJoCo body (about 100 objects) makes each
+#: eye's render an order of magnitude slower.
 SCENE_ANCHORS = ("humerus_r", "ulna_r", "radius_r", "lunate_r", "humerus_l", "ulna_l", "radius_l", "lunate_l") + HIDDEN_FROM_EYES
 
 
@@ -227,7 +226,7 @@ class VisuomotorLoop:
 
     def render(self) -> dict:
         from warp_vision.eye.optics import NavarroEye
-        from warp_vision.kernels.raytrace import render_onv
+        from warp_vision.kernels.render import render_onv
 
         t0 = time.perf_counter()
         sync_scene(self.scene, self.body)
@@ -236,7 +235,7 @@ class VisuomotorLoop:
         for s in SIDES:
             pupil, acc = self.body.intraocular(s)
             # quantised so the eye-ray cache (keyed by the optical state) is reused between periods: a new
-            # state costs 0.25 to 0.4 s of ray aiming through the optics (measured), ten periods' rendering.
+            # state costs a new aiming of every ray through the optics, several periods' rendering.
             # Steps of OPTICS_STEP_D stay within the eye's depth of focus (about +-0.3 D).
             eye = NavarroEye(round(acc / OPTICS_STEP_D) * OPTICS_STEP_D, round(pupil / PUPIL_STEP_MM) * PUPIL_STEP_MM)
             out[s] = render_onv(self.scene, self.fov[s].retina, eye, self.body.eye_pose(s)[None],

@@ -7,9 +7,10 @@ A is muscle i's torque at full activation through its moment arms; the activatio
 ``min |A a + tau0 + tau_passive - tau_gravity|^2 + effort |a|^2`` with ``0 <= a <= 1`` (scipy's bounded
 least squares). For an eye the pose is a gaze (yaw, pitch) with no torsion (the Fick rotation).
 
-The oculomotor net of each eye (:class:`warp_vision.nn.heads.OculomotorNet`) maps (desired change of
-gaze, current six activations) to the next six activations. Its data: gazes sampled in a disc, their
-holding activations, and transitions between them (the current activations hold gaze g, the next ones
+The oculomotor net of each eye (:class:`warp_vision.nn.heads.OculomotorNet`, trained by
+``python -m warp_vision.train oculomotor``, :mod:`warp_vision.train.oculomotor`) maps (desired change of
+gaze, current six activations) to the next six activations. Its data (:func:`synthesize_holding`): gazes
+sampled in a disc, their holding activations, and transitions between them (:func:`transition_pairs`) (the current activations hold gaze g, the next ones
 hold g + change): a tenth stay put, 36% go to a gaze within 3 deg (the small corrections the loop asks
 for every period) and the rest, 54%, to a random gaze (saccades); the fit weighs each error by the
 inverse square of (1 deg + the change). Its held-out accuracy is measured where it matters, on the body:
@@ -19,6 +20,7 @@ and after 30 small steps with the net fed its own output (:func:`evaluate_on_bod
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import asdict, dataclass
@@ -28,19 +30,18 @@ import numpy as np
 import torch
 from scipy.optimize import lsq_linear
 
+from warp_vision.frames import fick_rotation
 from warp_vision.nn.heads import OculomotorNet
-from warp_vision.sim.body import EYE_MUSCLE_NAMES, SIDES, Body, BodyConfig, fick_rotation, _quat_from_matrix
+from warp_vision.sim.body import EYE_MUSCLE_NAMES, SIDES, Body, BodyConfig, quat_from_matrix
 
 #: Effort weight: small next to the torque residual (N m), so the pose is held exactly where it can be.
 EFFORT = 1e-8
 #: For an eye the torque about the line of sight counts 0.3 of the others': where the
 #: muscles can hold a gaze with no torsion they do (the effort is tiny next to any residual), and where they
-#: cannot (about 13% of the 35 deg disc, low and temporal: measured) the gaze is held and torsion gives.
-#: One objective everywhere: switching to a second solve where an exact one fails made the activations
-#: jump between neighbouring gazes (99th percentile 0.61 activation per degree, max 2.3, measured on 3000
-#: gazes), which the oculomotor nets could not learn; with it 0.11 and 0.68 (the optimum's own switches
-#: between muscle combinations), and a median of 0.014 per degree. Held gazes settle within a median
-#: 0.008 deg (90th percentile 0.3 deg).
+#: cannot (a low temporal part of the 35 deg disc) the gaze is held and torsion gives. One objective
+#: everywhere: switching to a second solve where an exact one fails makes the activations jump between
+#: neighbouring gazes, which the oculomotor nets cannot learn; with one objective the only jumps are the
+#: optimum's own switches between muscle combinations.
 EYE_TORQUE_WEIGHTS = np.array([1.0, 1.0, 0.3])
 
 
@@ -84,7 +85,7 @@ def eye_qpos(body: Body, side: str, yaw: float, pitch: float) -> np.ndarray:
     """The body's rest qpos with eye ``side`` turned to (yaw, pitch) rad (no torsion)."""
     q = body.model.qpos0.copy()
     a = body.model.jnt_qposadr[body.eye_joint[side]]
-    q[a:a + 4] = _quat_from_matrix(fick_rotation(yaw, pitch))
+    q[a:a + 4] = quat_from_matrix(fick_rotation(yaw, pitch))
     return q
 
 
@@ -114,28 +115,66 @@ def sample_gazes(n: int, max_deg: float, rng: np.random.Generator) -> np.ndarray
     return np.stack([r * np.cos(phi), r * np.sin(phi)], 1)
 
 
+#: The dataset generator's version: bump it when the gazes or their solves change.
+HOLDING_VERSION = 1
+
+
 @dataclass
-class OculomotorConfig:
+class HoldingDataConfig:
+    """The holding-activation dataset of one eye: gazes drawn in a disc and the activations that hold them."""
+
+    eye: str = "left"
     gazes: int = 5000  # gazes whose holding activations are solved
     max_gaze_deg: float = 35.0  # the disc they are drawn from
-    transitions: int = 120_000  # (current, next) pairs drawn among them for training
-    epochs: int = 60
-    batch: int = 256
-    lr: float = 3e-3
-    test_fraction: float = 0.15  # of the gazes: transitions between held-out gazes only
     seed: int = 0
+    chunk_size: int = 500
+
+    def validate(self) -> None:
+        if self.eye not in SIDES:
+            raise ValueError(f"eye: expected one of {SIDES}, got {self.eye!r}")
+        if self.gazes < 4 or self.chunk_size < 1:
+            raise ValueError(f"gazes: expected at least 4, got {self.gazes}")
+        if not 0 < self.max_gaze_deg <= 45:
+            raise ValueError(f"max_gaze_deg: expected 0 to 45 degrees, got {self.max_gaze_deg}")
+
+    def manifest(self) -> dict:
+        return {"generator": "holding_activations", "generator_version": HOLDING_VERSION, **asdict(self)}
+
+    def key(self) -> str:
+        """A short hash of the config (dataset cache directory names)."""
+        return hashlib.sha256(json.dumps(self.manifest(), sort_keys=True).encode()).hexdigest()[:12]
+
+    def sample_gazes(self) -> np.ndarray:
+        """[gazes, 2] (yaw, pitch rad): the dataset's gazes (seeded by the seed and the eye)."""
+        return sample_gazes(self.gazes, self.max_gaze_deg, np.random.default_rng([self.seed, SIDES.index(self.eye)]))
 
 
-def synthesize(body: Body, side: str, cfg: OculomotorConfig, progress: bool = True) -> dict:
-    """Holding activations of ``cfg.gazes`` gazes and a train/test split of the gazes."""
-    rng = np.random.default_rng([cfg.seed, SIDES.index(side)])
-    g = sample_gazes(cfg.gazes, cfg.max_gaze_deg, rng)
-    acts, res = eye_holding_activations(body, side, g, progress)
-    n_test = int(round(cfg.test_fraction * cfg.gazes))
-    return {"gaze": g, "act": acts, "residual": res, "test": np.arange(cfg.gazes) >= cfg.gazes - n_test}
+def synthesize_holding(out_dir, cfg: HoldingDataConfig, shard=(0, 1), progress: bool = True, log=print):
+    """Solve the holding activations of ``cfg``'s gazes into a chunked store in ``out_dir`` (resuming what
+    is there); fields ``gaze`` [2], ``act`` [6], ``residual`` (N m). Returns the store."""
+    from warp_vision.data.store import ChunkedStore
+    from warp_vision.data.synth import pending, render_missing
+
+    cfg.validate()
+    fields = {"gaze": ((2,), "float64"), "act": ((len(EYE_MUSCLE_NAMES),), "float64"), "residual": ((), "float64")}
+    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.gazes, cfg.chunk_size, fields, shard=tuple(shard))
+    todo, mine = pending(store)
+    if todo:
+        log(f"solving the holding activations of {todo:,} of {mine:,} gazes ({cfg.eye} eye) into {out_dir}")
+        body = Body(BodyConfig(arms=False))  # the eyes are the same in every body; the bare one is faster
+        gazes = cfg.sample_gazes()
+
+        def solve(r: range) -> dict:
+            g = gazes[r.start:r.stop]
+            acts, res = eye_holding_activations(body, cfg.eye, g)
+            return {"gaze": g, "act": acts, "residual": res}
+
+        render_missing(store, solve, batch=50, progress=progress, log=log, what="gazes")
+    return store
 
 
-def _pairs(idx: np.ndarray, n: int, rng, gaze: np.ndarray | None = None, near_deg: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+def transition_pairs(idx: np.ndarray, n: int, rng, gaze: np.ndarray | None = None,
+                     near_deg: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
     """``n`` (current, next) index pairs among ``idx``: random pairs (saccades); with ``gaze`` given, four
     tenths of them then go to a gaze within ``near_deg`` instead (the small corrections of fixation and
     pursuit, which the loop asks for every period and random pairs almost never hold) and a tenth of all,
@@ -154,47 +193,6 @@ def _pairs(idx: np.ndarray, n: int, rng, gaze: np.ndarray | None = None, near_de
     return i, j
 
 
-def train(data: dict, cfg: OculomotorConfig, progress: bool = True) -> tuple[OculomotorNet, dict]:
-    """Train an :class:`OculomotorNet` on transitions among the training gazes; returns it and metrics
-    (activation RMSE on transitions among the held-out gazes)."""
-    from tqdm import tqdm
-
-    torch.manual_seed(cfg.seed)
-    rng = np.random.default_rng(cfg.seed + 1)
-    g = torch.as_tensor(data["gaze"], dtype=torch.float32)
-    a = torch.as_tensor(data["act"], dtype=torch.float32)
-    tr, te = np.nonzero(~data["test"])[0], np.nonzero(data["test"])[0]
-    i, j = _pairs(tr, cfg.transitions, rng, data["gaze"])
-    it, jt = _pairs(te, max(2000, len(te) * 4), rng, data["gaze"])
-    net = OculomotorNet()
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.epochs)
-    losses = []
-    for _epoch in tqdm(range(cfg.epochs), desc="oculomotor net", disable=not progress, leave=False):
-        perm = torch.randperm(len(i))
-        total = 0.0
-        for s in range(0, len(i), cfg.batch):
-            b = perm[s:s + cfg.batch]
-            ii, jj = torch.as_tensor(i[b.numpy()]), torch.as_tensor(j[b.numpy()])
-            change = g[jj] - g[ii]
-            pred = net(change, a[ii])
-            # errors relative to the change asked for (plus 1 deg): the loop asks for sub-degree corrections
-            # every period, whose activation changes are tiny next to a saccade's and would otherwise be
-            # ignored by the fit
-            w = 1.0 / (torch.rad2deg(change.norm(dim=-1, keepdim=True)) + 1.0) ** 2
-            loss = torch.mean(w * (pred - a[jj]) ** 2)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            total += loss.item() * len(b)
-        sched.step()
-        losses.append(total / len(i))
-    with torch.no_grad():
-        it_, jt_ = torch.as_tensor(it), torch.as_tensor(jt)
-        test_rmse = float(torch.sqrt(torch.mean((net(g[jt_] - g[it_], a[it_]) - a[jt_]) ** 2)))
-    return net, {"train_mse": losses, "test_activation_rmse": test_rmse}
-
-
 def settle_gaze(body: Body, side: str, activations, seconds: float = 0.3) -> np.ndarray:
     """Hold ``activations`` on eye ``side`` of a freshly reset body for ``seconds``; the gaze (rad) it settles at."""
     body.reset()
@@ -203,7 +201,8 @@ def settle_gaze(body: Body, side: str, activations, seconds: float = 0.3) -> np.
     return body.gaze_in_head(side)
 
 
-def evaluate_on_body(net: OculomotorNet, body: Body, side: str, data: dict, n: int = 100, seed: int = 7) -> dict:
+def evaluate_on_body(net: OculomotorNet, body: Body, side: str, gaze: np.ndarray, act: np.ndarray, held_out: np.ndarray,
+                     n: int = 100, seed: int = 7) -> dict:
     """Held-out accuracy on the body, in degrees of gaze:
 
     - saccades: from the holding activations of a held-out gaze g_i, ask the net for g_j - g_i (another
@@ -214,9 +213,9 @@ def evaluate_on_body(net: OculomotorNet, body: Body, side: str, data: dict, n: i
 
     Also the error of the exact holding activations of g_j (what the net learns from)."""
     rng = np.random.default_rng(seed)
-    te = np.nonzero(data["test"])[0]
-    i, j = _pairs(te, n, rng)
-    g, acts = data["gaze"], data["act"]
+    te = np.asarray(held_out)
+    i, j = transition_pairs(te, n, rng)
+    g, acts = gaze, act
     with torch.no_grad():
         pred = net(torch.as_tensor(g[j] - g[i], dtype=torch.float32), torch.as_tensor(acts[i], dtype=torch.float32)).numpy()
     err = np.array([np.degrees(np.linalg.norm(settle_gaze(body, side, pred[k]) - g[j[k]])) for k in range(n)])
@@ -244,33 +243,8 @@ def evaluate_on_body(net: OculomotorNet, body: Body, side: str, data: dict, n: i
     }
 
 
-def train_oculomotor(out_dir, cfg: OculomotorConfig | None = None, progress: bool = True) -> dict:
-    """Synthesise, train and evaluate both eyes' oculomotor nets; write ``{side}.pt`` and ``summary.json``
-    to ``out_dir`` and return the summary."""
-    cfg = cfg or OculomotorConfig()
-    os.makedirs(out_dir, exist_ok=True)
-    body = Body(BodyConfig(arms=False))  # the eyes are the same in every body; the bare one is faster
-    summary = {"config": asdict(cfg)}
-    for side in SIDES:
-        data = synthesize(body, side, cfg, progress)
-        net, metrics = train(data, cfg, progress)
-        metrics.update(evaluate_on_body(net, body, side, data))
-        metrics["holding_residual_Nm_max"] = float(data["residual"].max())
-        torch.save(net.state_dict(), os.path.join(out_dir, f"{side}.pt"))
-        metrics["train_mse"] = metrics["train_mse"][-1]
-        summary[side] = metrics
-    tmp = os.path.join(out_dir, "summary.json.tmp")
-    with open(tmp, "w") as f:
-        json.dump(summary, f, indent=2)
-    os.replace(tmp, os.path.join(out_dir, "summary.json"))
-    return summary
+def load_oculomotor(run_root) -> dict:
+    """{side: OculomotorNet} from ``run_root/<side>``, the runs of ``python -m warp_vision.train oculomotor``."""
+    from warp_vision.nn.trained import load_net
 
-
-def load_oculomotor(out_dir) -> dict:
-    """{side: OculomotorNet} from a directory written by :func:`train_oculomotor`."""
-    nets = {}
-    for side in SIDES:
-        net = OculomotorNet()
-        net.load_state_dict(torch.load(os.path.join(out_dir, f"{side}.pt"), weights_only=True))
-        nets[side] = net.eval()
-    return nets
+    return {side: load_net(os.path.join(run_root, side))[0] for side in SIDES}

@@ -4,7 +4,8 @@
     python -m warp_vision.train --resume RUN_DIR [--epochs N]                          continue a stopped run
     python -m warp_vision.train faces [--preset smoke|default|paper] [--flag value ...]  active face recognition
     python -m warp_vision.train faces --resume RUN_DIR [--epochs N]                    continue a stopped AFR run
-    python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (either task)
+    python -m warp_vision.train oculomotor --eye left|right [--preset smoke|default]   an eye's oculomotor net
+    python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """
 
@@ -33,7 +34,8 @@ def _train_parser() -> argparse.ArgumentParser:
             "Train the foveation liNet: synthesise (or reuse) a dataset of ONVs of a white ball in a room, "
             "train the net to predict the eye rotation (yaw, pitch) that foveates the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
-            "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'evaluate RUN_DIR' and "
+            "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'oculomotor --eye left|right' (an eye's "
+            "oculomotor net), 'evaluate RUN_DIR' and "
             "'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )
@@ -41,16 +43,24 @@ def _train_parser() -> argparse.ArgumentParser:
     return _run_flags(p)
 
 
-def _faces_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m warp_vision.train faces",
-        description=(
-            "Active face recognition (the paper's Section VI.B): build identities with anny, synthesise (or reuse) "
-            "ONVs of each face across yaw and pitch poses, train the two-headed liNet (identity and pose), evaluate, "
-            "and write config, checkpoints, metrics and figures to --out. Runs under torchrun unchanged."
-        ),
-    )
-    C.add_arguments(p, C.FaceTrainConfig, C.FACE_PRESETS)
+#: the commands that train a task besides the default (foveation): name -> (module, config class, presets, description)
+TASKS = {
+    "faces": ("faces", "FaceTrainConfig", "FACE_PRESETS",
+              "Active face recognition (the paper's Section VI.B): build identities with anny, synthesise (or reuse) "
+              "ONVs of each face across yaw and pitch poses, train the two-headed liNet (identity and pose), evaluate, "
+              "and write config, checkpoints, metrics and figures to --out. Runs under torchrun unchanged."),
+    "oculomotor": ("oculomotor", "OculomotorTrainConfig", "OCULOMOTOR_PRESETS",
+                   "An eye's oculomotor net: solve (or reuse) the least-effort activations that hold gazes in a disc "
+                   "on the MuJoCo body, train the net from (change of gaze, current activations) to the next "
+                   "activations on transitions between them, check it on the body, and write config, checkpoints, "
+                   "metrics and summary to --out (default runs/oculomotor/<eye>)."),
+}
+
+
+def _task_parser(name: str) -> argparse.ArgumentParser:
+    _, cls, presets, description = TASKS[name]
+    p = argparse.ArgumentParser(prog=f"python -m warp_vision.train {name}", description=description)
+    C.add_arguments(p, getattr(C, cls), getattr(C, presets))
     return _run_flags(p)
 
 
@@ -64,72 +74,84 @@ def _eval_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _module(task: str):
+    import importlib
+
+    return importlib.import_module(f"warp_vision.train.{'foveation' if task == 'foveation' else TASKS[task][0]}")
+
+
+def _compare(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(prog="python -m warp_vision.train compare",
+                                description="Plot several foveation runs' training and validation MSE curves in one figure.")
+    p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
+    p.add_argument("--out", required=True, help="figure path (.png)")
+    a = p.parse_args(argv)
+    import json
+    from pathlib import Path
+
+    from warp_vision.fileio import atomic_write
+    from warp_vision.train.figures import plot_curves
+
+    hists = {}
+    for r in a.runs:
+        m = Path(r) / "metrics.jsonl"
+        if not m.exists():
+            print(f"error: {m} not found", file=sys.stderr)
+            return 2
+        cfg = json.loads((Path(r) / "config.json").read_text())
+        hists[f"{cfg['model']} P={cfg['photoreceptors']:,}"] = [json.loads(x) for x in m.read_text().splitlines()]
+    fig = plot_curves(hists, "liNet vs fully connected")
+    atomic_write(a.out, lambda f: fig.savefig(f, format="png", dpi=120, bbox_inches="tight"))
+    print(f"wrote {a.out}")
+    return 0
+
+
+def _evaluate(argv: list[str]) -> int:
+    import json
+    from pathlib import Path
+
+    a = _eval_parser().parse_args(argv)
+    cfg_path = Path(a.run_dir) / "config.json"
+    task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
+    try:
+        _module(task).evaluate_run(a.run_dir, a.split)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    from warp_vision.train import loop
-
     if argv and argv[0] == "compare":
-        p = argparse.ArgumentParser(prog="python -m warp_vision.train compare",
-                                    description="Plot several runs' training and validation MSE curves in one figure.")
-        p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
-        p.add_argument("--out", required=True, help="figure path (.png)")
-        a = p.parse_args(argv[1:])
-        import json
-        from pathlib import Path
-
-        from warp_vision.train.figures import plot_curves
-
-        hists = {}
-        for r in a.runs:
-            m = Path(r) / "metrics.jsonl"
-            if not m.exists():
-                print(f"error: {m} not found", file=sys.stderr)
-                return 2
-            cfg = json.loads((Path(r) / "config.json").read_text())
-            hists[f"{cfg['model']} P={cfg['photoreceptors']:,}"] = [json.loads(x) for x in m.read_text().splitlines()]
-        plot_curves(hists, "liNet vs fully connected").savefig(a.out, dpi=120, bbox_inches="tight")
-        print(f"wrote {a.out}")
-        return 0
+        return _compare(argv[1:])
     if argv and argv[0] == "evaluate":
-        import json
-        from pathlib import Path
-
-        a = _eval_parser().parse_args(argv[1:])
-        cfg_path = Path(a.run_dir) / "config.json"
-        task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
-        try:
-            if task == "faces":
-                from warp_vision.train import faces
-
-                faces.evaluate_run(a.run_dir, a.split)
-            else:
-                loop.evaluate_run(a.run_dir, a.split)
-        except FileNotFoundError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-        return 0
-    if argv and argv[0] == "faces":
-        from warp_vision.train import faces
-
-        a = _faces_parser().parse_args(argv[1:])
-        return _guarded(lambda: faces.run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs) if a.resume else
-                        faces.run(C.from_args(a, C.FaceTrainConfig, C.FACE_PRESETS), progress=not a.no_progress,
-                                  overwrite=a.overwrite))
-    a = _train_parser().parse_args(argv)
-    return _guarded(lambda: loop.run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs) if a.resume else
-                    loop.run(C.from_args(a), progress=not a.no_progress, overwrite=a.overwrite))
+        return _evaluate(argv[1:])
+    if argv and argv[0] in TASKS:
+        name, argv = argv[0], argv[1:]
+        a = _task_parser(name).parse_args(argv)
+        _, cls, presets, _ = TASKS[name]
+        make = lambda: C.from_args(a, getattr(C, cls), getattr(C, presets))  # noqa: E731
+    else:
+        name = "foveation"
+        a = _train_parser().parse_args(argv)
+        make = lambda: C.from_args(a)  # noqa: E731
+    run = _module(name).run
+    if a.resume:
+        return _guarded(lambda: run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs))
+    return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite))
 
 
 def _guarded(job) -> int:
     """Run a training job; bad input and a non-finite loss become an error message and exit code."""
-    from warp_vision.train import loop
+    from warp_vision.train.harness import NonFiniteLoss
 
     try:
         job()
     except (ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except loop.NonFiniteLoss as e:
+    except NonFiniteLoss as e:
         print(f"error: {e}", file=sys.stderr)
         return 3
     except KeyboardInterrupt:

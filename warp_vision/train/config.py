@@ -24,12 +24,24 @@ def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
         if hasattr(cfg, name) and getattr(cfg, name) not in allowed:
             raise ValueError(f"{name}: expected one of {allowed}, got {getattr(cfg, name)!r}")
     for name in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
-        if getattr(cfg, name) < 1:
+        if hasattr(cfg, name) and getattr(cfg, name) < 1:
             raise ValueError(f"{name}: expected a positive integer, got {getattr(cfg, name)}")
     if not cfg.lr > 0:
         raise ValueError(f"lr: expected > 0, got {cfg.lr}")
     if cfg.device not in ("auto", "cpu", "cuda") and not cfg.device.startswith("cuda:"):
         raise ValueError(f"device: expected cpu, cuda or auto, got {cfg.device!r}")
+
+
+def epoch_lr(cfg, epoch: int) -> float:
+    """The learning rate of epoch ``epoch`` (0-based) of a run with config ``cfg``: a function of the epoch
+    alone, so a resumed run continues the schedule exactly. ``cfg.lr_schedule`` (constant when the config
+    has none) "cosine" falls from lr to lr/20 over the epochs; "constant" and "plateau" (which the
+    training loop lowers) keep lr."""
+    schedule = getattr(cfg, "lr_schedule", "constant")
+    if schedule in ("constant", "plateau") or cfg.epochs == 1:
+        return cfg.lr
+    t = min(epoch, cfg.epochs - 1) / (cfg.epochs - 1)
+    return cfg.lr * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * t)))
 
 
 @dataclass
@@ -71,12 +83,8 @@ class TrainConfig:
         return self.head
 
     def epoch_lr(self, epoch: int) -> float:
-        """Adam's learning rate in epoch ``epoch`` (0-based): a function of the epoch alone, so a resumed
-        run continues the schedule exactly."""
-        if self.lr_schedule in ("constant", "plateau") or self.epochs == 1:  # plateau: the loop lowers it
-            return self.lr
-        t = min(epoch, self.epochs - 1) / (self.epochs - 1)
-        return self.lr * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * t)))
+        """Adam's learning rate in epoch ``epoch`` (0-based): :func:`epoch_lr`."""
+        return epoch_lr(self, epoch)
 
     def data_config(self) -> FoveationDataConfig:
         return FoveationDataConfig(
@@ -171,6 +179,57 @@ FACE_PRESETS: dict[str, dict] = {
     "default": {},
     # the paper's protocol: 50 identities x 30 x 30 poses (2-degree steps): 45,000 ONVs
     "paper": dict(pose_step_deg=2.0, epochs=200),
+}
+
+
+@dataclass
+class OculomotorTrainConfig:
+    """Everything an oculomotor-net run depends on (one eye; written to RUN_DIR/config.json)."""
+
+    preset: str = "default"  # smoke | default: sets the defaults of everything below
+    task: str = "oculomotor"  # fixed: tells evaluate which kind of run a directory holds
+    out: str = ""  # output directory; default: runs/oculomotor/<eye>
+    data_dir: str = ""  # holding-activation dataset directory; default: runs/datasets/oculomotor-<config hash>
+    eye: str = "left"  # which eye's muscles
+    # the dataset: gazes and the activations that hold them, solved on the body
+    gazes: int = 5000  # gazes whose holding activations are solved
+    max_gaze_deg: float = 35.0  # the disc they are drawn from
+    transitions: int = 120_000  # (current, next) gaze pairs drawn among the training gazes per run
+    # the model
+    hidden: int = 256  # units per hidden layer of the MLP
+    # optimisation
+    batch: int = 256
+    lr: float = 3e-3  # Adam learning rate (of the first epoch)
+    lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
+    epochs: int = 60  # at most
+    patience: int = 60  # early stopping: epochs without a better validation activation RMSE
+    val_fraction: float = 0.1  # of the gazes: transitions among them choose the best epoch
+    test_fraction: float = 0.15  # of the gazes: transitions among them, and the body check, measure the net
+    seed: int = 0  # gaze sampling, initialisation and shuffling
+    body_checks: int = 100  # held-out saccades settled on the body to measure the net (and a quarter as many pursuit chains)
+    device: str = "cpu"  # cpu, cuda, or auto (a small MLP: the CPU is as fast)
+
+    def data_config(self):
+        from warp_vision.sim.oculomotor import HoldingDataConfig
+
+        return HoldingDataConfig(eye=self.eye, gazes=self.gazes, max_gaze_deg=self.max_gaze_deg, seed=self.seed)
+
+    def validate(self) -> None:
+        _check_common(self, OCULOMOTOR_PRESETS, ("gazes", "transitions", "hidden", "body_checks"))
+        if self.task != "oculomotor":
+            raise ValueError(f"task: expected 'oculomotor', got {self.task!r}")
+        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
+            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
+        if not self.out:
+            self.out = f"runs/oculomotor/{self.eye}"
+        self.data_config().validate()
+
+
+OCULOMOTOR_PRESETS: dict[str, dict] = {
+    # seconds, for tests
+    "smoke": dict(gazes=80, transitions=2000, hidden=32, epochs=2, patience=2, body_checks=8),
+    # both eyes in about 6 minutes on a 2-core CPU
+    "default": {},
 }
 
 

@@ -8,13 +8,13 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
+from warp_vision.frames import gaze_directions
+
 
 def retinal_image_point_deg(yaw_pitch: np.ndarray, eye) -> np.ndarray:
     """Where a point seen in direction (yaw, pitch) [N, 2] (rad, eye frame) images on the retina:
     retinal-domain (x, y) in degrees (the optics invert the image)."""
-    from warp_vision.train.loop import directions
-
-    u = directions(torch.as_tensor(yaw_pitch, dtype=torch.float64)).numpy()
+    u = gaze_directions(np.asarray(yaw_pitch, dtype=np.float64))
     field = np.degrees(np.arccos(np.clip(u[:, 2], -1, 1)))
     ecc = np.linspace(0.0, np.radians(95.0), 400)
     ang = eye.field_angle_deg(ecc)

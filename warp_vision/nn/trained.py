@@ -1,0 +1,105 @@
+"""Trained nets: build a net from its spec, read a checkpoint, and prepare an ONV the way the net was trained.
+
+Every training run (:mod:`warp_vision.train`) saves, beside the weights, the net's *spec*: a dict of
+plain values and tensors naming a builder and its arguments (for a liNet, the photoreceptor positions its
+connectivity is drawn on). :func:`build_net` turns a spec into the untrained net, the same call the
+training run made; :func:`load_net` builds it and loads a checkpoint's weights. So the simulation and any
+other user load a trained net with this module alone, never with the training code.
+
+Checkpoint keys read here: ``model`` (state dict), ``net`` (spec), ``norm`` (input/target normalisation),
+``config`` (the run's config as a dict), ``data`` (the dataset's config as a dict).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def _array(x) -> np.ndarray | None:
+    if x is None:
+        return None
+    return x.numpy() if torch.is_tensor(x) else np.asarray(x)
+
+
+def _foveation(spec: dict):
+    from warp_vision.nn.connectivity import onv_positions
+    from warp_vision.nn.heads import foveation_net
+
+    angles = _array(spec.get("photoreceptor_angles"))
+    return foveation_net(spec["model"], onv_positions(_array(spec["photoreceptor_xy"])), spec["layers"],
+                         spec["receptive_field"], spec["reduction"], spec["seed"], head=spec["head"],
+                         input_angles=None if angles is None else np.repeat(angles, 3, axis=0))
+
+
+def _afr(spec: dict):
+    from warp_vision.nn.connectivity import onv_positions
+    from warp_vision.nn.heads import afr_net
+
+    return afr_net(onv_positions(_array(spec["photoreceptor_xy"])), spec["identities"], spec["layers"],
+                   spec["receptive_field"], spec["reduction"], spec["seed"], spec["model"])
+
+
+def _oculomotor(spec: dict):
+    from warp_vision.nn.heads import OculomotorNet
+
+    torch.manual_seed(spec["seed"])
+    return OculomotorNet(hidden=spec["hidden"])
+
+
+#: spec["kind"] -> the function that builds the untrained net from the spec
+BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor}
+
+
+def build_net(spec: dict, device: str = "cpu") -> torch.nn.Module:
+    """The untrained net a spec describes, on ``device`` (initialised from the spec's seed)."""
+    kind = spec.get("kind") if isinstance(spec, dict) else None
+    if kind not in BUILDERS:
+        raise ValueError(f"net spec: expected a dict with kind one of {sorted(BUILDERS)}, got {kind!r}")
+    return BUILDERS[kind](spec).to(device)
+
+
+def read_checkpoint(path, map_location="cpu") -> dict:
+    """A checkpoint's contents (``torch.load(..., weights_only=True)``), or a one-line error naming the file."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such checkpoint")
+    try:
+        return torch.load(path, weights_only=True, map_location=map_location)
+    except Exception as e:  # a truncated or foreign file: torch raises many kinds
+        raise ValueError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+
+
+def load_net(path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
+    """(the trained net in eval mode, the checkpoint) of a checkpoint file or of a run directory (its best.pt)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "best.pt"
+    ck = read_checkpoint(path, map_location=device)
+    if "net" not in ck:
+        raise ValueError(f"{path}: holds no net spec (written by an older version; retrain it)")
+    model = build_net(ck["net"], device)
+    model.load_state_dict(ck["model"])
+    return model.eval(), ck
+
+
+def net_input(onv: torch.Tensor, norm: dict, device) -> torch.Tensor:
+    """What a net trained on ONVs sees: a compressive (log) photoreceptor response,
+    log(1 + irradiance / scale) with the scale the training set's mean irradiance (it keeps dim scenes and
+    a lamp's hot spot in one range), standardised with the training set's mean and std over all inputs.
+    One mean and std for every input keeps "brighter" meaning the same everywhere on the retina;
+    standardising each input on its own turns a rarely lit peripheral photoreceptor's noise into large
+    values."""
+    x = torch.log1p(onv.to(device=device, dtype=torch.float32) / norm["input_scale"])
+    return (x - norm["input_mean"].to(device)) / norm["input_std"].to(device)
+
+
+def fit_input_norm(onv16: torch.Tensor, train: np.ndarray, limit: int = 2000) -> dict:
+    """The input normalisation of :func:`net_input` from (at most ``limit`` of) the training ONVs ``train``:
+    {"input_scale": float, "input_mean": 0-d tensor, "input_std": 0-d tensor}."""
+    sub = onv16[torch.as_tensor(train[: min(len(train), limit)])]
+    scale = float(sub.float().mean().clamp_min(1e-12))
+    x = torch.log1p(sub.float() / scale)
+    return {"input_scale": scale, "input_mean": x.mean(), "input_std": x.std().clamp_min(1e-6)}

@@ -1,0 +1,142 @@
+"""The foveation task: from an ONV, the eye rotation (yaw, pitch) that brings the ball onto the fovea.
+
+``python -m warp_vision.train [--preset smoke|default|paper] [--flag value ...]``
+
+The dataset is :mod:`warp_vision.data.foveation` (self-synthesised ONVs of a ball in a room, cached by its
+config). The net is a liNet (or its fully-connected baseline) with a linear or soft-argmax read-out
+(:mod:`warp_vision.nn.heads`), trained on standardised targets with a Huber loss (or the paper's MSE).
+The run itself (directories, resume, DDP, checkpoints, early stopping) is :mod:`warp_vision.train.harness`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from warp_vision.frames import gaze_directions
+from warp_vision.nn.trained import fit_input_norm, net_input
+from warp_vision.train import harness
+from warp_vision.train.config import TrainConfig
+
+#: Huber loss threshold in standardised target units (the targets' std is about 20 degrees, so ~2 degrees).
+HUBER_DELTA = 0.1
+
+
+def angular_error_deg(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    """Angle (degrees) between the gaze directions of predicted and true (yaw, pitch) [N, 2]."""
+    c = (gaze_directions(pred.double()) * gaze_directions(true.double())).sum(1).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.arccos(c)).float()
+
+
+def train_loss(kind: str, pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """The training loss on standardised targets: "mse" (the paper's) or "huber" (quadratic within
+    HUBER_DELTA of the target, linear beyond: a few balls too small or too hidden to localise do not
+    dominate the gradient and the choice of the best epoch)."""
+    if kind == "mse":
+        return torch.nn.functional.mse_loss(pred, y)
+    return torch.nn.functional.huber_loss(pred, y, delta=HUBER_DELTA)
+
+
+class FoveationTask(harness.Task):
+    name = "foveation"
+    config_cls = TrainConfig
+
+    def load(self, shard, progress, synthesize: bool = True):
+        from warp_vision.data.foveation import synthesize as render
+        from warp_vision.data.store import ChunkedStore
+        from warp_vision.eye.retina import Retina
+
+        self.ddir = harness.dataset_dir(self.cfg, "foveation", self.cfg.data_config())
+        if synthesize:
+            render(self.ddir, self.cfg.data_config(), shard=shard, progress=progress, log=self.log)
+        data = ChunkedStore.open(self.ddir).load(["onv", "target"])
+        self.onv16, self.target = torch.from_numpy(data["onv"]), torch.from_numpy(data["target"])
+        self.retina = Retina.load(self.ddir / "retina.npz")
+
+    def splits(self):
+        c = self.cfg
+        return harness.splits(len(self.target), c.data_seed, c.val_fraction, c.test_fraction)
+
+    def fit_norm(self, train):
+        t = self.target[torch.as_tensor(train)]
+        return {**fit_input_norm(self.onv16, train), "target_mean": t.mean(0), "target_std": t.std(0).clamp_min(1e-6)}
+
+    def net_spec(self):
+        from warp_vision.data.foveation import make_eye
+
+        c = self.cfg
+        angles = self.retina.visual_angles(make_eye(c.data_config())) if c.head_kind() == "softargmax" else None
+        return {"kind": "foveation", "model": c.model, "head": c.head_kind(), "layers": c.layers,
+                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed,
+                "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
+                "photoreceptor_angles": None if angles is None else torch.from_numpy(np.asarray(angles, np.float64))}
+
+    def data_config(self):
+        from dataclasses import asdict
+
+        return asdict(self.cfg.data_config())
+
+    def prepare(self, model, norm):
+        model.set_target_norm(norm["target_mean"], norm["target_std"])
+
+    def describe(self, model):
+        return (f"{self.cfg.model} ({self.cfg.head_kind()} head): {sum(p.numel() for p in model.parameters()):,} "
+                f"parameters, layers {getattr(model.backbone, 'layer_sizes', '?')}")
+
+    def batch_loss(self, net, idx, norm, device):
+        y = ((self.target[idx] - norm["target_mean"]) / norm["target_std"]).to(device)
+        pred = net(net_input(self.onv16[idx], norm, device))
+        loss = train_loss(self.cfg.loss, pred, y)
+        return loss, {"loss": float(loss.detach()), "mse": float(torch.nn.functional.mse_loss(pred.detach(), y))}
+
+    def evaluate(self, model, idx, norm, device, batch: int = 256):
+        model.eval()
+        preds = []
+        with torch.no_grad():
+            for s in range(0, len(idx), batch):
+                preds.append(model(net_input(self.onv16[torch.as_tensor(idx[s : s + batch])], norm, device)).cpu())
+        model.train()
+        z = torch.cat(preds) if preds else torch.zeros(0, 2)
+        true = self.target[torch.as_tensor(idx)]
+        zt = (true - norm["target_mean"]) / norm["target_std"]
+        pred = z * norm["target_std"] + norm["target_mean"]
+        err = angular_error_deg(pred, true)
+        some = len(idx) > 0
+        nan = float("nan")
+        return {"mse": float(((z - zt) ** 2).mean()) if some else nan,
+                "loss": float(train_loss(self.cfg.loss, z, zt)) if some else nan,
+                "median_deg": float(err.median()) if some else nan,
+                "p90_deg": float(torch.quantile(err, 0.9)) if some else nan,
+                "pred": pred, "err_deg": err}
+
+    def epoch_line(self, row):
+        k = self.cfg.loss
+        return (f"epoch {row['epoch']:3d}: train {k} {row['train_loss']:.4f} MSE {row['train_mse']:.4f}  val {k} "
+                f"{row['val_loss']:.4f} MSE {row['val_mse']:.4f}  val median {row['val_median_deg']:.2f} deg")
+
+    def summary(self, test, history, model):
+        c = self.cfg
+        best = min(history, key=lambda r: r["val_loss"]) if history else {}
+        return {"model": c.model, "head": c.head_kind(), "loss": c.loss, "best_val_mse": best.get("val_mse"),
+                "first_epoch_train_mse_below_0.01": next((h["epoch"] for h in history if h["train_mse"] < 0.01), None),
+                "test_mse": test["mse"], "test_median_deg": test["median_deg"], "test_p90_deg": test["p90_deg"],
+                "dataset": str(self.ddir)}
+
+    def figures(self, out, history, test, idx):
+        from warp_vision.train.figures import write_figures
+
+        write_figures(out, history, self.retina, self.onv16, self.target, idx, test["pred"], self.cfg)
+
+    def eval_line(self, run_dir, split, n, ev):
+        return (f"{run_dir} ({split}, {n:,} ONVs): MSE {ev['mse']:.4f}; angular error median {ev['median_deg']:.3f} deg, "
+                f"90th percentile {ev['p90_deg']:.3f} deg")
+
+
+def run(cfg: TrainConfig | None = None, **kw) -> dict:
+    """Train (or resume) a foveation run: :func:`warp_vision.train.harness.run` for this task."""
+    return harness.run(FoveationTask, cfg, **kw)
+
+
+def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
+    """Re-evaluate a foveation run's best checkpoint; prints the angular error."""
+    return harness.evaluate_run(FoveationTask, run_dir, split, log)

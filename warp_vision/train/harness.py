@@ -1,0 +1,435 @@
+"""The training harness: everything a training run does that does not depend on what it learns.
+
+A :class:`Task` supplies its dataset, its net (as a spec that :func:`warp_vision.nn.trained.build_net`
+builds), its loss, its evaluation, how it picks the best epoch, its summary and its figures. The harness
+owns the rest, the same for every task:
+
+- the run directory: a new run claims ``--out`` (refusing one that holds a run unless ``overwrite``);
+  ``--resume`` continues one exactly, optionally under a new epoch cap;
+- the device and DistributedDataParallel (``torchrun``: gloo on the CPU, nccl on CUDA; each rank builds a
+  disjoint shard of the dataset, takes 1/N of every batch and 1/N of the CPU threads; rank 0 writes);
+- the epoch loop: the shuffle of epoch e is seeded by (seed, e), the learning-rate schedule is a function
+  of the epoch (or lowered on a plateau), progress bars, early stopping;
+- a NaN or infinite loss or gradient stops the run with :class:`NonFiniteLoss`, the last good checkpoint
+  untouched; Ctrl-C leaves the last finished epoch resumable;
+- atomic checkpoints (``latest.pt`` every epoch, ``best.pt`` when the task's rule says so), one
+  ``metrics.jsonl`` row per epoch, ``summary.json`` and ``figures/``.
+
+A checkpoint holds plain tensors and numbers (``torch.load(path, weights_only=True)`` reads it): the model
+and optimiser state, the epoch, the history, the selection state, the input normalisation, the config,
+the net's spec and the data config, so :mod:`warp_vision.nn.trained` can rebuild the net without this
+package's training code.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from warp_vision.fileio import atomic_write, write_json
+from warp_vision.nn.trained import build_net, read_checkpoint
+from warp_vision.train.config import epoch_lr
+
+#: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
+#: without a better validation metric.
+PLATEAU_EPOCHS = 3
+PLATEAU_FACTOR = 0.3
+#: the files a run directory's run consists of (a new run refuses a directory holding any of them)
+RUN_FILES = ("metrics.jsonl", "latest.pt", "best.pt", "summary.json")
+
+
+class NonFiniteLoss(RuntimeError):
+    """The loss or the gradient became NaN or infinite; the last good checkpoint is left as it was."""
+
+
+class _Interrupt(Exception):
+    """Raised by the test hook ``stop_after_epoch`` to simulate Ctrl-C at an epoch boundary."""
+
+
+# --------------------------------------------------------------------------------------------------
+# what a task supplies
+
+
+class Task:
+    """A training task. Subclasses set ``name`` and ``config_cls`` and implement the methods below; the
+    harness calls them in the order they are listed. ``self.cfg`` is the run's validated config and
+    ``self.log`` prints (on rank 0 only)."""
+
+    name: str = ""
+    config_cls: type = object
+
+    def __init__(self, cfg, log=print):
+        self.cfg, self.log = cfg, log
+
+    def load(self, shard: tuple[int, int], progress: bool, synthesize: bool = True) -> None:
+        """Synthesise (this rank's shard of) the dataset if it is missing (unless not ``synthesize``: then
+        a missing dataset is an error), then load it whole."""
+        raise NotImplementedError
+
+    def splits(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(train, validation, test) sample ids: what the epoch shuffles, and what evaluate() gets."""
+        raise NotImplementedError
+
+    def fit_norm(self, train: np.ndarray) -> dict:
+        """Input and target normalisation from the training samples (saved with every checkpoint)."""
+        return {}
+
+    def net_spec(self) -> dict:
+        """The net, as :func:`warp_vision.nn.trained.build_net` builds it (initialised from the config's seed)."""
+        raise NotImplementedError
+
+    def data_config(self) -> dict:
+        """The dataset's config, saved with checkpoints (what a user of the net must render like)."""
+        return {}
+
+    def prepare(self, model: torch.nn.Module, norm: dict) -> None:
+        """Put the normalisation into the model's buffers, if it has any."""
+
+    def batch_loss(self, net, idx: torch.Tensor, norm: dict, device: str) -> tuple[torch.Tensor, dict]:
+        """(the loss to minimise, {train metric: value}) of one batch of sample ids."""
+        raise NotImplementedError
+
+    def evaluate(self, model, idx: np.ndarray, norm: dict, device: str) -> dict:
+        """Metrics of ``model`` on samples ``idx`` (floats), and its predictions (tensors)."""
+        raise NotImplementedError
+
+    #: the validation metrics that choose the best epoch: {name: "min" | "max"}
+    selection: dict = {"loss": "min"}
+    #: with several selection metrics, best.pt is written only at an epoch at least as good in all of them
+    #: (ties count); with one, at an epoch strictly better in it
+
+    def describe(self, model) -> str:
+        """One line on the net (printed when the run starts)."""
+        return f"{type(model).__name__}: {sum(p.numel() for p in model.parameters()):,} parameters"
+
+    def epoch_line(self, row: dict) -> str:
+        raise NotImplementedError
+
+    def summary(self, test: dict, history: list, model) -> dict:
+        """The task's own entries of summary.json (test metrics; ``model`` holds the best weights)."""
+        return {}
+
+    def figures(self, out: Path, history: list, test: dict, idx: np.ndarray) -> None:
+        """Write the task's figures into ``out/figures``."""
+
+    def eval_line(self, run_dir: str, split: str, n: int, ev: dict) -> str:
+        raise NotImplementedError
+
+
+def select(selection: dict, ev: dict, best: dict) -> tuple[bool, bool, dict]:
+    """(improved: some metric strictly better than its best; write best.pt; the updated bests) after an
+    epoch with validation metrics ``ev``."""
+    better = {k: ev[k] < best[k] if mode == "min" else ev[k] > best[k] for k, mode in selection.items()}
+    no_worse = {k: ev[k] <= best[k] if mode == "min" else ev[k] >= best[k] for k, mode in selection.items()}
+    improved = any(better.values())
+    save_best = improved if len(selection) == 1 else all(no_worse.values())
+    new = {k: (min if mode == "min" else max)(best[k], ev[k]) for k, mode in selection.items()}
+    return improved, save_best, new
+
+
+def initial_best(selection: dict) -> dict:
+    return {k: math.inf if mode == "min" else -math.inf for k, mode in selection.items()}
+
+
+# --------------------------------------------------------------------------------------------------
+# run directories, devices, processes
+
+
+def claim_out_dir(out: Path, overwrite: bool) -> None:
+    """Refuse to start a new run in a directory that holds one (its metrics or checkpoints), unless
+    ``overwrite``: then delete them (rank 0)."""
+    old = [out / n for n in RUN_FILES]
+    if any(f.exists() for f in old):
+        if not overwrite:
+            raise ValueError(f"--out {out} already holds a run; continue it with --resume {out}, "
+                             f"choose another --out, or pass --overwrite to replace it")
+        if int(os.environ.get("RANK", "0")) == 0:
+            for f in old:
+                f.unlink(missing_ok=True)
+
+
+def open_run(cls, cfg, resume: str | None, overwrite: bool, epochs: int | None = None):
+    """(validated config, output directory) of the run to resume (its config.json read as ``cls``) or
+    of the new run ``cfg`` (refusing an --out that holds a run unless ``overwrite``).
+
+    ``epochs`` (resume only) changes the resumed run's epoch cap: more to extend it, or the epochs
+    already done to end it now (the best checkpoint is then evaluated and the figures written).
+    """
+    if resume:
+        out = Path(resume)
+        if not (out / "latest.pt").exists():
+            raise FileNotFoundError(f"--resume {resume}: no latest.pt there to resume from")
+        cfg = cls(**json.loads((out / "config.json").read_text()))
+        if epochs is not None:
+            cfg.epochs = epochs
+    elif epochs is not None:
+        raise ValueError("epochs: only a resumed run takes a new epoch cap; set it in the config otherwise")
+    elif cfg is None:
+        raise ValueError("run: give a config or a run directory to resume")
+    else:
+        out = Path(cfg.out)
+        claim_out_dir(out, overwrite)
+    cfg.validate()
+    return cfg, out
+
+
+def pick_device(name: str) -> str:
+    """"auto" -> cuda:0 when Warp and torch see a GPU, else cpu; "cuda" -> cuda:0."""
+    if name == "auto":
+        from warp_vision.kernels.launch import available_devices
+
+        return "cuda:0" if "cuda:0" in available_devices() else "cpu"
+    if name == "cuda":
+        return "cuda:0"
+    return name
+
+
+class Dist:
+    """This process's place in a torchrun job (a job of one without torchrun)."""
+
+    def __init__(self, device: str):
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        self.on = self.world > 1
+        if self.on and not dist.is_initialized():
+            dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+        if self.on and "WARP_VISION_THREADS" not in os.environ:  # the ranks share the cores
+            threads = max(1, (os.cpu_count() or 1) // self.world)
+            os.environ["WARP_VISION_THREADS"] = str(threads)
+            torch.set_num_threads(threads)
+
+    def barrier(self):
+        if self.on:
+            dist.barrier()
+
+    def all_mean(self, x: float) -> float:
+        if not self.on:
+            return x
+        t = torch.tensor([x], dtype=torch.float64)
+        dist.all_reduce(t)
+        return float(t.item()) / self.world
+
+
+def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, min_test: int = 0):
+    """(train, val, test) sample indices: a fixed permutation of ``n`` samples (seeded by ``data_seed``);
+    at least one validation sample and ``min_test`` test samples."""
+    perm = np.random.default_rng([data_seed, 7919]).permutation(n)
+    n_test = max(min_test, int(round(n * test_fraction)))
+    n_val = max(1, int(round(n * val_fraction)))
+    return perm[n_test + n_val :], perm[n_test : n_test + n_val], perm[:n_test]
+
+
+def dataset_dir(cfg, kind: str, data_config) -> Path:
+    """``cfg.data_dir``, or the cache directory ``runs/datasets/<kind>-<data config hash>``."""
+    return Path(cfg.data_dir) if cfg.data_dir else Path("runs/datasets") / f"{kind}-{data_config.key()}"
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident memory (MiB) so far: dataset, model, activations and all."""
+    import resource
+    import sys
+
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / 2**20 if sys.platform == "darwin" else r / 1024
+
+
+def save_checkpoint(obj: dict, path: Path) -> None:
+    atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def record_epoch(out: Path, row: dict, checkpoint: dict, best: bool) -> None:
+    """Append the epoch's metrics row and write latest.pt (and best.pt when ``best``), atomically."""
+    with open(out / "metrics.jsonl", "a") as f:
+        f.write(json.dumps(row) + "\n")
+    save_checkpoint(checkpoint, out / "latest.pt")
+    if best:
+        save_checkpoint(checkpoint, out / "best.pt")
+
+
+# --------------------------------------------------------------------------------------------------
+# the run
+
+
+class _State:
+    """What a checkpoint restores: the epoch to start at, the history, the selection state."""
+
+    def __init__(self, selection: dict):
+        self.start_epoch, self.history, self.best, self.bad = 0, [], initial_best(selection), 0
+
+
+def _nonfinite(what: str, value: float, epoch: int, step: int, out: Path) -> NonFiniteLoss:
+    return NonFiniteLoss(f"epoch {epoch + 1}, step {step}: the {what} is {value}; stopping. "
+                         f"The last good checkpoint ({out / 'latest.pt'}) is untouched; try a lower --lr.")
+
+
+def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict, device: str, dd: Dist,
+                 progress: bool, out: Path) -> dict:
+    """One pass over the training samples in the epoch's seeded order; the mean of each train metric."""
+    from tqdm import tqdm
+
+    cfg = task.cfg
+    perm = np.random.default_rng([cfg.seed, epoch]).permutation(train_ids)
+    sums: dict[str, float] = {}
+    count = 0
+    bar = tqdm(range(0, len(perm), cfg.batch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch",
+               disable=not progress or dd.rank != 0, dynamic_ncols=True, leave=False)
+    for s in bar:
+        idx = torch.as_tensor(perm[s : s + cfg.batch])[dd.rank :: dd.world]
+        loss, metrics = task.batch_loss(net, idx, norm, device)
+        if not torch.isfinite(loss):
+            raise _nonfinite("loss", loss.item(), epoch, s // cfg.batch, out)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf"))
+        if not torch.isfinite(grad_norm):
+            raise _nonfinite("gradient", grad_norm.item(), epoch, s // cfg.batch, out)
+        opt.step()
+        for k, v in metrics.items():
+            sums[k] = sums.get(k, 0.0) + v * len(idx)
+        count += len(idx)
+        bar.set_postfix(loss=f"{sums['loss'] / max(count, 1):.4f}" if "loss" in sums else "")
+    return {k: dd.all_mean(v / max(count, 1)) for k, v in sums.items()}
+
+
+def _setup(task: Task, cfg, out: Path, resume: str | None, dd: Dist, device: str, progress: bool):
+    """Load the data, fit the normalisation, build the net and optimiser, restore a resumed run."""
+    task.load((dd.rank, dd.world), progress)
+    dd.barrier()
+    tr, va, te = task.splits()
+    norm = task.fit_norm(tr)
+    model = build_net(task.net_spec(), device)
+    task.prepare(model, norm)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
+    state = _State(task.selection)
+    if resume:
+        ck = read_checkpoint(out / "latest.pt", map_location=device)
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        state.start_epoch, state.history, state.bad = ck["epoch"] + 1, ck["history"], ck["bad_epochs"]
+        state.best = ck["best"]
+        norm = {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in ck["norm"].items()}
+        task.log(f"resuming {out} after epoch {ck['epoch']}")
+    return (tr, va, te), norm, model, opt, state
+
+
+def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: Dist, progress, out, spec,
+            stop_after_epoch) -> str:
+    """The epoch loop; returns why it stopped."""
+    cfg, (tr, va, _) = task.cfg, ids
+
+    def checkpoint(epoch):
+        return {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "history": state.history,
+                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": asdict(cfg), "task": task.name,
+                "net": spec, "data": task.data_config()}
+
+    for epoch in range(state.start_epoch, cfg.epochs):
+        t0 = time.perf_counter()
+        if getattr(cfg, "lr_schedule", "constant") != "plateau":  # plateau: the optimiser's own (restored) rate
+            for g in opt.param_groups:
+                g["lr"] = epoch_lr(cfg, epoch)
+        lr_now = opt.param_groups[0]["lr"]
+        train = _train_epoch(task, net, model, opt, tr, epoch, norm, device, dd, progress, out)
+        ev = task.evaluate(model, va, norm, device)
+        improved, save_best, state.best = select(task.selection, ev, state.best)
+        state.bad = 0 if improved else state.bad + 1
+        if getattr(cfg, "lr_schedule", "constant") == "plateau" and state.bad and state.bad % PLATEAU_EPOCHS == 0:
+            for g in opt.param_groups:
+                g["lr"] *= PLATEAU_FACTOR
+        row = {"epoch": epoch + 1, **{f"train_{k}": v for k, v in train.items()},
+               **{f"val_{k}": v for k, v in ev.items() if not torch.is_tensor(v)},
+               "lr": lr_now, "saved_best": save_best, "seconds": time.perf_counter() - t0}
+        state.history.append(row)
+        if dd.rank == 0:
+            record_epoch(out, row, checkpoint(epoch), save_best)
+            task.log(f"{task.epoch_line(row)}  ({row['seconds']:.1f} s){'  *' if save_best else ''}")
+        if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
+            raise _Interrupt()
+        if state.bad >= cfg.patience:
+            return f"early stop: no better validation {'/'.join(task.selection)} for {cfg.patience} epochs"
+    return "max epochs"
+
+
+def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: Path, stopped: str,
+            t_start: float, t_data: float) -> dict:
+    """Evaluate the best checkpoint on the held-out split; summary.json and figures (rank 0)."""
+    summary = {}
+    if dd.rank == 0:
+        best = read_checkpoint(out / "best.pt", map_location=device)
+        model.load_state_dict(best["model"])
+        test_ids = ids[2] if len(ids[2]) else ids[1]
+        test = task.evaluate(model, test_ids, norm, device)
+        n_params = sum(p.numel() for p in model.parameters())
+        h = state.history
+        summary = {
+            "task": task.name, "parameters": n_params, "epochs": len(h), "stopped": stopped,
+            "best_epoch": int(best["epoch"]) + 1, "best_val": state.best,
+            **task.summary(test, h, model),
+            "seconds_data": t_data, "seconds_total": time.perf_counter() - t_start,
+            "seconds_per_epoch": float(np.median([r["seconds"] for r in h])) if h else None,
+            "peak_rss_mib": peak_rss_mib(),
+            "model_state_mib": 16 * n_params / 2**20,  # weights, gradients and Adam's two moments, float32
+        }
+        write_json(out / "summary.json", summary)
+        task.figures(out, h, test, test_ids)
+        task.log(task.eval_line(str(out), "test", len(test_ids), test) + f"; figures in {out / 'figures'}")
+    dd.barrier()
+    return summary
+
+
+def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, log=print,
+        stop_after_epoch: int | None = None, overwrite: bool = False, epochs: int | None = None) -> dict:
+    """Train (or resume) a run of ``task_cls``; returns the summary dict (also written to summary.json).
+
+    A new run refuses an output directory that already holds a run (its metrics or checkpoints) unless
+    ``overwrite``, which deletes them first. ``epochs`` gives a resumed run a new epoch cap (see
+    :func:`open_run`). ``stop_after_epoch`` (tests) interrupts the run after that epoch, as Ctrl-C would,
+    and returns ``{"interrupted": True}``."""
+    cfg, out = open_run(task_cls.config_cls, cfg, resume, overwrite, epochs)
+    device = pick_device(cfg.device)
+    dd = Dist(device)
+    say = log if dd.rank == 0 else (lambda *a, **k: None)
+    if dd.rank == 0:
+        write_json(out / "config.json", asdict(cfg))
+    t_start = time.perf_counter()
+    task = task_cls(cfg, say)
+    ids, norm, model, opt, state = _setup(task, cfg, out, resume, dd, device, progress)
+    t_data = time.perf_counter() - t_start
+    spec = task.net_spec()
+    net = torch.nn.parallel.DistributedDataParallel(model) if dd.on else model
+    say(f"{task.describe(model)}; {len(ids[0]):,} train / {len(ids[1]):,} val / {len(ids[2]):,} test samples; device {device}")
+    try:
+        stopped = _epochs(task, net, model, opt, ids, norm, state, device, dd, progress, out, spec, stop_after_epoch)
+    except (KeyboardInterrupt, _Interrupt):
+        say(f"interrupted: {out / 'latest.pt'} holds the last finished epoch; continue with --resume {out}")
+        if stop_after_epoch is None:
+            raise
+        return {"interrupted": True}
+    say(stopped)
+    return _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)
+
+
+def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print) -> dict:
+    """Re-evaluate a run's best checkpoint on one of its splits; prints the task's metrics."""
+    out = Path(run_dir)
+    if not (out / "best.pt").exists():
+        raise FileNotFoundError(f"{run_dir}: no best.pt (is this a training run directory?)")
+    ck = read_checkpoint(out / "best.pt")
+    cfg = task_cls.config_cls(**ck["config"])
+    task = task_cls(cfg, log)
+    task.load((0, 1), progress=False, synthesize=False)
+    tr, va, te = task.splits()
+    idx = {"test": te if len(te) else va, "val": va, "train": tr}[split]
+    device = pick_device(cfg.device)
+    model = build_net(ck["net"], device)
+    model.load_state_dict(ck["model"])
+    ev = task.evaluate(model, idx, ck["norm"], device)
+    log(task.eval_line(run_dir, split, len(idx), ev))
+    return {k: v for k, v in ev.items() if not torch.is_tensor(v)}
