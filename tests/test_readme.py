@@ -1,0 +1,61 @@
+"""The README's snippets run: every ```python block executes as written, and every command line of a
+```bash block names a command and flags that exist (its --help parses them)."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+
+
+def blocks(lang: str) -> list[str]:
+    return re.findall(rf"^```{lang}\n(.*?)^```", README, flags=re.S | re.M)
+
+
+def commands() -> list[list[str]]:
+    """``python -m warp_vision.X ...`` lines of the bash blocks (comments dropped), as argv lists."""
+    out = []
+    for block in blocks("bash"):
+        for line in block.splitlines():
+            line = line.split("#", 1)[0].strip()
+            if "warp_vision." in line and line.startswith(("python -m", "torchrun")):
+                out.append(shlex.split(line))
+    return out
+
+
+def test_the_readme_has_snippets():
+    assert len(blocks("python")) >= 2 and len(commands()) >= 10
+
+
+@pytest.mark.parametrize("k", range(len(blocks("python"))))
+def test_python_snippet_runs(k, tmp_path):
+    code = blocks("python")[k]
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, f"README python block {k} failed:\n{code}\n{r.stderr[-3000:]}"
+
+
+def _help_argv(argv: list[str]) -> list[str]:
+    """The command line that asks the same (sub)command for --help: flags and positionals dropped, the
+    module and its subcommand kept."""
+    i = argv.index("-m") + 1
+    module = argv[i]
+    rest = [a for a in argv[i + 1:] if not a.startswith("-")]
+    sub = rest[:1] if rest and re.fullmatch(r"[a-z]+", rest[0]) else []
+    return [sys.executable, "-m", module, *sub, "--help"]
+
+
+@pytest.mark.parametrize("argv", commands(), ids=lambda a: " ".join(a)[:60])
+def test_bash_command_exists(argv, tmp_path):
+    """The command and subcommand exist, and each --flag the README passes is in its --help."""
+    r = subprocess.run(_help_argv(argv), cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    after_module = argv[argv.index("-m") + 2:]
+    for flag in (a.split("=")[0] for a in after_module if a.startswith("--")):
+        assert flag in r.stdout, f"{' '.join(argv)}: {flag} is not an option of {' '.join(_help_argv(argv)[1:])}"
