@@ -211,6 +211,28 @@ def _packet_in_instance(X: wp.transform, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
 
 
 @wp.func
+def _batch_rows(bv: BvhData, b: int):
+    """The rows of the instance transforms and of the visibility that batch element b reads (either
+    table may hold one row, shared by the whole batch)."""
+    bt = b
+    if bv.world_from_inst.shape[0] == 1:
+        bt = 0
+    bv_ = b
+    if bv.inst_visible.shape[0] == 1:
+        bv_ = 0
+    return bt, bv_
+
+
+@wp.func
+def _children_hit(bv: BvhData, c0: int, ix: vec8, iy: vec8, iz: vec8, oix: vec8, oiy: vec8, oiz: vec8, tb: vec8):
+    """Whether the packet (inverse directions, origin * inverse) enters each child box (c0, c0 + 1)
+    within its current limits ``tb``."""
+    h0 = box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[c0], bv.node_hi[c0], tb)
+    h1 = box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[c0 + 1], bv.node_hi[c0 + 1], tb)
+    return h0, h1
+
+
+@wp.func
 def packet_closest(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
     """Closest hits of a packet (world frame, unit directions) over every visible instance of batch element b.
 
@@ -222,12 +244,7 @@ def packet_closest(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, 
     for l in range(8):
         tri[l] = -1
     stack = stack64()
-    bt = b  # batch row of the transforms and of the visibility (either may be shared: 1 row)
-    if bv.world_from_inst.shape[0] == 1:
-        bt = 0
-    bv_ = b
-    if bv.inst_visible.shape[0] == 1:
-        bv_ = 0
+    bt, bv_ = _batch_rows(bv, b)
     for inst in range(bv.inst_root.shape[0]):
         if bv.inst_visible[bv_, inst] == 0:
             continue
@@ -252,8 +269,7 @@ def packet_closest(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, 
                 sp -= 1
                 node = stack[sp]
                 continue
-            h0 = box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[c0], bv.node_hi[c0], tb)
-            h1 = box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[c0 + 1], bv.node_hi[c0 + 1], tb)
+            h0, h1 = _children_hit(bv, c0, ix, iy, iz, oix, oiy, oiz, tb)
             if h0 and h1:
                 near = c0
                 far = c0 + 1
@@ -289,12 +305,7 @@ def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
     """
     tb = t_in
     stack = stack64()
-    bt = b  # batch row of the transforms and of the visibility (either may be shared: 1 row)
-    if bv.world_from_inst.shape[0] == 1:
-        bt = 0
-    bv_ = b
-    if bv.inst_visible.shape[0] == 1:
-        bv_ = 0
+    bt, bv_ = _batch_rows(bv, b)
     for inst in range(bv.inst_root.shape[0]):
         if all_negative(tb):
             break
@@ -324,8 +335,7 @@ def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
                 sp -= 1
                 node = stack[sp]
                 continue
-            h0 = box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[c0], bv.node_hi[c0], tb)
-            h1 = box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[c0 + 1], bv.node_hi[c0 + 1], tb)
+            h0, h1 = _children_hit(bv, c0, ix, iy, iz, oix, oiy, oiz, tb)
             if h0 and h1:
                 stack[sp] = c0 + 1
                 sp += 1
