@@ -242,6 +242,32 @@ def test_plan_cache_follows_in_place_changes():
     assert torch.allclose(y2, locally_connected_ref(x, w, b, index), atol=1e-5)
 
 
+@pytest.mark.parametrize("how", ["numpy", "data"])
+@pytest.mark.parametrize("dtype", [torch.int64, torch.int32])
+def test_plan_cache_sees_changes_made_behind_torchs_back(how, dtype):
+    """Writes through the numpy array under ``torch.from_numpy`` or through ``.data`` do not bump the
+    tensor's version: the op still answers for the new values, and an out-of-range value is refused."""
+    x, w, b, index = make_case(64, 40, 8, 4, torch.float32, "cpu")
+    arr = index.numpy().astype(np.int64 if dtype == torch.int64 else np.int32)
+    idx = torch.from_numpy(arr)
+    view = arr if how == "numpy" else idx.data.numpy()
+    locally_connected(x, w, b, idx)  # caches a plan
+    view[:] = (view + 7) % 40
+    assert torch.allclose(locally_connected(x, w, b, idx), locally_connected_ref(x, w, b, idx.long()), atol=1e-5)
+    view[0, 0] = 40  # out of range
+    with pytest.raises(ValueError, match=r"index: expected values in \[0, 40\)"):
+        locally_connected(x, w, b, idx)
+
+
+def test_a_plan_for_other_values_is_refused():
+    x, w, b, index = make_case(2, 20, 5, 3, torch.float32, "cpu")
+    plan = build_plan(index, 20)
+    other = index.clone()
+    other[0, 0] = (other[0, 0] + 1) % 20
+    with pytest.raises(ValueError, match="plan: expected a plan for this index"):
+        locally_connected(x, w, b, other, plan=plan)
+
+
 @pytest.mark.parametrize(
     "mutate,match",
     [
