@@ -106,9 +106,17 @@ _QUADRATURE_POINTS = 100_001
 
 
 # --- validation -----------------------------------------------------------------------------------
+#: memory per photoreceptor while a layout is built (polar and 3D positions, Morton sort, temporaries;
+#: measured ~132 B for the log-polar layout)
+LAYOUT_BYTES_PER_RECEPTOR = 160
+
+
 def _check_count(P) -> int:
+    from warp_vision.resources import require_memory
+
     if isinstance(P, bool) or not isinstance(P, (int, np.integer)) or P < 1:
         raise ValueError(f"P: expected a positive int (the number of photoreceptors), got {P!r}")
+    require_memory(LAYOUT_BYTES_PER_RECEPTOR * int(P), f"a retina of P={int(P):,} photoreceptors", "P")
     return int(P)
 
 

@@ -201,6 +201,17 @@ def _check_rays(name_o, o, name_d, d):
     return o, d
 
 
+def _number(name: str, value, low: float, high: float, unit: str) -> float:
+    """``value`` as a float in [low, high], or a ValueError naming ``name`` (None, strings, NaN, inf, out of range)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if isinstance(value, bool) or not np.isfinite(v) or not low <= v <= high:
+        raise ValueError(f"{name}: expected {low:g} to {high:g} {unit}, got {value!r}")
+    return v
+
+
 class NavarroEye:
     """Navarro's (1985) accommodating wide-angle schematic eye.
 
@@ -217,16 +228,12 @@ class NavarroEye:
         cornea_semi_diameter_mm: float = 6.0,
         lens_semi_diameter_mm: float = 4.5,
     ):
-        A = float(accommodation_D)
-        if not np.isfinite(A) or not 0.0 <= A <= 10.0:
-            raise ValueError(f"accommodation_D: expected 0 to 10 dioptres, got {accommodation_D}")
-        D = float(pupil_diameter_mm)
-        if not np.isfinite(D) or not 1.0 <= D <= 9.0:
-            raise ValueError(f"pupil_diameter_mm: expected 1 to 9 mm, got {pupil_diameter_mm}")
+        A = _number("accommodation_D", accommodation_D, 0.0, 10.0, "dioptres")
+        D = _number("pupil_diameter_mm", pupil_diameter_mm, 1.0, 9.0, "mm")
         self.accommodation_D = A
         self.pupil_diameter_mm = D
-        self.cornea_semi_diameter_mm = float(cornea_semi_diameter_mm)
-        self.lens_semi_diameter_mm = float(lens_semi_diameter_mm)
+        self.cornea_semi_diameter_mm = _number("cornea_semi_diameter_mm", cornea_semi_diameter_mm, 1.0, 12.0, "mm")
+        self.lens_semi_diameter_mm = _number("lens_semi_diameter_mm", lens_semi_diameter_mm, 1.0, 12.0, "mm")
         L = np.log(A + 1.0)
         self.pupil_z_mm = 0.55 + 3.05 - 0.05 * L
         """z of the stop plane (= the lens front vertex), mm."""

@@ -400,8 +400,14 @@ class Body:
         self.data.ctrl[self.neck_muscles] = _check_activations("neck activations", a, len(NECK_MUSCLE_NAMES))
 
     def set_intraocular(self, side: str, pupil_mm: float | None = None, accommodation_D: float | None = None) -> None:
-        """Command the pupil diameter (mm) and lens accommodation (D); the state follows with time constants
-        ``PUPIL_TIMECONST`` and ``ACCOMMODATION_TIMECONST``."""
+        """Command the pupil diameter (mm) and lens accommodation (D), clipped to their ranges; the state
+        follows with time constants ``PUPIL_TIMECONST`` and ``ACCOMMODATION_TIMECONST``. NaN or inf is a
+        ValueError (MuJoCo would only complain a step later)."""
+        if side not in self.pupil:
+            raise ValueError(f"side: expected one of {sorted(self.pupil)}, got {side!r}")
+        for name, v in (("pupil_mm", pupil_mm), ("accommodation_D", accommodation_D)):
+            if v is not None and (isinstance(v, bool) or not np.isfinite(np.asarray(v, dtype=np.float64)).all()):
+                raise ValueError(f"{name}: expected a finite number, got {v!r}")
         if pupil_mm is not None:
             self.data.ctrl[self.pupil[side]] = np.clip(pupil_mm, *PUPIL_RANGE_MM)
         if accommodation_D is not None:

@@ -281,11 +281,32 @@ def surface_table(eye: NavarroEye) -> np.ndarray:
     )
 
 
+#: memory per ray bundle (photoreceptor x pupil sample) while the eye's rays are built: 3 channels of
+#: origin, direction and weight (84 B) and the pupil samples with their temporaries (measured ~147 B in all)
+EYE_RAYS_BYTES_PER_SAMPLE = 160
+
+
+def eye_rays_bytes(P: int, samples_per_receptor: int) -> int:
+    """An estimate of the memory :func:`eye_rays` needs for P photoreceptors and S samples each."""
+    return EYE_RAYS_BYTES_PER_SAMPLE * int(P) * int(samples_per_receptor)
+
+
+def _check_samples(S) -> int:
+    if isinstance(S, bool) or not isinstance(S, (int, np.integer)) or S < 1:
+        raise ValueError(f"samples_per_receptor: expected a positive int, got {S!r}")
+    return int(S)
+
+
 def eye_rays(retina, eye: NavarroEye, samples_per_receptor: int = 16, seed: int = 0, device: str = "cpu") -> EyeRays:
-    """The rays each photoreceptor casts into the world through ``eye`` (cached; see the module doc)."""
+    """The rays each photoreceptor casts into the world through ``eye`` (cached; see the module doc).
+    Sizes whose rays would not fit in the memory available are refused (ValueError) before allocating."""
+    from warp_vision.resources import require_memory
+
     _launch.init()
     pos = _retina_positions(retina)
-    S = int(samples_per_receptor)
+    S = _check_samples(samples_per_receptor)
+    require_memory(eye_rays_bytes(len(pos), S), f"the eye's rays (P={len(pos):,}, S={S:,})",
+                   "samples_per_receptor or the photoreceptors")
     key = (
         hash(pos.tobytes()),
         pos.shape,

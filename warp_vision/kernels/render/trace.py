@@ -24,9 +24,10 @@ import warp as wp
 
 from warp_vision.eye.optics import NavarroEye
 from warp_vision.kernels import launch as _launch
-from warp_vision.kernels.render.eye_rays import eye_rays
+from warp_vision.kernels.render.eye_rays import _check_samples, _retina_positions, eye_rays, eye_rays_bytes
 from warp_vision.kernels.render.scene_data import scene_data, to_warp_transforms
 from warp_vision.kernels.render.shade import camera_kernel, closest_hit_kernel, radiance_kernel, render_onv_kernel
+from warp_vision.resources import require_memory
 
 #: CPU launch splitting for tracing kernels (``launch_split`` keywords): threads are heavy and unequal
 #: (a ray that reaches the periphery of a BVH costs more than one that hits a wall), so hand out many
@@ -46,6 +47,11 @@ def _poses(name: str, T, B: int | None = None) -> np.ndarray:
         raise ValueError(f"{name}: expected batch {B}, got {T.shape[0]}")
     if not np.all(np.isfinite(T)):
         raise ValueError(f"{name}: expected finite values, got NaN or inf")
+    if not len(T):
+        return T
+    if np.abs(T[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+        raise ValueError(f"{name}: expected homogeneous transforms with bottom row [0, 0, 0, 1], got "
+                         f"{T[np.abs(T[:, 3] - [0, 0, 0, 1]).max(axis=1).argmax(), 3].tolist()}")
     R = T[:, :3, :3]
     if np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max() > 1e-4 or np.any(np.linalg.det(R) < 0):
         raise ValueError(f"{name}: expected rigid transforms (orthonormal rotation, det +1)")
@@ -91,9 +97,14 @@ def render_onv(
     Bs = scene.batch_size()
     if Bs not in (1, B):
         raise ValueError(f"scene: its per-batch transforms/lights have batch {Bs}, but eye_poses has {B}")
+    P, S = len(_retina_positions(retina)), _check_samples(samples_per_receptor)
+    require_memory(eye_rays_bytes(P, S) + B * 3 * P * 4,
+                   f"render_onv (B={B}, P={P:,}, S={S:,})", "samples_per_receptor, the batch or P")
     rays = eye_rays(retina, eye, samples_per_receptor, seed, device)
-    sc = scene_data(scene, device, max_depth)
     onv = torch.zeros((B, 3 * rays.P), dtype=torch.float32, device=device)
+    if B == 0:
+        return onv
+    sc = scene_data(scene, device, max_depth)
     _launch.launch_split(
         render_onv_kernel,
         B * rays.P,
@@ -131,6 +142,7 @@ def render_camera(
         raise ValueError(f"width, height: expected >= 1, got {width} x {height}")
     if not 0 < fov_deg < 180:
         raise ValueError(f"fov_deg: expected 0 to 180, got {fov_deg}")
+    require_memory(width * height * 12, f"render_camera ({width:,} x {height:,})", "width and height")
     T = _poses("world_from_camera", world_from_camera, 1)
     _check_batch(scene, batch)
     sc = scene_data(scene, device, max_depth)

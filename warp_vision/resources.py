@@ -1,0 +1,47 @@
+"""How much memory this machine has left, and refusing work that cannot fit before it starts.
+
+A size that would not fit (a retina of 10^9 photoreceptors, 10^9 rays per receptor, a dataset larger
+than the memory) is refused with a one-line ``ValueError`` that gives the estimate, the memory available and the option
+to lower, before anything is allocated.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def available_memory_bytes() -> int:
+    """Memory that can be allocated without swapping: ``MemAvailable`` of /proc/meminfo on Linux, the
+    physical memory elsewhere; the environment variable ``WARP_VISION_MEMORY_LIMIT`` (bytes) caps it."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    if avail is None:
+        try:
+            avail = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError, AttributeError):
+            avail = 1 << 62
+    cap = os.environ.get("WARP_VISION_MEMORY_LIMIT")
+    return min(avail, int(float(cap))) if cap else avail
+
+
+def human_bytes(n: float) -> str:
+    """``n`` bytes as KiB, MiB or GiB."""
+    if n < 2**20:
+        return f"{n / 2**10:,.0f} KiB"
+    return f"{n / 2**20:,.0f} MiB" if n < 2**30 else f"{n / 2**30:,.1f} GiB"
+
+
+def require_memory(nbytes: float, what: str, lower: str) -> None:
+    """Raise ValueError (one line: ``what``, the estimate, what is available, ``lower``: the options to
+    lower) when ``nbytes`` exceed the memory available."""
+    avail = available_memory_bytes()
+    if nbytes > avail:
+        raise ValueError(f"{what} needs about {human_bytes(nbytes)}, more than the {human_bytes(avail)} of memory "
+                         f"available; lower {lower}")
