@@ -15,7 +15,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "warp_vision"
 
-#: stage -> the stages it may import (besides itself). ``frames`` and ``fileio`` are the foundations.
+#: stage -> the stages it may import (besides itself). ``frames``, ``fileio``, ``resources`` and ``errors`` are the foundations.
 ALLOWED = {
     "foundation": set(),
     "eye": {"foundation"},
@@ -36,7 +36,7 @@ def stage_of(module: str) -> str:
     if len(parts) == 1:
         return "package"
     head = parts[1]
-    if head in ("frames", "fileio"):
+    if head in ("frames", "fileio", "resources", "errors"):
         return "foundation"
     if head not in ALLOWED:
         raise AssertionError(f"{module}: in no stage; add its stage to ALLOWED and docs/ARCHITECTURE.md")

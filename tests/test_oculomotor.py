@@ -10,6 +10,7 @@ from warp_vision.nn.trained import build_net, load_net
 from warp_vision.sim.body import Body, BodyConfig
 from warp_vision.sim.oculomotor import HoldingDataConfig, evaluate_on_body, load_oculomotor, transition_pairs
 from warp_vision.train import oculomotor
+from warp_vision.train.harness import run_config
 from warp_vision.train.config import resolve, OCULOMOTOR_PRESETS, OculomotorTrainConfig
 
 
@@ -51,7 +52,7 @@ def test_oculomotor_net_learns_the_inverse(tmp_path):
     assert summary["test_activation_rmse"] < 0.05 and summary["gaze_error_deg_median"] < 3.0, summary
     assert summary["pursuit_chain_error_deg_median"] < 5.0, summary  # 30 steps of 0.5 deg: a 15 deg path
     net, ck = load_net(run)
-    task = oculomotor.OculomotorTask(oculomotor.OculomotorTrainConfig(**ck["config"]), log=lambda *a: None)
+    task = oculomotor.OculomotorTask(run_config(oculomotor.OculomotorTask, run, ck), log=lambda *a: None)
     task.load((0, 1), progress=False, synthesize=False)
     task.splits()
     body = Body(BodyConfig(arms=False))

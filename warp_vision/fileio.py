@@ -10,6 +10,7 @@ behind under either name.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import uuid
@@ -53,6 +54,15 @@ def atomic_write(path: str | os.PathLike, content: str | bytes | Callable[[Binar
         True when ``path`` now holds ``content``.
     """
     final = Path(path)
+    try:
+        return _write(final, content, exclusive, mkdir)
+    except OSError as e:  # name the file the caller asked for, not its temporary
+        if e.filename == str(final) or e.errno is None:
+            raise
+        raise OSError(e.errno, e.strerror, str(final)) from e
+
+
+def _write(final: Path, content, exclusive: bool, mkdir: bool) -> bool:
     if mkdir:
         final.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_path(final)
@@ -82,6 +92,16 @@ def atomic_write(path: str | os.PathLike, content: str | bytes | Callable[[Binar
     finally:
         if os.path.lexists(tmp):
             os.unlink(tmp)
+
+
+def probe_writable(directory: str | os.PathLike) -> None:
+    """Create ``directory`` (and its parents) and check that a file can be written in it: raises the
+    OSError (read-only file system, no space, permission, a file in the way) before any expensive work."""
+    d = Path(directory)
+    if d.exists() and not d.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "not a directory", str(d))
+    atomic_write(d / ".write-probe", b"")
+    (d / ".write-probe").unlink()
 
 
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2, exclusive: bool = False,

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from warp_vision.bench.common import machine_info
+from warp_vision.errors import add_debug_flag, guarded
 from warp_vision.fileio import write_json
 
 
@@ -41,11 +42,17 @@ def _parser() -> argparse.ArgumentParser:
     rtp.add_argument("--batch", type=int, default=4, help="ONVs rendered per launch (default 4)")
     rtp.add_argument("--repeats", type=int, default=5, help="timed repeats per measurement (median reported)")
     rtp.add_argument("--out", default="bench_results/raytrace.json", help="JSON output path")
+    for q in (lin, mem, rtp):
+        add_debug_flag(q)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    return guarded(lambda: _bench(args), args.debug)
+
+
+def _bench(args) -> int:
     if args.bench == "memory" and args.worker:
         from warp_vision.bench.memory import worker
 
@@ -58,14 +65,14 @@ def main(argv: list[str] | None = None) -> int:
         from warp_vision.bench import linet
 
         if any(v < 1 for v in args.photoreceptors):
-            raise SystemExit(f"--photoreceptors: expected positive integers, got {args.photoreceptors}")
+            raise ValueError(f"--photoreceptors: expected positive integers, got {args.photoreceptors}")
         result = linet.run(args.photoreceptors, args.batch, args.reduction, args.receptive_field, args.repeats)
     elif args.bench == "raytrace":
         from warp_vision.bench import raytrace
 
         for name in ("photoreceptors", "samples", "batch", "repeats"):
             if getattr(args, name) < 1:
-                raise SystemExit(f"--{name}: expected a positive integer, got {getattr(args, name)}")
+                raise ValueError(f"--{name}: expected a positive integer, got {getattr(args, name)}")
         result = raytrace.run(args.repeats, args.photoreceptors, args.samples, args.batch)
     else:
         from warp_vision.bench import memory

@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 
 from warp_vision.data.foveation import FoveationDataConfig, synthesize
+from warp_vision.errors import add_debug_flag, guarded
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, cls) -> None:
@@ -21,6 +22,7 @@ def _add_config_flags(parser: argparse.ArgumentParser, cls) -> None:
     parser.add_argument("--shard", default="0/1", help="I/N: build only shard I of N (default 0/1, everything)")
     parser.add_argument("--batch", type=int, default=16, help="ONVs rendered per launch (default 16)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    add_debug_flag(parser)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,18 +40,22 @@ def main(argv: list[str] | None = None) -> int:
 
     cls = FoveationDataConfig if a.kind == "foveation" else FaceDataConfig
     cfg = cls(**{fld.name: getattr(a, fld.name) for fld in dataclasses.fields(cls)})
-    try:
-        if a.kind == "foveation":
-            store = synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
-        else:
-            from warp_vision.data import faces as FA
 
-            store = FA.synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device,
-                                  identities_path=a.identities_cache)
-    except ValueError as e:
-        print(f"error: {e}")
-        return 2
-    left = len(store.missing_chunks())
-    print(f"{a.out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
-          f"{'' if not left else f' ({left} chunks of this shard missing)'}")
-    return 0
+    def job():
+        from warp_vision.kernels.launch import require_device
+
+        require_device(a.device)  # before the manifest is written
+        if a.kind == "foveation":
+            return synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
+        from warp_vision.data import faces as FA
+
+        return FA.synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device,
+                             identities_path=a.identities_cache)
+
+    def report():
+        store = job()
+        left = len(store.missing_chunks())
+        print(f"{a.out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
+              f"{'' if not left else f' ({left} chunks of this shard missing)'}")
+
+    return guarded(report, a.debug)

@@ -71,6 +71,13 @@ from warp_vision.data.chunk_files import (
 __all__ = ["ChunkedStore", "CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "parse_shard"]
 
 
+def dataset_bytes(fields: Mapping[str, tuple], samples: int) -> int:
+    """The size of ``samples`` samples of ``fields`` ({name: (shape, dtype)}): their data files on disk,
+    and the arrays ``load`` returns."""
+    per = sum(int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize for shape, dtype in fields.values())
+    return int(per) * int(samples)
+
+
 def parse_shard(spec: str) -> tuple[int, int]:
     """Parse a shard spec ``"I/N"`` (shard ``I`` of ``N``, ``0 <= I < N``) into ``(I, N)``.
 

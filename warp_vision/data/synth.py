@@ -43,7 +43,11 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
     bar (rate and time left), and write each chunk when it is whole."""
     from tqdm import tqdm
 
+    from warp_vision.fileio import probe_writable
+
     todo, mine = pending(store)
+    if todo:
+        probe_writable(store.root)  # a read-only or full directory fails now, not after the first chunk
     t0 = time.perf_counter()
     with tqdm(total=mine, initial=mine - todo, unit="ONV", desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:
         for c in store.missing_chunks():

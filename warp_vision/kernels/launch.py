@@ -95,6 +95,22 @@ def available_devices() -> list[str]:
     return devs
 
 
+def require_device(name: str) -> str:
+    """The torch device name for ``name`` ("cpu", "cuda" meaning "cuda:0", or "cuda:N"), or a one-line
+    ValueError when this machine cannot run Warp and torch on it (checked before any work is done)."""
+    dev = "cuda:0" if name == "cuda" else str(name)
+    if dev == "cpu":
+        return dev
+    if not dev.startswith("cuda:") or not dev[5:].isdigit():
+        raise ValueError(f"device: expected cpu, cuda or cuda:N, got {name!r}")
+    init()
+    n = torch.cuda.device_count() if torch.cuda.is_available() and wp.is_cuda_available() else 0
+    if int(dev[5:]) >= n:
+        raise ValueError(f"device: {name} requested, but Warp and torch see {n} CUDA device(s) on this machine; "
+                         f"use --device cpu")
+    return dev
+
+
 def slices(total: int, parts: int) -> list[tuple[int, int]]:
     """Split ``range(total)`` into at most ``parts`` contiguous (start, length) slices of near-equal size."""
     parts = max(1, min(parts, total))

@@ -7,11 +7,14 @@ training run made; :func:`load_net` builds it and loads a checkpoint's weights. 
 other user load a trained net with this module alone, never with the training code.
 
 Checkpoint keys read here: ``model`` (state dict), ``net`` (spec), ``norm`` (input/target normalisation),
-``config`` (the run's config as a dict), ``data`` (the dataset's config as a dict).
+``config`` (the run's config as a dict, without paths), ``data`` (the dataset's config as a dict), and
+``integrity``: the sha256 of everything else (:func:`content_digest`), which :func:`read_checkpoint`
+checks, so a damaged file is an error that names it, never a net with a flipped bit.
 """
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -61,15 +64,58 @@ def build_net(spec: dict, device: str = "cpu") -> torch.nn.Module:
     return BUILDERS[kind](spec).to(device)
 
 
+INTEGRITY_VERSION = 1
+
+
+def _feed(h, x) -> None:
+    """Feed ``x`` (nested dicts, lists, tensors, numbers, strings, None) to hash ``h``, unambiguously."""
+    if torch.is_tensor(x):
+        t = x.detach().cpu().contiguous()
+        h.update(f"T{t.dtype}{tuple(t.shape)}:".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    elif isinstance(x, dict):
+        h.update(f"D{len(x)}:".encode())
+        for k in sorted(x, key=str):
+            _feed(h, k)
+            _feed(h, x[k])
+    elif isinstance(x, (list, tuple)):
+        h.update(f"L{len(x)}:".encode())
+        for v in x:
+            _feed(h, v)
+    else:
+        h.update(f"{type(x).__name__}:{x!r};".encode())
+
+
+def content_digest(ck: dict) -> str:
+    """sha256 over a checkpoint's contents (every key but ``integrity``): tensors by dtype, shape and bytes."""
+    h = hashlib.sha256()
+    _feed(h, {k: v for k, v in ck.items() if k != "integrity"})
+    return h.hexdigest()
+
+
+def seal(ck: dict) -> dict:
+    """``ck`` with its ``integrity`` entry: the digest :func:`read_checkpoint` verifies."""
+    return {**ck, "integrity": {"version": INTEGRITY_VERSION, "sha256": content_digest(ck)}}
+
+
 def read_checkpoint(path, map_location="cpu") -> dict:
-    """A checkpoint's contents (``torch.load(..., weights_only=True)``), or a one-line error naming the file."""
+    """A checkpoint's verified contents (``torch.load(..., weights_only=True)``). A missing file raises
+    FileNotFoundError; an unreadable one, one without a checksum, or one whose contents do not match its
+    checksum raise ValueError, in one line that names the file."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such checkpoint")
     try:
-        return torch.load(path, weights_only=True, map_location=map_location)
+        ck = torch.load(path, weights_only=True, map_location=map_location)
     except Exception as e:  # a truncated or foreign file: torch raises many kinds
-        raise ValueError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+        what = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"{path}: not a readable checkpoint ({what})") from None
+    seal_ = ck.get("integrity") if isinstance(ck, dict) else None
+    if not isinstance(seal_, dict) or "sha256" not in seal_:
+        raise ValueError(f"{path}: the checkpoint carries no checksum (not written by this version); retrain it")
+    if content_digest(ck) != seal_["sha256"]:
+        raise ValueError(f"{path}: checksum mismatch: the file is damaged (its contents differ from when it was written)")
+    return ck
 
 
 def load_net(path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:

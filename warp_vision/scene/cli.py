@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from warp_vision.errors import add_debug_flag, guarded
+
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m warp_vision.scene", description=__doc__.split("\n\n")[0])
@@ -26,11 +28,16 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0, help="seed of the retina and the room (default 0)")
     d.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     d.add_argument("--out", default="runs/eye_demo", help="output directory (default runs/eye_demo)")
+    add_debug_flag(d)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    return guarded(lambda: _eye_demo(args), args.debug)
+
+
+def _eye_demo(args) -> int:
     from warp_vision import viz
     from warp_vision.eye.optics import NavarroEye
     from warp_vision.eye.retina import Retina
@@ -39,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     from warp_vision.scene.room import make_room
 
     if args.photoreceptors < 1 or args.samples < 1:
-        raise SystemExit("--photoreceptors and --samples must be positive")
+        raise ValueError("--photoreceptors and --samples: expected positive integers")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     eye = NavarroEye(args.accommodation, args.pupil)

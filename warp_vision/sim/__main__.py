@@ -1,3 +1,3 @@
 from warp_vision.sim.cli import main
 
-main()
+raise SystemExit(main())

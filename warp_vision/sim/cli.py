@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 
+from warp_vision.errors import add_debug_flag, guarded
 from warp_vision.fileio import write_json
 from warp_vision.sim.body import SIDES, Body, BodyConfig
 
@@ -229,7 +230,7 @@ def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov
     return np.asarray(im)
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
@@ -237,6 +238,7 @@ def main(argv=None) -> None:
         p = sub.add_parser(name)
         p.add_argument("--oculomotor", default="runs/oculomotor", help="the oculomotor runs' directory: <dir>/left, <dir>/right (trained there if missing)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
+        add_debug_flag(p)
         if name == "oculomotor":
             continue
         p.add_argument("--left", default="runs/foveation_left", help="the left eye's foveation run")
@@ -252,6 +254,10 @@ def main(argv=None) -> None:
             p.add_argument("--height", type=int, default=240, help="GIF height (pixels)")
             p.add_argument("--frame-every", type=int, default=2, help="GIF frame every N control periods (10 ms)")
     args = ap.parse_args(argv)
+    return guarded(lambda: _run(args), args.debug)
+
+
+def _run(args) -> None:
     if args.command == "oculomotor":
         provide_oculomotor(args.oculomotor, progress=not args.no_progress)
         print(json.dumps({s: json.loads(open(os.path.join(args.oculomotor, s, "summary.json")).read()) for s in SIDES}, indent=2))

@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from warp_vision.errors import add_debug_flag as _debug_flag
+from warp_vision.errors import guarded
 from warp_vision.train import config as C
 
 
@@ -24,7 +26,7 @@ def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         "(N = the epochs done ends it now: the best checkpoint is evaluated, figures written)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    return p
+    return _debug_flag(p)
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -71,7 +73,7 @@ def _eval_parser() -> argparse.ArgumentParser:
                                             "the pose error.")
     p.add_argument("run_dir", help="a training run directory (with best.pt)")
     p.add_argument("--split", choices=["test", "val", "train"], default="test", help="which split (default test)")
-    return p
+    return _debug_flag(p)
 
 
 def _module(task: str):
@@ -85,25 +87,28 @@ def _compare(argv: list[str]) -> int:
                                 description="Plot several foveation runs' training and validation MSE curves in one figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="figure path (.png)")
-    a = p.parse_args(argv)
-    import json
-    from pathlib import Path
+    a = _debug_flag(p).parse_args(argv)
 
-    from warp_vision.fileio import atomic_write
-    from warp_vision.train.figures import plot_curves
+    def job():
+        import errno
+        import json
+        from pathlib import Path
 
-    hists = {}
-    for r in a.runs:
-        m = Path(r) / "metrics.jsonl"
-        if not m.exists():
-            print(f"error: {m} not found", file=sys.stderr)
-            return 2
-        cfg = json.loads((Path(r) / "config.json").read_text())
-        hists[f"{cfg['model']} P={cfg['photoreceptors']:,}"] = [json.loads(x) for x in m.read_text().splitlines()]
-    fig = plot_curves(hists, "liNet vs fully connected")
-    atomic_write(a.out, lambda f: fig.savefig(f, format="png", dpi=120, bbox_inches="tight"))
-    print(f"wrote {a.out}")
-    return 0
+        from warp_vision.fileio import atomic_write
+        from warp_vision.train.figures import plot_curves
+
+        hists = {}
+        for r in a.runs:
+            m = Path(r) / "metrics.jsonl"
+            if not m.exists():
+                raise FileNotFoundError(errno.ENOENT, "not found (is this a training run directory?)", str(m))
+            cfg = json.loads((Path(r) / "config.json").read_text())
+            hists[f"{cfg['model']} P={cfg['photoreceptors']:,}"] = [json.loads(x) for x in m.read_text().splitlines()]
+        fig = plot_curves(hists, "liNet vs fully connected")
+        atomic_write(a.out, lambda f: fig.savefig(f, format="png", dpi=120, bbox_inches="tight"))
+        print(f"wrote {a.out}")
+
+    return _guarded(job, a.debug)
 
 
 def _evaluate(argv: list[str]) -> int:
@@ -111,14 +116,13 @@ def _evaluate(argv: list[str]) -> int:
     from pathlib import Path
 
     a = _eval_parser().parse_args(argv)
-    cfg_path = Path(a.run_dir) / "config.json"
-    task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
-    try:
+
+    def job():
+        cfg_path = Path(a.run_dir) / "config.json"
+        task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
         _module(task).evaluate_run(a.run_dir, a.split)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
+
+    return _guarded(job, a.debug)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,22 +142,12 @@ def main(argv: list[str] | None = None) -> int:
         make = lambda: C.from_args(a)  # noqa: E731
     run = _module(name).run
     if a.resume:
-        return _guarded(lambda: run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs))
-    return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite))
+        return _guarded(lambda: run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs), a.debug)
+    return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite), a.debug)
 
 
-def _guarded(job) -> int:
-    """Run a training job; bad input and a non-finite loss become an error message and exit code."""
+def _guarded(job, debug: bool = False) -> int:
+    """Run a job (:func:`warp_vision.errors.guarded`); a non-finite loss exits with code 3."""
     from warp_vision.train.harness import NonFiniteLoss
 
-    try:
-        job()
-    except (ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except NonFiniteLoss as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 3
-    except KeyboardInterrupt:
-        return 130
-    return 0
+    return guarded(job, debug, {NonFiniteLoss: 3})

@@ -16,8 +16,13 @@ CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc"], "eye": ["left", "
 
 
 def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
-    """The checks every training config shares: its preset, its fields with a fixed set of values, the
-    network's and the optimisation's positive integers (and ``positive``), lr and device."""
+    """The checks every training config shares: every number is finite, its preset, its fields with a
+    fixed set of values, the network's and the optimisation's positive integers (and ``positive``), lr and
+    device."""
+    for f in fields(cfg):
+        v = getattr(cfg, f.name)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"{f.name}: expected a finite number, got {v}")
     if cfg.preset not in presets:
         raise ValueError(f"preset: expected one of {sorted(presets)}, got {cfg.preset!r}")
     for name, allowed in CHOICES.items():

@@ -14,6 +14,8 @@ The run itself (directory layout, ``--resume``, Ctrl-C, NaN checks, ``torchrun``
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -49,6 +51,20 @@ class FaceTask(harness.Task):
         data = ChunkedStore.open(self.ddir).load(["onv", "identity", "pose"])
         self.onv16, self.ident, self.pose = (torch.from_numpy(data[k]) for k in ("onv", "identity", "pose"))
         self.retina = Retina.load(self.ddir / "retina.npz")
+
+    @classmethod
+    def resolve_paths(cls, cfg):
+        from warp_vision.data.faces import identities_cache
+
+        super().resolve_paths(cfg)
+        cfg.identities_cache = str(Path(cfg.identities_cache or identities_cache(cfg.identities, cfg.identity_seed)).resolve())
+
+    def dataset_bytes(self):
+        from warp_vision.data.faces import dataset_fields
+        from warp_vision.data.store import dataset_bytes
+
+        dc = self.cfg.data_config()
+        return dataset_bytes(dataset_fields(dc), dc.samples)
 
     def splits(self):
         c = self.cfg

@@ -53,6 +53,13 @@ class FoveationTask(harness.Task):
         self.onv16, self.target = torch.from_numpy(data["onv"]), torch.from_numpy(data["target"])
         self.retina = Retina.load(self.ddir / "retina.npz")
 
+    def dataset_bytes(self):
+        from warp_vision.data.foveation import dataset_fields
+        from warp_vision.data.store import dataset_bytes
+
+        dc = self.cfg.data_config()
+        return dataset_bytes(dataset_fields(dc), dc.samples)
+
     def splits(self):
         c = self.cfg
         return harness.splits(len(self.target), c.data_seed, c.val_fraction, c.test_fraction)

@@ -12,8 +12,17 @@ owns the rest, the same for every task:
   of the epoch (or lowered on a plateau), progress bars, early stopping;
 - a NaN or infinite loss or gradient stops the run with :class:`NonFiniteLoss`, the last good checkpoint
   untouched; Ctrl-C leaves the last finished epoch resumable;
-- atomic checkpoints (``latest.pt`` every epoch, ``best.pt`` when the task's rule says so), one
-  ``metrics.jsonl`` row per epoch, ``summary.json`` and ``figures/``.
+- preflight before any expensive work (:func:`preflight`): the device exists, the output is a writable
+  directory, the dataset fits on the disk and in memory (estimates printed);
+- sealed checkpoints (``latest.pt`` every epoch, the one before it kept as ``previous.pt``, ``best.pt``
+  when the task's rule says so; each carries a checksum that every reader verifies), then one
+  ``metrics.jsonl`` row per epoch, ``summary.json`` and ``figures/``. A resumed run starts from the newest
+  checkpoint that verifies (saying so when it falls back) and brings ``metrics.jsonl`` to exactly its
+  epochs, so no row is repeated or skipped.
+
+Paths: a new run records ``out``, ``data_dir`` (and the task's other paths) as absolute paths in
+``config.json``, so ``--resume`` and ``evaluate`` work from any directory; checkpoints carry the config
+without paths and the history without timings, so two identical runs write identical checkpoints.
 
 A checkpoint holds plain tensors and numbers (``torch.load(path, weights_only=True)`` reads it): the model
 and optimiser state, the epoch, the history, the selection state, the input normalisation, the config,
@@ -23,9 +32,13 @@ package's training code.
 
 from __future__ import annotations
 
+import errno
+import io
 import json
 import math
 import os
+import shutil
+import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -34,8 +47,8 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from warp_vision.fileio import atomic_write, write_json
-from warp_vision.nn.trained import build_net, read_checkpoint
+from warp_vision.fileio import atomic_write, probe_writable, write_json
+from warp_vision.nn.trained import build_net, read_checkpoint, seal
 from warp_vision.train.config import epoch_lr
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
@@ -43,7 +56,13 @@ from warp_vision.train.config import epoch_lr
 PLATEAU_EPOCHS = 3
 PLATEAU_FACTOR = 0.3
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
-RUN_FILES = ("metrics.jsonl", "latest.pt", "best.pt", "summary.json")
+RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
+#: the checkpoints a resumed run may start from, newest first
+RESUME_FROM = ("latest.pt", "previous.pt", "best.pt")
+#: config fields that are paths: resolved to absolute paths when a run is created, kept out of checkpoints
+PATH_FIELDS = ("out", "data_dir", "identities_cache")
+#: metrics-row entries that vary between identical runs: kept out of checkpoints
+TIMING_FIELDS = ("seconds",)
 
 
 class NonFiniteLoss(RuntimeError):
@@ -89,6 +108,17 @@ class Task:
     def data_config(self) -> dict:
         """The dataset's config, saved with checkpoints (what a user of the net must render like)."""
         return {}
+
+    @classmethod
+    def resolve_paths(cls, cfg) -> None:
+        """Make ``cfg``'s paths absolute (a new run, before anything is written): ``out`` and the dataset
+        directory (the cache directory when ``data_dir`` is empty). Tasks with more paths extend this."""
+        cfg.out = str(Path(cfg.out).resolve())
+        cfg.data_dir = str(dataset_dir(cfg, cls.name, cfg.data_config()).resolve())
+
+    def dataset_bytes(self) -> int:
+        """An estimate of the dataset's size (on disk, and in memory once loaded), for the preflight."""
+        return 0
 
     def prepare(self, model: torch.nn.Module, norm: dict) -> None:
         """Put the normalisation into the model's buffers, if it has any."""
@@ -156,40 +186,115 @@ def claim_out_dir(out: Path, overwrite: bool) -> None:
                 f.unlink(missing_ok=True)
 
 
-def open_run(cls, cfg, resume: str | None, overwrite: bool, epochs: int | None = None):
-    """(validated config, output directory) of the run to resume (its config.json read as ``cls``) or
-    of the new run ``cfg`` (refusing an --out that holds a run unless ``overwrite``).
+def _usable_checkpoint(out: Path, log) -> tuple[dict, Path]:
+    """The newest checkpoint of run ``out`` that reads and verifies (latest.pt, else previous.pt, else
+    best.pt), saying which when it is not latest.pt; one ValueError naming them all if none does."""
+    problems = []
+    for name in RESUME_FROM:
+        path = out / name
+        if not path.exists():
+            problems.append(f"{path}: missing")
+            continue
+        try:
+            ck = read_checkpoint(path)
+        except ValueError as e:
+            problems.append(str(e))
+            continue
+        if problems:
+            log(f"{'; '.join(problems)}; resuming from {path} (epoch {ck['epoch'] + 1}) instead")
+        return ck, path
+    raise ValueError(f"--resume {out}: no checkpoint to resume from: {'; '.join(problems)}")
+
+
+def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | None = None, log=print):
+    """(validated config, output directory, checkpoint to resume from or None) of the run to resume (its
+    config.json read as ``task_cls.config_cls``) or of the new run ``cfg`` (refusing an --out that holds a run unless
+    ``overwrite``). Reads nothing but small files and checkpoints: a damaged run fails here, before any
+    data is loaded.
 
     ``epochs`` (resume only) changes the resumed run's epoch cap: more to extend it, or the epochs
     already done to end it now (the best checkpoint is then evaluated and the figures written).
     """
+    ck = None
     if resume:
-        out = Path(resume)
-        if not (out / "latest.pt").exists():
-            raise FileNotFoundError(f"--resume {resume}: no latest.pt there to resume from")
-        cfg = cls(**json.loads((out / "config.json").read_text()))
+        out = Path(resume).resolve()
+        if not (out / "config.json").exists():
+            raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
+        cfg = task_cls.config_cls(**json.loads((out / "config.json").read_text()))
         if epochs is not None:
             cfg.epochs = epochs
+        cfg.validate()
+        cfg.out = str(out)
+        task_cls.resolve_paths(cfg)  # (a run made before paths were recorded absolute: as the working directory says)
+        pick_device(cfg.device)
+        ck, _ = _usable_checkpoint(out, log)
     elif epochs is not None:
         raise ValueError("epochs: only a resumed run takes a new epoch cap; set it in the config otherwise")
     elif cfg is None:
         raise ValueError("run: give a config or a run directory to resume")
     else:
+        cfg.validate()
+        pick_device(cfg.device)  # before anything is written
+        task_cls.resolve_paths(cfg)
         out = Path(cfg.out)
+        if out.exists() and not out.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, "--out names a file, not a directory", str(out))
         claim_out_dir(out, overwrite)
-    cfg.validate()
-    return cfg, out
+    return cfg, out, ck
+
+
+def preflight(task: "Task", out: Path, data_dir: Path, log) -> None:
+    """Before any expensive work: ``out`` is a writable directory; the dataset (when it is not all
+    there) fits in the free space of its directory; the dataset fits in memory. Prints the estimates;
+    raises OSError (no space, read-only, permissions) or ValueError (memory) otherwise."""
+    from warp_vision.resources import available_memory_bytes, human_bytes as _mib, require_memory
+
+    probe_writable(out)
+    need = task.dataset_bytes()
+    if not need:
+        return
+    complete = (data_dir / "manifest.json").exists() and not _missing_chunks(data_dir)
+    where = next(p for p in (data_dir, *data_dir.parents) if p.exists())
+    free = shutil.disk_usage(where).free
+    log(f"dataset: about {_mib(need)} at {data_dir} ({'already there' if complete else f'{_mib(free)} free'}); "
+        f"{_mib(available_memory_bytes())} of memory available")
+    if not complete and need > free:
+        raise OSError(errno.ENOSPC, f"No space left for the dataset: it needs about {_mib(need)}, "
+                                    f"{_mib(free)} are free", str(data_dir))
+    require_memory(need, "loading the dataset", "--samples or --photoreceptors")
+
+
+def _check_checkpoint_space(model, out: Path, log) -> None:
+    """Before the first epoch: room in ``out`` for the run's three checkpoints (weights and Adam's two
+    moments, float32, each), or an ENOSPC OSError that says how much is needed."""
+    from warp_vision.resources import human_bytes
+
+    need = 3 * 12 * sum(p.numel() for p in model.parameters())
+    free = shutil.disk_usage(out).free
+    log(f"checkpoints: about {human_bytes(need)} in {out} ({human_bytes(free)} free)")
+    if need > free:
+        raise OSError(errno.ENOSPC, f"No space left for the checkpoints: they need about {human_bytes(need)}, "
+                                    f"{human_bytes(free)} are free", str(out))
+
+
+def _missing_chunks(data_dir: Path) -> bool:
+    """Whether the store in ``data_dir`` still lacks chunks (a store that does not open counts as missing)."""
+    from warp_vision.data.store import ChunkedStore
+
+    try:
+        return bool(ChunkedStore.open(data_dir).missing_chunks())
+    except ValueError:
+        return True
 
 
 def pick_device(name: str) -> str:
-    """"auto" -> cuda:0 when Warp and torch see a GPU, else cpu; "cuda" -> cuda:0."""
-    if name == "auto":
-        from warp_vision.kernels.launch import available_devices
+    """"auto" -> cuda:0 when Warp and torch see a GPU, else cpu; "cuda" -> cuda:0. A device this machine
+    does not have is a ValueError (raised before any work)."""
+    from warp_vision.kernels.launch import available_devices, require_device
 
+    if name == "auto":
         return "cuda:0" if "cuda:0" in available_devices() else "cpu"
-    if name == "cuda":
-        return "cuda:0"
-    return name
+    return require_device(name)
 
 
 class Dist:
@@ -228,7 +333,8 @@ def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, mi
 
 
 def dataset_dir(cfg, kind: str, data_config) -> Path:
-    """``cfg.data_dir``, or the cache directory ``runs/datasets/<kind>-<data config hash>``."""
+    """``cfg.data_dir``, or the cache directory ``runs/datasets/<kind>-<data config hash>`` (relative to the
+    working directory: a new run records it as an absolute path, see :meth:`Task.resolve_paths`)."""
     return Path(cfg.data_dir) if cfg.data_dir else Path("runs/datasets") / f"{kind}-{data_config.key()}"
 
 
@@ -242,16 +348,67 @@ def peak_rss_mib() -> float:
 
 
 def save_checkpoint(obj: dict, path: Path) -> None:
-    atomic_write(path, lambda f: torch.save(obj, f))
+    """``obj`` sealed with its checksum (:func:`warp_vision.nn.trained.seal`) to ``path``, atomically: the
+    bytes are built in memory first, so a failed write leaves the old file and no temporary."""
+    buf = io.BytesIO()
+    torch.save(seal(_unshared(obj)), buf)
+    atomic_write(path, buf.getvalue())
+
+
+def _unshared(x):
+    """``x`` in a canonical form for the pickler, so the same contents always give the same bytes: every
+    tensor in a storage of its own (torch.save writes a storage shared by two entries, such as a
+    normalisation tensor that is also a model buffer, once) and every string interned (pickle writes a
+    string object it has seen as a back-reference, and a resumed run's strings come from unpickling)."""
+    if torch.is_tensor(x):
+        return x.detach().clone()
+    if isinstance(x, str):
+        return sys.intern(x)
+    if isinstance(x, dict):
+        return {_unshared(k): _unshared(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_unshared(v) for v in x)
+    return x
 
 
 def record_epoch(out: Path, row: dict, checkpoint: dict, best: bool) -> None:
-    """Append the epoch's metrics row and write latest.pt (and best.pt when ``best``), atomically."""
-    with open(out / "metrics.jsonl", "a") as f:
-        f.write(json.dumps(row) + "\n")
-    save_checkpoint(checkpoint, out / "latest.pt")
+    """Write latest.pt (the one before it becomes previous.pt), best.pt when ``best``, then append the
+    epoch's metrics row: a row is never in metrics.jsonl before its checkpoint is on disk."""
+    latest = out / "latest.pt"
+    if latest.exists():
+        os.replace(latest, out / "previous.pt")
+    save_checkpoint(checkpoint, latest)
     if best:
         save_checkpoint(checkpoint, out / "best.pt")
+    with open(out / "metrics.jsonl", "a") as f:
+        f.write(json.dumps(row) + "\n")
+
+
+def sync_metrics(out: Path, history: list) -> None:
+    """Make ``out/metrics.jsonl`` hold exactly one row per epoch of a resumed checkpoint's ``history``:
+    rows past it (epochs the checkpoint lacks) are cut; a row the run died before appending is restored
+    from the history (without its timing)."""
+    path = out / "metrics.jsonl"
+    rows = [x for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
+    done = len(history)
+    kept = [x for x in rows if _row_epoch(x) <= done]
+    have = {_row_epoch(x) for x in kept}
+    kept += [json.dumps(r) for r in history if int(r["epoch"]) not in have]
+    kept.sort(key=_row_epoch)
+    if kept != rows:
+        atomic_write(path, "".join(x + "\n" for x in kept))
+
+
+def _row_epoch(line: str) -> int:
+    try:
+        return int(json.loads(line)["epoch"])
+    except (ValueError, KeyError, TypeError):
+        return 1 << 30  # a torn last line: dropped
+
+
+def _reproducible(cfg) -> dict:
+    """The config as checkpoints carry it: without paths."""
+    return {k: v for k, v in asdict(cfg).items() if k not in PATH_FIELDS}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -299,8 +456,9 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     return {k: dd.all_mean(v / max(count, 1)) for k, v in sums.items()}
 
 
-def _setup(task: Task, cfg, out: Path, resume: str | None, dd: Dist, device: str, progress: bool):
-    """Load the data, fit the normalisation, build the net and optimiser, restore a resumed run."""
+def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, progress: bool):
+    """Load the data, fit the normalisation, build the net and optimiser, restore a resumed run from
+    checkpoint ``ck``."""
     task.load((dd.rank, dd.world), progress)
     dd.barrier()
     tr, va, te = task.splits()
@@ -309,14 +467,15 @@ def _setup(task: Task, cfg, out: Path, resume: str | None, dd: Dist, device: str
     task.prepare(model, norm)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
     state = _State(task.selection)
-    if resume:
-        ck = read_checkpoint(out / "latest.pt", map_location=device)
+    if ck is not None:
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         state.start_epoch, state.history, state.bad = ck["epoch"] + 1, ck["history"], ck["bad_epochs"]
         state.best = ck["best"]
         norm = {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in ck["norm"].items()}
-        task.log(f"resuming {out} after epoch {ck['epoch']}")
+        if dd.rank == 0:
+            sync_metrics(out, state.history)
+        task.log(f"resuming {out} after epoch {ck['epoch'] + 1}")
     return (tr, va, te), norm, model, opt, state
 
 
@@ -326,8 +485,9 @@ def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: D
     cfg, (tr, va, _) = task.cfg, ids
 
     def checkpoint(epoch):
-        return {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "history": state.history,
-                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": asdict(cfg), "task": task.name,
+        history = [{k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in state.history]
+        return {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "history": history,
+                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": _reproducible(cfg), "task": task.name,
                 "net": spec, "data": task.data_config()}
 
     for epoch in range(state.start_epoch, cfg.epochs):
@@ -373,7 +533,7 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
             "best_epoch": int(best["epoch"]) + 1, "best_val": state.best,
             **task.summary(test, h, model),
             "seconds_data": t_data, "seconds_total": time.perf_counter() - t_start,
-            "seconds_per_epoch": float(np.median([r["seconds"] for r in h])) if h else None,
+            "seconds_per_epoch": _median_seconds(h),
             "peak_rss_mib": peak_rss_mib(),
             "model_state_mib": 16 * n_params / 2**20,  # weights, gradients and Adam's two moments, float32
         }
@@ -384,6 +544,12 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
     return summary
 
 
+def _median_seconds(history: list) -> float | None:
+    """The median epoch time of the rows that carry one (rows restored from a checkpoint carry none)."""
+    s = [r["seconds"] for r in history if "seconds" in r]
+    return float(np.median(s)) if s else None
+
+
 def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, log=print,
         stop_after_epoch: int | None = None, overwrite: bool = False, epochs: int | None = None) -> dict:
     """Train (or resume) a run of ``task_cls``; returns the summary dict (also written to summary.json).
@@ -392,17 +558,20 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     ``overwrite``, which deletes them first. ``epochs`` gives a resumed run a new epoch cap (see
     :func:`open_run`). ``stop_after_epoch`` (tests) interrupts the run after that epoch, as Ctrl-C would,
     and returns ``{"interrupted": True}``."""
-    cfg, out = open_run(task_cls.config_cls, cfg, resume, overwrite, epochs)
+    say = log if int(os.environ.get("RANK", "0")) == 0 else (lambda *a, **k: None)
+    cfg, out, ck = open_run(task_cls, cfg, resume, overwrite, epochs, say)
     device = pick_device(cfg.device)
-    dd = Dist(device)
-    say = log if dd.rank == 0 else (lambda *a, **k: None)
-    if dd.rank == 0:
-        write_json(out / "config.json", asdict(cfg))
-    t_start = time.perf_counter()
     task = task_cls(cfg, say)
-    ids, norm, model, opt, state = _setup(task, cfg, out, resume, dd, device, progress)
+    if int(os.environ.get("RANK", "0")) == 0:
+        preflight(task, out, Path(dataset_dir(cfg, task_cls.name, cfg.data_config())), say)
+        write_json(out / "config.json", asdict(cfg))
+    dd = Dist(device)
+    t_start = time.perf_counter()
+    ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress)
     t_data = time.perf_counter() - t_start
     spec = task.net_spec()
+    if dd.rank == 0:
+        _check_checkpoint_space(model, out, say)
     net = torch.nn.parallel.DistributedDataParallel(model) if dd.on else model
     say(f"{task.describe(model)}; {len(ids[0]):,} train / {len(ids[1]):,} val / {len(ids[2]):,} test samples; device {device}")
     try:
@@ -416,13 +585,21 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     return _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)
 
 
+def run_config(task_cls, run_dir, ck: dict):
+    """The config of the run in ``run_dir`` whose checkpoint is ``ck``: the checkpoint's config (which
+    carries no paths) with the paths of ``run_dir/config.json``."""
+    path = Path(run_dir) / "config.json"
+    saved = json.loads(path.read_text()) if path.exists() else {}
+    return task_cls.config_cls(**{**ck["config"], **{k: v for k, v in saved.items() if k in PATH_FIELDS}})
+
+
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print) -> dict:
     """Re-evaluate a run's best checkpoint on one of its splits; prints the task's metrics."""
     out = Path(run_dir)
     if not (out / "best.pt").exists():
-        raise FileNotFoundError(f"{run_dir}: no best.pt (is this a training run directory?)")
+        raise FileNotFoundError(errno.ENOENT, "no best.pt: is this a training run directory?", str(out / "best.pt"))
     ck = read_checkpoint(out / "best.pt")
-    cfg = task_cls.config_cls(**ck["config"])
+    cfg = run_config(task_cls, out, ck)
     task = task_cls(cfg, log)
     task.load((0, 1), progress=False, synthesize=False)
     tr, va, te = task.splits()

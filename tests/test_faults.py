@@ -1,0 +1,468 @@
+"""Fault drills on smoke-sized runs: each ends in a bit-identical result or in one line that names the
+file and what is wrong, never in silent wrong numbers or a traceback.
+
+The drills: SIGKILL at random points of synthesis and of training, then resume; a flipped byte in a chunk,
+in a checkpoint and in a manifest; a truncated, emptied or clipped checkpoint; a read-only output; a full
+disk (a real 1 MiB tmpfs where this machine lets root mount one, and ENOSPC injected at the write call
+everywhere); a missing device; a non-finite option; a run moved to another working directory.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from warp_vision.data.foveation import synthesize
+from warp_vision.data.store import CorruptChunkError
+from warp_vision.train import foveation
+from warp_vision.train.cli import main as train_main
+from warp_vision.train.config import resolve
+
+QUIET = dict(progress=False, log=lambda *a: None)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("data")
+    synthesize(d, resolve("smoke", {"data_dir": str(d)}).data_config(), progress=False, log=lambda *a: None)
+    return d
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, data):
+    """A finished smoke run (3 epochs), copied by each test that damages it."""
+    out = tmp_path_factory.mktemp("finished") / "run"
+    foveation.run(resolve("smoke", {"out": str(out), "data_dir": str(data)}), **QUIET)
+    return out
+
+
+def copy_run(src: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "run"
+    shutil.copytree(src, dst)
+    return dst
+
+
+def cli(argv, capsys, cwd: Path | None = None) -> tuple[int, str]:
+    """(exit code, stderr) of ``python -m warp_vision.train ARGV`` run in this process."""
+    old = os.getcwd()
+    if cwd is not None:
+        os.chdir(cwd)
+    try:
+        code = train_main([*argv, "--no-progress"] if argv and argv[0] != "evaluate" else argv)
+    finally:
+        os.chdir(old)
+    return code, capsys.readouterr().err
+
+
+def one_line_naming(err: str, name: str) -> bool:
+    lines = [x for x in err.strip().splitlines() if x.strip()]
+    return len(lines) == 1 and lines[0].startswith("error:") and name in lines[0] and "Traceback" not in err
+
+
+def flip_bit_in_tensor(path: Path, key_path: list, bit: int = 20) -> None:
+    """Flip one bit of the stored bytes of a tensor of the checkpoint at ``path`` (in the file itself:
+    the tensor's bytes are found in the zip and changed in place)."""
+    ck = torch.load(path, weights_only=True)
+    t = ck
+    for k in key_path:
+        t = t[k]
+    raw = t.detach().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes()
+    blob = bytearray(path.read_bytes())
+    at = blob.find(raw)  # (a buffer copied into the model may hold the same bytes: the first is flipped)
+    assert at >= 0, "the tensor's bytes are not in the file"
+    blob[at + bit // 8] ^= 1 << (bit % 8)
+    path.write_bytes(bytes(blob))
+
+
+# --------------------------------------------------------------------------------------------------
+# 1. checkpoints that prove their integrity
+
+
+@pytest.mark.parametrize("where", [["norm", "target_mean"], ["model", "head.weight"]])
+def test_a_flipped_bit_in_best_pt_is_caught_by_evaluate(where, finished, tmp_path, capsys):
+    run = copy_run(finished, tmp_path)
+    flip_bit_in_tensor(run / "best.pt", where)
+    code, err = cli(["evaluate", str(run)], capsys)
+    assert code != 0 and one_line_naming(err, "best.pt") and "checksum" in err, err
+
+
+def test_a_flipped_bit_in_latest_pt_falls_back_on_resume(finished, tmp_path, capsys):
+    run = copy_run(finished, tmp_path)
+    flip_bit_in_tensor(run / "latest.pt", ["model", "head.weight"])
+    code = train_main(["--resume", str(run), "--epochs", "4", "--no-progress"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "latest.pt" in out.out and "previous.pt" in out.out  # says what it did
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [1, 2, 3, 4]  # the damaged epoch 3 was trained again, no row twice
+
+
+@pytest.mark.parametrize("damage", ["half", "empty", "clip100"])
+def test_a_damaged_latest_pt_gives_one_line_before_any_work(damage, finished, tmp_path, capsys, monkeypatch):
+    def load(*a, **k):
+        raise AssertionError("the dataset was loaded before the checkpoint was checked")
+
+    monkeypatch.setattr(foveation.FoveationTask, "load", load)
+    run = copy_run(finished, tmp_path)
+    for name in ("latest.pt", "previous.pt", "best.pt"):  # nothing to fall back on
+        p = run / name
+        if not p.exists():
+            continue
+        raw = p.read_bytes()
+        p.write_bytes({"half": raw[: len(raw) // 2], "empty": b"", "clip100": raw[:-100]}[damage])
+    code, err = cli(["--resume", str(run), "--epochs", "4"], capsys)
+    assert code != 0 and one_line_naming(err, "latest.pt"), err
+
+
+def test_load_net_verifies_the_checkpoint(finished, tmp_path):
+    from warp_vision.nn.trained import load_net
+
+    run = copy_run(finished, tmp_path)
+    load_net(run)
+    flip_bit_in_tensor(run / "best.pt", ["model", "head.weight"])
+    with pytest.raises(ValueError, match="best.pt.*checksum"):
+        load_net(run)
+
+
+def test_identical_runs_give_identical_checkpoints(data, tmp_path):
+    digests = []
+    for k in range(2):
+        out = tmp_path / f"r{k}"
+        foveation.run(resolve("smoke", {"out": str(out), "data_dir": str(data), "epochs": 2}), **QUIET)
+        digests.append([hashlib.sha256((out / n).read_bytes()).hexdigest() for n in ("latest.pt", "best.pt")])
+    assert digests[0] == digests[1]
+
+
+# --------------------------------------------------------------------------------------------------
+# 2. run directories that do not depend on the working directory
+
+
+def test_resume_and_evaluate_from_another_directory(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    cfg = resolve("smoke", {"out": str(run), "data_dir": ""})  # the default, cached dataset location
+    os.chdir(tmp_path)
+    try:
+        shutil.copytree(data, tmp_path / "runs" / "datasets" / f"foveation-{cfg.data_config().key()}")
+        foveation.run(cfg, **QUIET, stop_after_epoch=1)
+    finally:
+        os.chdir(Path(__file__).parent)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    code, err = cli(["--resume", str(run), "--epochs", "2"], capsys, cwd=elsewhere)
+    assert code == 0, err
+    assert list(elsewhere.iterdir()) == []  # nothing rendered or written outside the run and its dataset
+    code, err = cli(["evaluate", str(run)], capsys, cwd=elsewhere)
+    assert code == 0, err
+
+
+# --------------------------------------------------------------------------------------------------
+# 4, 8. preflight before any expensive work
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+def test_cuda_on_a_cpu_machine_fails_before_any_work(tmp_path, capsys):
+    out = tmp_path / "run"
+    code, err = cli(["--preset", "smoke", "--out", str(out), "--data-dir", str(tmp_path / "d"), "--device", "cuda"], capsys)
+    assert code != 0 and one_line_naming(err, "cuda"), err
+    assert not out.exists() and not (tmp_path / "d").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+def test_the_data_command_checks_the_device_first(tmp_path, capsys):
+    from warp_vision.data.cli import main as data_main
+
+    code = data_main(["foveation", "--samples", "8", "--photoreceptors", "100", "--out", str(tmp_path / "d"),
+                      "--device", "cuda"])
+    err = capsys.readouterr()
+    assert code != 0 and "cuda" in (err.err + err.out) and not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize("flag,value", [("--lr", "inf"), ("--lr", "nan"), ("--val-fraction", "nan"),
+                                        ("--max-field-deg", "inf")])
+def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
+    code, err = cli(["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "d"), flag, value], capsys)
+    assert code == 2 and one_line_naming(err, flag.lstrip("-").replace("-", "_")), err
+    assert not (tmp_path / "d").exists()
+
+
+# --------------------------------------------------------------------------------------------------
+# 7, 9. writers that fail cleanly
+
+
+def test_out_naming_a_file_is_one_line(tmp_path, capsys):
+    f = tmp_path / "file"
+    f.write_text("x")
+    code, err = cli(["--preset", "smoke", "--out", str(f), "--data-dir", str(tmp_path / "d")], capsys)
+    assert code != 0 and one_line_naming(err, str(f)), err
+    assert not (tmp_path / "d").exists()
+
+
+def _enospc_after(monkeypatch, name: str):
+    """Make writes of files called ``name`` (their temporaries) fail with ENOSPC."""
+    import warp_vision.fileio as fio
+
+    real = fio.temporary_path
+
+    def full(final):
+        p = real(final)
+        if Path(final).name == name:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(p))
+        return p
+
+    monkeypatch.setattr(fio, "temporary_path", full)
+
+
+def test_a_full_disk_while_checkpointing_leaves_a_consistent_run(data, tmp_path, capsys, monkeypatch):
+    run = tmp_path / "run"
+    foveation.run(resolve("smoke", {"out": str(run), "data_dir": str(data)}), **QUIET, stop_after_epoch=1)
+    _enospc_after(monkeypatch, "latest.pt")
+    code, err = cli(["--resume", str(run)], capsys)
+    assert code != 0 and one_line_naming(err, "latest.pt") and "No space left" in err, err
+    assert not [p for p in run.iterdir() if ".tmp" in p.name]
+    monkeypatch.undo()
+    assert train_main(["--resume", str(run), "--no-progress"]) == 0
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [1, 2, 3]
+
+
+def test_a_row_lost_between_checkpoint_and_metrics_is_restored(data, tmp_path):
+    """Killed after latest.pt was written but before its metrics row was appended: the resumed run
+    restores the row from the checkpoint's history; none is repeated or skipped."""
+    run = tmp_path / "run"
+    foveation.run(resolve("smoke", {"out": str(run), "data_dir": str(data)}), **QUIET, stop_after_epoch=2)
+    m = run / "metrics.jsonl"
+    m.write_text("".join(x + "\n" for x in m.read_text().splitlines()[:1]))
+    assert train_main(["--resume", str(run), "--no-progress"]) == 0
+    rows = [json.loads(x) for x in m.read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [1, 2, 3]
+
+
+def _mount_tmpfs(path: Path, size: str) -> bool:
+    path.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True)
+    return r.returncode == 0
+
+
+def _can_mount() -> bool:
+    import tempfile
+
+    d = Path(tempfile.mkdtemp())
+    ok = _mount_tmpfs(d, "64k")
+    if ok:
+        subprocess.run(["umount", str(d)])
+    return ok
+
+
+REAL_FS = _can_mount()
+
+
+@pytest.mark.skipif(not REAL_FS, reason="this machine does not let the tests mount a tmpfs; the injected ENOSPC drill covers it")
+def test_a_really_full_disk_while_synthesising(tmp_path, capsys):
+    d = tmp_path / "small"
+    assert _mount_tmpfs(d, "128k")
+    try:
+        code, err = cli(["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(d / "data")], capsys)
+        assert code != 0 and "error:" in err and "Traceback" not in err, err
+        assert len(err.strip().splitlines()) == 1 and ("space" in err), err
+        assert not [p for p in (d / "data").rglob("*") if ".tmp" in p.name]
+    finally:
+        subprocess.run(["umount", str(d)])
+
+
+@pytest.mark.skipif(not REAL_FS, reason="this machine does not let the tests mount a tmpfs; the injected EROFS drill covers it")
+def test_a_read_only_output(data, tmp_path, capsys):
+    d = tmp_path / "ro"
+    assert _mount_tmpfs(d, "4m")
+    try:
+        subprocess.run(["mount", "-o", "remount,ro", str(d)], check=True)
+        code, err = cli(["--preset", "smoke", "--out", str(d / "run"), "--data-dir", str(data)], capsys)
+        assert code != 0 and one_line_naming(err, str(d / "run")) and "Read-only" in err, err
+    finally:
+        subprocess.run(["umount", str(d)])
+
+
+def test_a_read_only_partial_dataset_fails_before_rendering(data, tmp_path, capsys, monkeypatch):
+    """A dataset with a missing chunk in a directory that refuses writes: the error comes before the
+    chunk is rendered (EROFS injected at the write probe)."""
+    import warp_vision.fileio as fio
+
+    d = tmp_path / "data"
+    shutil.copytree(data, d)
+    victim = sorted(d.glob("chunk_*.json"))[-1]
+    victim.unlink()
+    rendered = []
+    import warp_vision.data.foveation as F
+
+    real_render = F.render_samples
+    monkeypatch.setattr(F, "render_samples", lambda *a, **k: rendered.append(1) or real_render(*a, **k))
+    real = fio.temporary_path
+
+    def ro(final):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(real(final)))
+
+    monkeypatch.setattr(fio, "temporary_path", ro)
+    code, err = cli(["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(d)], capsys)
+    assert code != 0 and "Read-only" in err and len(err.strip().splitlines()) == 1, err
+    assert rendered == []
+
+
+# --------------------------------------------------------------------------------------------------
+# drills: SIGKILL and flipped bytes in data
+
+
+def _kill_and_resume(argv: list[str], out_files: list[Path], tmp_path: Path, seed: int) -> None:
+    """Run ``argv`` in a subprocess, SIGKILL it at a random moment, run it again to the end."""
+    rng = np.random.default_rng(seed)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    p = subprocess.Popen([sys.executable, "-m", "warp_vision.train", *argv, "--no-progress"], cwd=tmp_path, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    marker = "synthesising" if out_files[0].name == "synth" else "parameters"  # the phase to kill in
+    t0 = time.time()
+    for line in p.stdout:  # wait until the phase begins, then a random moment within it
+        if marker in line or time.time() - t0 > 120:
+            break
+    time.sleep(float(rng.uniform(0.0, 1.5 if marker == "synthesising" else 0.4)))
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+
+
+def test_sigkill_during_synthesis_then_resume_is_bit_identical(data, tmp_path):
+    d = tmp_path / "synth"
+    cfg = resolve("smoke", {"data_dir": str(d)})
+    argv = ["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(d)]
+    _kill_and_resume(argv, [d], tmp_path, seed=1)
+    synthesize(d, cfg.data_config(), progress=False, log=lambda *a: None)
+    for f in sorted(data.glob("chunk_*.npy")):
+        assert (d / f.name).read_bytes() == f.read_bytes(), f.name
+    assert not [p for p in d.iterdir() if ".tmp" in p.name]
+
+
+def test_sigkill_during_training_then_resume_is_bit_identical(data, finished, tmp_path):
+    run = tmp_path / "run"
+    argv = ["--preset", "smoke", "--out", str(run), "--data-dir", str(data), "--epochs", "3"]
+    _kill_and_resume(argv, [run], tmp_path, seed=2)
+    if (run / "latest.pt").exists():
+        assert train_main(["--resume", str(run), "--no-progress"]) == 0
+    else:  # killed before the first epoch ended: start again
+        assert train_main([*argv, "--overwrite", "--no-progress"]) == 0
+    for name in ("latest.pt", "best.pt"):
+        assert (run / name).read_bytes() == (finished / name).read_bytes(), name
+    rows = [json.loads(x)["epoch"] for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert rows == [1, 2, 3]
+
+
+def test_an_interrupted_and_resumed_run_writes_the_same_bytes(data, finished, tmp_path):
+    run = tmp_path / "run"
+    foveation.run(resolve("smoke", {"out": str(run), "data_dir": str(data)}), **QUIET, stop_after_epoch=1)
+    foveation.run(resume=str(run), **QUIET)
+    for name in ("latest.pt", "previous.pt", "best.pt"):
+        assert (run / name).read_bytes() == (finished / name).read_bytes(), name
+
+
+def test_a_flipped_byte_in_a_chunk_names_the_file(data, tmp_path, capsys):
+    d = tmp_path / "data"
+    shutil.copytree(data, d)
+    victim = sorted(d.glob("chunk_*.onv.npy"))[0]
+    raw = bytearray(victim.read_bytes())
+    raw[-7] ^= 0xFF
+    victim.write_bytes(bytes(raw))
+    code, err = cli(["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(d)], capsys)
+    assert code != 0 and one_line_naming(err, victim.name), err
+    with pytest.raises(CorruptChunkError, match=victim.name):  # the API's own exception (a ValueError)
+        foveation.run(resolve("smoke", {"out": str(tmp_path / "run2"), "data_dir": str(d)}), **QUIET)
+
+
+def test_a_flipped_byte_in_the_manifest_names_the_file(data, tmp_path, capsys):
+    d = tmp_path / "data"
+    shutil.copytree(data, d)
+    m = d / "manifest.json"
+    raw = bytearray(m.read_bytes())
+    raw[len(raw) // 2] ^= 0x01
+    m.write_bytes(bytes(raw))
+    code, err = cli(["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(d)], capsys)
+    assert code != 0 and one_line_naming(err, "manifest.json"), err
+
+
+# --------------------------------------------------------------------------------------------------
+# 6, 10. sizes bounded by memory, and the smaller faults
+
+
+def _tiny_scene():
+    from warp_vision.frames import translation
+    from warp_vision.scene import Material, Scene
+
+    sc = Scene(ambient=(0.1, 0.1, 0.1))
+    sc.add_sphere("ball", 0.1, (0, 0, 0), Material((1, 1, 1)), subdivisions=1)
+    sc.set_transform("ball", translation([0.0, 1.0, 0.0]))
+    sc.add_light((0.0, 0.0, 2.0))
+    return sc
+
+
+def _eye_and_pose():
+    from warp_vision.eye.optics import NavarroEye
+    from warp_vision.eye.retina import Retina
+    from warp_vision.frames import eye_look_at
+
+    return Retina.log_polar(50), NavarroEye(), eye_look_at([0.0, -0.5, 0.0], [0.0, 1.0, 0.0])
+
+
+def test_render_onv_refuses_rays_that_cannot_fit_before_allocating():
+    from warp_vision.kernels.render import render_onv
+
+    retina, eye, pose = _eye_and_pose()
+    with pytest.raises(ValueError, match=r"render_onv \(B=1, P=50, S=1,000,000,000\) needs about .* GiB.*lower samples_per_receptor"):
+        render_onv(_tiny_scene(), retina, eye, pose[None], samples_per_receptor=10**9)
+
+
+def test_a_retina_that_cannot_fit_is_refused_at_once():
+    from warp_vision.eye.retina import Retina
+
+    with pytest.raises(ValueError, match=r"P=1,000,000,000 photoreceptors needs about .* GiB.*lower P"):
+        Retina.log_polar(10**9)
+
+
+def test_render_onv_of_no_poses_is_empty():
+    from warp_vision.kernels.render import render_onv
+
+    retina, eye, _ = _eye_and_pose()
+    onv = render_onv(_tiny_scene(), retina, eye, np.zeros((0, 4, 4)), samples_per_receptor=1)
+    assert onv.shape == (0, 150)
+
+
+def test_a_pose_with_a_wrong_bottom_row_is_refused():
+    from warp_vision.kernels.render import render_onv
+
+    retina, eye, pose = _eye_and_pose()
+    bad = pose.copy()
+    bad[3] = [0.0, 0.0, 0.5, 1.0]
+    with pytest.raises(ValueError, match=r"bottom row \[0, 0, 0, 1\]"):
+        render_onv(_tiny_scene(), retina, eye, bad[None], samples_per_receptor=1)
+
+
+@pytest.mark.parametrize("kw", [dict(accommodation_D=None), dict(pupil_diameter_mm=[4.0]), dict(lens_semi_diameter_mm=float("nan"))])
+def test_navarro_eye_names_a_bad_argument(kw):
+    from warp_vision.eye.optics import NavarroEye
+
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        NavarroEye(**kw)
+
+
+@pytest.mark.parametrize("kw", [dict(pupil_mm=float("nan")), dict(accommodation_D=float("inf"))])
+def test_set_intraocular_refuses_non_finite_commands(kw):
+    from warp_vision.sim.body import Body, BodyConfig
+
+    body = Body(BodyConfig(arms=False))
+    with pytest.raises(ValueError, match=next(iter(kw))):
+        body.set_intraocular("left", **kw)
