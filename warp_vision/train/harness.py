@@ -12,17 +12,11 @@ owns the rest, the same for every task:
   of the epoch (or lowered on a plateau), progress bars, early stopping;
 - a NaN or infinite loss or gradient stops the run with :class:`NonFiniteLoss`, the last good checkpoint
   untouched; Ctrl-C leaves the last finished epoch resumable;
-- preflight before any expensive work (:func:`preflight`): the device exists, the output is a writable
-  directory, the dataset fits on the disk and in memory (estimates printed);
-- sealed checkpoints (``latest.pt`` every epoch, the one before it kept as ``previous.pt``, ``best.pt``
-  when the task's rule says so; each carries a checksum that every reader verifies), then one
-  ``metrics.jsonl`` row per epoch, ``summary.json`` and ``figures/``. A resumed run starts from the newest
-  checkpoint that verifies (saying so when it falls back) and brings ``metrics.jsonl`` to exactly its
-  epochs, so no row is repeated or skipped.
-
-Paths: a new run records ``out``, ``data_dir`` (and the task's other paths) as absolute paths in
-``config.json``, so ``--resume`` and ``evaluate`` work from any directory; checkpoints carry the config
-without paths and the history without timings, so two identical runs write identical checkpoints.
+- the run directory's files (:mod:`warp_vision.train.rundir`): the preflight before any expensive work
+  (the device exists, the output is a writable directory, the dataset fits on the disk and in memory),
+  sealed checkpoints (``latest.pt`` every epoch, the one before it kept as ``previous.pt``, ``best.pt``
+  when the task's rule says so), then one ``metrics.jsonl`` row per epoch, ``summary.json`` and
+  ``figures/``. A resumed run starts from the newest checkpoint that verifies.
 
 A checkpoint holds plain tensors and numbers (``torch.load(path, weights_only=True)`` reads it): the model
 and optimiser state, the epoch, the history, the selection state, the input normalisation, the config,
@@ -33,12 +27,8 @@ package's training code.
 from __future__ import annotations
 
 import errno
-import io
-import json
 import math
 import os
-import shutil
-import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -47,24 +37,16 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from warp_vision.fileio import atomic_write, probe_writable, write_json
-from warp_vision.nn.trained import build_net, read_checkpoint, seal
+from warp_vision.fileio import write_json
+from warp_vision.nn.trained import build_net, read_checkpoint
 from warp_vision.train.config import epoch_lr
+from warp_vision.train.rundir import (TIMING_FIELDS, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
+                                      preflight, record_epoch, run_config, sync_metrics)
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
 #: without a better validation metric.
 PLATEAU_EPOCHS = 3
 PLATEAU_FACTOR = 0.3
-#: the files a run directory's run consists of (a new run refuses a directory holding any of them)
-RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
-#: the checkpoints a resumed run may start from, newest first
-RESUME_FROM = ("latest.pt", "previous.pt", "best.pt")
-#: config fields that are paths: resolved to absolute paths when a run is created, kept out of checkpoints
-PATH_FIELDS = ("out", "data_dir", "identities_cache")
-#: metrics-row entries that vary between identical runs: kept out of checkpoints
-TIMING_FIELDS = ("seconds",)
-
-
 class NonFiniteLoss(RuntimeError):
     """The loss or the gradient became NaN or infinite; the last good checkpoint is left as it was."""
 
@@ -173,120 +155,6 @@ def initial_best(selection: dict) -> dict:
 # run directories, devices, processes
 
 
-def claim_out_dir(out: Path, overwrite: bool) -> None:
-    """Refuse to start a new run in a directory that holds one (its metrics or checkpoints), unless
-    ``overwrite``: then delete them (rank 0)."""
-    old = [out / n for n in RUN_FILES]
-    if any(f.exists() for f in old):
-        if not overwrite:
-            raise ValueError(f"--out {out} already holds a run; continue it with --resume {out}, "
-                             f"choose another --out, or pass --overwrite to replace it")
-        if int(os.environ.get("RANK", "0")) == 0:
-            for f in old:
-                f.unlink(missing_ok=True)
-
-
-def _usable_checkpoint(out: Path, log) -> tuple[dict, Path]:
-    """The newest checkpoint of run ``out`` that reads and verifies (latest.pt, else previous.pt, else
-    best.pt), saying which when it is not latest.pt; one ValueError naming them all if none does."""
-    problems = []
-    for name in RESUME_FROM:
-        path = out / name
-        if not path.exists():
-            problems.append(f"{path}: missing")
-            continue
-        try:
-            ck = read_checkpoint(path)
-        except ValueError as e:
-            problems.append(str(e))
-            continue
-        if problems:
-            log(f"{'; '.join(problems)}; resuming from {path} (epoch {ck['epoch'] + 1}) instead")
-        return ck, path
-    raise ValueError(f"--resume {out}: no checkpoint to resume from: {'; '.join(problems)}")
-
-
-def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | None = None, log=print):
-    """(validated config, output directory, checkpoint to resume from or None) of the run to resume (its
-    config.json read as ``task_cls.config_cls``) or of the new run ``cfg`` (refusing an --out that holds a run unless
-    ``overwrite``). Reads nothing but small files and checkpoints: a damaged run fails here, before any
-    data is loaded.
-
-    ``epochs`` (resume only) changes the resumed run's epoch cap: more to extend it, or the epochs
-    already done to end it now (the best checkpoint is then evaluated and the figures written).
-    """
-    ck = None
-    if resume:
-        out = Path(resume).resolve()
-        if not (out / "config.json").exists():
-            raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
-        cfg = task_cls.config_cls(**json.loads((out / "config.json").read_text()))
-        if epochs is not None:
-            cfg.epochs = epochs
-        cfg.validate()
-        cfg.out = str(out)
-        task_cls.resolve_paths(cfg)  # (a run made before paths were recorded absolute: as the working directory says)
-        pick_device(cfg.device)
-        ck, _ = _usable_checkpoint(out, log)
-    elif epochs is not None:
-        raise ValueError("epochs: only a resumed run takes a new epoch cap; set it in the config otherwise")
-    elif cfg is None:
-        raise ValueError("run: give a config or a run directory to resume")
-    else:
-        cfg.validate()
-        pick_device(cfg.device)  # before anything is written
-        task_cls.resolve_paths(cfg)
-        out = Path(cfg.out)
-        if out.exists() and not out.is_dir():
-            raise NotADirectoryError(errno.ENOTDIR, "--out names a file, not a directory", str(out))
-        claim_out_dir(out, overwrite)
-    return cfg, out, ck
-
-
-def preflight(task: "Task", out: Path, data_dir: Path, log) -> None:
-    """Before any expensive work: ``out`` is a writable directory; the dataset (when it is not all
-    there) fits in the free space of its directory; the dataset fits in memory. Prints the estimates;
-    raises OSError (no space, read-only, permissions) or ValueError (memory) otherwise."""
-    from warp_vision.resources import available_memory_bytes, human_bytes as _mib, require_memory
-
-    probe_writable(out)
-    need = task.dataset_bytes()
-    if not need:
-        return
-    complete = (data_dir / "manifest.json").exists() and not _missing_chunks(data_dir)
-    where = next(p for p in (data_dir, *data_dir.parents) if p.exists())
-    free = shutil.disk_usage(where).free
-    log(f"dataset: about {_mib(need)} at {data_dir} ({'already there' if complete else f'{_mib(free)} free'}); "
-        f"{_mib(available_memory_bytes())} of memory available")
-    if not complete and need > free:
-        raise OSError(errno.ENOSPC, f"No space left for the dataset: it needs about {_mib(need)}, "
-                                    f"{_mib(free)} are free", str(data_dir))
-    require_memory(need, "loading the dataset", "--samples or --photoreceptors")
-
-
-def _check_checkpoint_space(model, out: Path, log) -> None:
-    """Before the first epoch: room in ``out`` for the run's three checkpoints (weights and Adam's two
-    moments, float32, each), or an ENOSPC OSError that says how much is needed."""
-    from warp_vision.resources import human_bytes
-
-    need = 3 * 12 * sum(p.numel() for p in model.parameters())
-    free = shutil.disk_usage(out).free
-    log(f"checkpoints: about {human_bytes(need)} in {out} ({human_bytes(free)} free)")
-    if need > free:
-        raise OSError(errno.ENOSPC, f"No space left for the checkpoints: they need about {human_bytes(need)}, "
-                                    f"{human_bytes(free)} are free", str(out))
-
-
-def _missing_chunks(data_dir: Path) -> bool:
-    """Whether the store in ``data_dir`` still lacks chunks (a store that does not open counts as missing)."""
-    from warp_vision.data.store import ChunkedStore
-
-    try:
-        return bool(ChunkedStore.open(data_dir).missing_chunks())
-    except ValueError:
-        return True
-
-
 def pick_device(name: str) -> str:
     """"auto" -> cuda:0 when Warp and torch see a GPU, else cpu; "cuda" -> cuda:0. A device this machine
     does not have is a ValueError (raised before any work)."""
@@ -332,12 +200,6 @@ def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, mi
     return perm[n_test + n_val :], perm[n_test : n_test + n_val], perm[:n_test]
 
 
-def dataset_dir(cfg, kind: str, data_config) -> Path:
-    """``cfg.data_dir``, or the cache directory ``runs/datasets/<kind>-<data config hash>`` (relative to the
-    working directory: a new run records it as an absolute path, see :meth:`Task.resolve_paths`)."""
-    return Path(cfg.data_dir) if cfg.data_dir else Path("runs/datasets") / f"{kind}-{data_config.key()}"
-
-
 def peak_rss_mib() -> float:
     """This process's peak resident memory (MiB) so far: dataset, model, activations and all."""
     import resource
@@ -345,70 +207,6 @@ def peak_rss_mib() -> float:
 
     r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return r / 2**20 if sys.platform == "darwin" else r / 1024
-
-
-def save_checkpoint(obj: dict, path: Path) -> None:
-    """``obj`` sealed with its checksum (:func:`warp_vision.nn.trained.seal`) to ``path``, atomically: the
-    bytes are built in memory first, so a failed write leaves the old file and no temporary."""
-    buf = io.BytesIO()
-    torch.save(seal(_unshared(obj)), buf)
-    atomic_write(path, buf.getvalue())
-
-
-def _unshared(x):
-    """``x`` in a canonical form for the pickler, so the same contents always give the same bytes: every
-    tensor in a storage of its own (torch.save writes a storage shared by two entries, such as a
-    normalisation tensor that is also a model buffer, once) and every string interned (pickle writes a
-    string object it has seen as a back-reference, and a resumed run's strings come from unpickling)."""
-    if torch.is_tensor(x):
-        return x.detach().clone()
-    if isinstance(x, str):
-        return sys.intern(x)
-    if isinstance(x, dict):
-        return {_unshared(k): _unshared(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return type(x)(_unshared(v) for v in x)
-    return x
-
-
-def record_epoch(out: Path, row: dict, checkpoint: dict, best: bool) -> None:
-    """Write latest.pt (the one before it becomes previous.pt), best.pt when ``best``, then append the
-    epoch's metrics row: a row is never in metrics.jsonl before its checkpoint is on disk."""
-    latest = out / "latest.pt"
-    if latest.exists():
-        os.replace(latest, out / "previous.pt")
-    save_checkpoint(checkpoint, latest)
-    if best:
-        save_checkpoint(checkpoint, out / "best.pt")
-    with open(out / "metrics.jsonl", "a") as f:
-        f.write(json.dumps(row) + "\n")
-
-
-def sync_metrics(out: Path, history: list) -> None:
-    """Make ``out/metrics.jsonl`` hold exactly one row per epoch of a resumed checkpoint's ``history``:
-    rows past it (epochs the checkpoint lacks) are cut; a row the run died before appending is restored
-    from the history (without its timing)."""
-    path = out / "metrics.jsonl"
-    rows = [x for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
-    done = len(history)
-    kept = [x for x in rows if _row_epoch(x) <= done]
-    have = {_row_epoch(x) for x in kept}
-    kept += [json.dumps(r) for r in history if int(r["epoch"]) not in have]
-    kept.sort(key=_row_epoch)
-    if kept != rows:
-        atomic_write(path, "".join(x + "\n" for x in kept))
-
-
-def _row_epoch(line: str) -> int:
-    try:
-        return int(json.loads(line)["epoch"])
-    except (ValueError, KeyError, TypeError):
-        return 1 << 30  # a torn last line: dropped
-
-
-def _reproducible(cfg) -> dict:
-    """The config as checkpoints carry it: without paths."""
-    return {k: v for k, v in asdict(cfg).items() if k not in PATH_FIELDS}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -487,7 +285,7 @@ def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: D
     def checkpoint(epoch):
         history = [{k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in state.history]
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "history": history,
-                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": _reproducible(cfg), "task": task.name,
+                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": reproducible_config(cfg), "task": task.name,
                 "net": spec, "data": task.data_config()}
 
     for epoch in range(state.start_epoch, cfg.epochs):
@@ -571,7 +369,7 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     t_data = time.perf_counter() - t_start
     spec = task.net_spec()
     if dd.rank == 0:
-        _check_checkpoint_space(model, out, say)
+        check_checkpoint_space(model, out, say)
     net = torch.nn.parallel.DistributedDataParallel(model) if dd.on else model
     say(f"{task.describe(model)}; {len(ids[0]):,} train / {len(ids[1]):,} val / {len(ids[2]):,} test samples; device {device}")
     try:
@@ -583,14 +381,6 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
         return {"interrupted": True}
     say(stopped)
     return _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)
-
-
-def run_config(task_cls, run_dir, ck: dict):
-    """The config of the run in ``run_dir`` whose checkpoint is ``ck``: the checkpoint's config (which
-    carries no paths) with the paths of ``run_dir/config.json``."""
-    path = Path(run_dir) / "config.json"
-    saved = json.loads(path.read_text()) if path.exists() else {}
-    return task_cls.config_cls(**{**ck["config"], **{k: v for k, v in saved.items() if k in PATH_FIELDS}})
 
 
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print) -> dict:

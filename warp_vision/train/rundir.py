@@ -1,0 +1,235 @@
+"""A training run's directory: claiming or resuming it, the preflight, sealed checkpoints, metrics rows.
+
+``RUN_DIR/config.json`` holds the run's config with its paths made absolute when the run was created
+(:meth:`warp_vision.train.harness.Task.resolve_paths`), so ``--resume`` and ``evaluate`` work from any
+working directory. Checkpoints (``latest.pt``, ``previous.pt``: the one before it, ``best.pt``) are
+sealed with a sha256 (:func:`warp_vision.nn.trained.seal`) that every reader checks, and carry the
+config without paths and the history without timings, so identical runs write identical bytes. A
+checkpoint is written before its ``metrics.jsonl`` row; a resumed run starts from the newest checkpoint
+that verifies and brings ``metrics.jsonl`` to exactly its epochs.
+"""
+
+from __future__ import annotations
+
+import errno
+import io
+import json
+import os
+import shutil
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+from warp_vision.fileio import atomic_write, probe_writable
+from warp_vision.nn.trained import read_checkpoint, seal
+
+#: the files a run directory's run consists of (a new run refuses a directory holding any of them)
+RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
+#: the checkpoints a resumed run may start from, newest first
+RESUME_FROM = ("latest.pt", "previous.pt", "best.pt")
+#: config fields that are paths: resolved to absolute paths when a run is created, kept out of checkpoints
+PATH_FIELDS = ("out", "data_dir", "identities_cache")
+#: metrics-row entries that vary between identical runs: kept out of checkpoints
+TIMING_FIELDS = ("seconds",)
+
+
+def claim_out_dir(out: Path, overwrite: bool) -> None:
+    """Refuse to start a new run in a directory that holds one (its metrics or checkpoints), unless
+    ``overwrite``: then delete them (rank 0)."""
+    old = [out / n for n in RUN_FILES]
+    if any(f.exists() for f in old):
+        if not overwrite:
+            raise ValueError(f"--out {out} already holds a run; continue it with --resume {out}, "
+                             f"choose another --out, or pass --overwrite to replace it")
+        if int(os.environ.get("RANK", "0")) == 0:
+            for f in old:
+                f.unlink(missing_ok=True)
+
+
+def _usable_checkpoint(out: Path, log) -> tuple[dict, Path]:
+    """The newest checkpoint of run ``out`` that reads and verifies (latest.pt, else previous.pt, else
+    best.pt), saying which when it is not latest.pt; one ValueError naming them all if none does."""
+    problems = []
+    for name in RESUME_FROM:
+        path = out / name
+        if not path.exists():
+            problems.append(f"{path}: missing")
+            continue
+        try:
+            ck = read_checkpoint(path)
+        except ValueError as e:
+            problems.append(str(e))
+            continue
+        if problems:
+            log(f"{'; '.join(problems)}; resuming from {path} (epoch {ck['epoch'] + 1}) instead")
+        return ck, path
+    raise ValueError(f"--resume {out}: no checkpoint to resume from: {'; '.join(problems)}")
+
+
+def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | None = None, log=print):
+    """(validated config, output directory, checkpoint to resume from or None) of the run to resume (its
+    config.json read as ``task_cls.config_cls``) or of the new run ``cfg`` (refusing an --out that holds a run unless
+    ``overwrite``). Reads nothing but small files and checkpoints: a damaged run fails here, before any
+    data is loaded.
+
+    ``epochs`` (resume only) changes the resumed run's epoch cap: more to extend it, or the epochs
+    already done to end it now (the best checkpoint is then evaluated and the figures written).
+    """
+    ck = None
+    if resume:
+        out = Path(resume).resolve()
+        if not (out / "config.json").exists():
+            raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
+        cfg = task_cls.config_cls(**json.loads((out / "config.json").read_text()))
+        if epochs is not None:
+            cfg.epochs = epochs
+        cfg.validate()
+        cfg.out = str(out)
+        task_cls.resolve_paths(cfg)  # (a run made before paths were recorded absolute: as the working directory says)
+        _check_device(cfg.device)
+        ck, _ = _usable_checkpoint(out, log)
+    elif epochs is not None:
+        raise ValueError("epochs: only a resumed run takes a new epoch cap; set it in the config otherwise")
+    elif cfg is None:
+        raise ValueError("run: give a config or a run directory to resume")
+    else:
+        cfg.validate()
+        _check_device(cfg.device)  # before anything is written
+        task_cls.resolve_paths(cfg)
+        out = Path(cfg.out)
+        if out.exists() and not out.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, "--out names a file, not a directory", str(out))
+        claim_out_dir(out, overwrite)
+    return cfg, out, ck
+
+
+def _check_device(name: str) -> None:
+    """A device this machine lacks is a ValueError (``auto`` always resolves)."""
+    if name != "auto":
+        from warp_vision.kernels.launch import require_device
+
+        require_device(name)
+
+
+def preflight(task, out: Path, data_dir: Path, log) -> None:
+    """Before any expensive work: ``out`` is a writable directory; the dataset (when it is not all
+    there) fits in the free space of its directory; the dataset fits in memory. Prints the estimates;
+    raises OSError (no space, read-only, permissions) or ValueError (memory) otherwise."""
+    from warp_vision.resources import available_memory_bytes, human_bytes as _mib, require_memory
+
+    probe_writable(out)
+    need = task.dataset_bytes()
+    if not need:
+        return
+    complete = (data_dir / "manifest.json").exists() and not _missing_chunks(data_dir)
+    where = next(p for p in (data_dir, *data_dir.parents) if p.exists())
+    free = shutil.disk_usage(where).free
+    log(f"dataset: about {_mib(need)} at {data_dir} ({'already there' if complete else f'{_mib(free)} free'}); "
+        f"{_mib(available_memory_bytes())} of memory available")
+    if not complete and need > free:
+        raise OSError(errno.ENOSPC, f"No space left for the dataset: it needs about {_mib(need)}, "
+                                    f"{_mib(free)} are free", str(data_dir))
+    require_memory(need, "loading the dataset", "--samples or --photoreceptors")
+
+
+def check_checkpoint_space(model, out: Path, log) -> None:
+    """Before the first epoch: room in ``out`` for the run's three checkpoints (weights and Adam's two
+    moments, float32, each), or an ENOSPC OSError that says how much is needed."""
+    from warp_vision.resources import human_bytes
+
+    need = 3 * 12 * sum(p.numel() for p in model.parameters())
+    free = shutil.disk_usage(out).free
+    log(f"checkpoints: about {human_bytes(need)} in {out} ({human_bytes(free)} free)")
+    if need > free:
+        raise OSError(errno.ENOSPC, f"No space left for the checkpoints: they need about {human_bytes(need)}, "
+                                    f"{human_bytes(free)} are free", str(out))
+
+
+def _missing_chunks(data_dir: Path) -> bool:
+    """Whether the store in ``data_dir`` still lacks chunks (a store that does not open counts as missing)."""
+    from warp_vision.data.store import ChunkedStore
+
+    try:
+        return bool(ChunkedStore.open(data_dir).missing_chunks())
+    except ValueError:
+        return True
+
+
+def dataset_dir(cfg, kind: str, data_config) -> Path:
+    """``cfg.data_dir``, or the cache directory ``runs/datasets/<kind>-<data config hash>`` (relative to the
+    working directory: a new run records it as an absolute path, see :meth:`warp_vision.train.harness.Task.resolve_paths`)."""
+    return Path(cfg.data_dir) if cfg.data_dir else Path("runs/datasets") / f"{kind}-{data_config.key()}"
+
+
+def save_checkpoint(obj: dict, path: Path) -> None:
+    """``obj`` sealed with its checksum (:func:`warp_vision.nn.trained.seal`) to ``path``, atomically: the
+    bytes are built in memory first, so a failed write leaves the old file and no temporary."""
+    buf = io.BytesIO()
+    torch.save(seal(_unshared(obj)), buf)
+    atomic_write(path, buf.getvalue())
+
+
+def _unshared(x):
+    """``x`` in a canonical form for the pickler, so the same contents always give the same bytes: every
+    tensor in a storage of its own (torch.save writes a storage shared by two entries, such as a
+    normalisation tensor that is also a model buffer, once) and every string interned (pickle writes a
+    string object it has seen as a back-reference, and a resumed run's strings come from unpickling)."""
+    if torch.is_tensor(x):
+        return x.detach().clone()
+    if isinstance(x, str):
+        return sys.intern(x)
+    if isinstance(x, dict):
+        return {_unshared(k): _unshared(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_unshared(v) for v in x)
+    return x
+
+
+def record_epoch(out: Path, row: dict, checkpoint: dict, best: bool) -> None:
+    """Write latest.pt (the one before it becomes previous.pt), best.pt when ``best``, then append the
+    epoch's metrics row: a row is never in metrics.jsonl before its checkpoint is on disk."""
+    latest = out / "latest.pt"
+    if latest.exists():
+        os.replace(latest, out / "previous.pt")
+    save_checkpoint(checkpoint, latest)
+    if best:
+        save_checkpoint(checkpoint, out / "best.pt")
+    with open(out / "metrics.jsonl", "a") as f:
+        f.write(json.dumps(row) + "\n")
+
+
+def sync_metrics(out: Path, history: list) -> None:
+    """Make ``out/metrics.jsonl`` hold exactly one row per epoch of a resumed checkpoint's ``history``:
+    rows past it (epochs the checkpoint lacks) are cut; a row the run died before appending is restored
+    from the history (without its timing)."""
+    path = out / "metrics.jsonl"
+    rows = [x for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
+    done = len(history)
+    kept = [x for x in rows if _row_epoch(x) <= done]
+    have = {_row_epoch(x) for x in kept}
+    kept += [json.dumps(r) for r in history if int(r["epoch"]) not in have]
+    kept.sort(key=_row_epoch)
+    if kept != rows:
+        atomic_write(path, "".join(x + "\n" for x in kept))
+
+
+def _row_epoch(line: str) -> int:
+    try:
+        return int(json.loads(line)["epoch"])
+    except (ValueError, KeyError, TypeError):
+        return 1 << 30  # a torn last line: dropped
+
+
+def reproducible_config(cfg) -> dict:
+    """The config as checkpoints carry it: without paths."""
+    return {k: v for k, v in asdict(cfg).items() if k not in PATH_FIELDS}
+
+
+def run_config(task_cls, run_dir, ck: dict):
+    """The config of the run in ``run_dir`` whose checkpoint is ``ck``: the checkpoint's config (which
+    carries no paths) with the paths of ``run_dir/config.json``."""
+    path = Path(run_dir) / "config.json"
+    saved = json.loads(path.read_text()) if path.exists() else {}
+    return task_cls.config_cls(**{**ck["config"], **{k: v for k, v in saved.items() if k in PATH_FIELDS}})
