@@ -152,12 +152,13 @@ def test_identical_runs_give_identical_checkpoints(data, tmp_path):
 def test_resume_and_evaluate_from_another_directory(data, tmp_path, capsys):
     run = tmp_path / "run"
     cfg = resolve("smoke", {"out": str(run), "data_dir": ""})  # the default, cached dataset location
+    old = os.getcwd()
     os.chdir(tmp_path)
     try:
         shutil.copytree(data, tmp_path / "runs" / "datasets" / f"foveation-{cfg.data_config().key()}")
         foveation.run(cfg, **QUIET, stop_after_epoch=1)
     finally:
-        os.chdir(Path(__file__).parent)
+        os.chdir(old)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     code, err = cli(["--resume", str(run), "--epochs", "2"], capsys, cwd=elsewhere)
