@@ -106,6 +106,64 @@ def test_feature_major_path_matches_reference(B, n_in, N, R, dtype, relu, featur
     )
 
 
+#: unit roundoff of the half types (half the spacing of numbers near 1) and their smallest subnormal:
+#: rounding a float32 to them moves it by at most u * |value| + tiny / 2
+HALF_ROUNDING = {torch.float16: (2.0**-11, 2.0**-24), torch.bfloat16: (2.0**-8, 2.0**-133)}
+
+
+@pytest.mark.parametrize("x_dtype", [torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("relu", [False, True])
+@pytest.mark.parametrize("layout", ["batch_major", "feature_major"])
+@pytest.mark.parametrize("B,n_in,N,R", [(3, 7, 5, 3), (13, 300, 61, 9), (64, 300, 61, 9), (128, 2000, 400, 20)])
+def test_half_precision_x_matches_reference(B, n_in, N, R, x_dtype, relu, layout, device):
+    """A float16 or bfloat16 x with float32 weights. The kernels widen x exactly, so y and grad_weight
+    differ from the exact (float64) values only by float32 summation order (the float32 tolerance);
+    grad_x, summed in float32 and rounded once to x's dtype, by that plus the rounding: u |grad_x| + tiny."""
+    x, w, b, index = make_case(B, n_in, N, R, torch.float32, device, seed=3, unread=2)
+    x = x.to(x_dtype)
+    if layout == "feature_major":
+        x = x.t().contiguous().t()
+    x.requires_grad_(True)
+    w.requires_grad_(True)
+    b.requires_grad_(True)
+    y = locally_connected(x, w, b, index, relu=relu)
+    assert y.dtype == torch.float32
+    xd = x.detach().double()
+    with torch.no_grad():
+        pre = locally_connected_ref(xd, w.double(), b.double(), index)
+        y_ref = torch.relu(pre) if relu else pre
+    assert_close_abs(y, y_ref, abs_bound_forward(xd, w, b, index), torch.float32, "forward")
+    gy = torch.randn(B, N, generator=torch.Generator().manual_seed(4), dtype=torch.float64).float().to(device)
+    gx, gw, gb = torch.autograd.grad(y, (x, w, b), gy)
+    assert gx.dtype == x_dtype and gw.dtype == gb.dtype == torch.float32
+    gpre = gy.double() * (pre > 0) if relu else gy.double()
+    gx_ref, gw_ref, gb_ref = locally_connected_backward_ref(xd, w.double(), index, gpre)
+    ga = gpre.abs()
+    gx_scale = torch.zeros(B, n_in, dtype=torch.float64, device=x.device)
+    gx_scale.index_add_(1, index.long().reshape(-1), (ga[:, :, None] * w.abs().double()[None]).reshape(B, -1))
+    u, tiny = HALF_ROUNDING[x_dtype]
+    summed = RTOL[torch.float32] * (gx_scale + 1e-30)
+    bound = summed + u * (gx_ref.abs() + summed) + tiny
+    err = (gx.double() - gx_ref).abs()
+    assert (err <= bound).all(), f"grad_x: worst error / bound {(err / bound).max().item():.2f}"
+    assert_close_abs(gw, gw_ref, (ga[:, :, None] * xd.abs()[:, index.long()]).sum(0), torch.float32, "grad_weight")
+    assert_close_abs(gb, gb_ref, ga.sum(0), torch.float32, "grad_bias")
+    assert torch.all(gx[:, n_in - 2:] == 0)
+
+
+def test_a_half_x_needing_no_gradient_gets_none_computed(monkeypatch):
+    """The first layer's ONV needs no gradient: no grad_x kernel runs for it (as for float32)."""
+    import warp_vision.kernels.linet.op as op
+
+    x, w, b, index = make_case(64, 300, 61, 9, torch.float32, "cpu")
+    launched = []
+    real = op.launch_kernel
+    monkeypatch.setattr(op, "launch_kernel", lambda k, *a, **kw: launched.append(k.key) or real(k, *a, **kw))
+    w.requires_grad_(True)
+    locally_connected(x.half(), w, b, index).sum().backward()
+    assert launched and not [k for k in launched if "grad_x" in k]
+
+
 def test_feature_major_chain_matches_reference(device):
     # Two fused-ReLU layers and a torch head: the liNet's data path, gradients through all of it
     g = torch.Generator().manual_seed(11)
@@ -272,7 +330,9 @@ def test_a_plan_for_other_values_is_refused():
     "mutate,match",
     [
         (lambda a: a.update(x=a["x"][0]), "x: expected rank 2"),
-        (lambda a: a.update(x=a["x"].to(torch.float16)), "x: expected dtype float32 or float64"),
+        (lambda a: a.update(x=a["x"].to(torch.int32)), "x: expected dtype float32, float64, float16 or bfloat16"),
+        (lambda a: a.update(x=a["x"].half(), weight=a["weight"].half()),
+         r"weight: expected dtype torch.float32 \(float32 weights go with a torch.float16 x\)"),
         (lambda a: a.update(weight=a["weight"].double()), "weight: expected dtype torch.float32"),
         (lambda a: a.update(bias=a["bias"].double()), "bias: expected dtype torch.float32"),
         (lambda a: a.update(weight=a["weight"][:, :2]), r"index: expected shape \(10, 2\)"),
@@ -339,8 +399,8 @@ def test_fused_relu_propagates_nan_like_torch(B):
     assert torch.allclose(y.nan_to_num(), ref.nan_to_num(), atol=1e-5)
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("B,F", [(64, 1), (64, 37), (128, 1000), (192, 16)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("B,F", [(64, 1), (64, 37), (128, 1000), (192, 16), (64, 8)])
 def test_transpose_kernel_matches_torch(B, F, dtype, device):
     from warp_vision.kernels.linet.layout import as_feature_major
 

@@ -61,7 +61,7 @@ def linet_forward(
         i = index[n, r]
         w = weight[n, r]
         for k in range(8):
-            acc[k] += w * x[wp.min(b0 + k, last), i]
+            acc[k] += w * weight.dtype(x[wp.min(b0 + k, last), i])  # a half x widens exactly
     for k in range(8):
         if b0 + k <= last:
             v = acc[k]
@@ -91,7 +91,7 @@ def linet_grad_x(
     i = t - blk * num_in
     last = grad_y.shape[0] - 1
     b0 = blk * 8
-    acc = wp.vector(grad_x_out.dtype(0.0), length=8)
+    acc = wp.vector(weight_flat.dtype(0.0), length=8)
     for k in range(t_offsets[i], t_offsets[i + 1]):
         e = t_entries[k]
         n = e // receptive_field
@@ -100,7 +100,7 @@ def linet_grad_x(
             acc[j] += w * grad_y[wp.min(b0 + j, last), n]
     for j in range(8):
         if b0 + j <= last:
-            grad_x_out[b0 + j, i] = acc[j]
+            grad_x_out[b0 + j, i] = grad_x_out.dtype(acc[j])  # rounded once to x's dtype
 
 
 @wp.func
@@ -138,7 +138,7 @@ def linet_grad_weight(
     for b in range(x.shape[0]):
         g = _masked(grad_y[b, n], y[b, n], relu)
         for k in range(4):
-            acc[k] += g * x[b, cols[k]]
+            acc[k] += g * grad_weight_out.dtype(x[b, cols[k]])
     for k in range(4):
         if r0 + k < R:
             grad_weight_out[n, r0 + k] = acc[k]
@@ -218,7 +218,7 @@ def linet_forward_fm(
         acc = yT_out.dtype(bias[n])
         e = e0
         while e < e0 + receptive_field:  # a while loop: leaner than range()'s runtime-step iterator
-            acc += weight[e] * xT[index[e] * chunks + c]
+            acc += weight[e] * yT_out.dtype(xT[index[e] * chunks + c])  # a half x widens exactly
             e += 1
         if relu != 0:
             acc = _relu_lanes(acc)
@@ -246,12 +246,12 @@ def linet_grad_x_fm(
     k0 = t_offsets[i]
     k1 = t_offsets[i + 1]
     for c in range(chunks):
-        acc = gxT_out.dtype(weight.dtype(0.0))
+        acc = gT.dtype(weight.dtype(0.0))
         k = k0
         while k < k1:
             acc += weight[t_entries[k]] * gT[t_units[k] * chunks + c]
             k += 1
-        gxT_out[i * chunks + c] = acc
+        gxT_out[i * chunks + c] = gxT_out.dtype(acc)  # rounded once to x's dtype
 
 
 @wp.kernel
@@ -282,7 +282,7 @@ def linet_grad_weight_fm(
         i = index[e] * chunks
         acc = gT.dtype(grad_weight_out.dtype(0.0))
         for c in range(chunks):
-            acc += wp.cw_mul(gT[n * chunks + c], xT[i + c])
+            acc += wp.cw_mul(gT[n * chunks + c], gT.dtype(xT[i + c]))
         grad_weight_out[e] = _lane_sum(acc)
         e += 1
 
@@ -303,19 +303,31 @@ def linet_grad_bias_fm(
     grad_bias_out[n] = _lane_sum(acc)
 
 
+#: the dtypes x may have with float32 weights: float32 itself, and the half types the kernels widen on load
+HALF_TYPES = (wp.float16, wp.bfloat16)
+
+
+def _overload(xdt, wdt) -> None:
+    """The kernels for an x of ``xdt`` with weights, bias, y and the gradients of ``wdt`` (grad_x: ``xdt``)."""
+    x2, a1, a2 = wp.array2d(dtype=xdt), wp.array(dtype=wdt), wp.array2d(dtype=wdt)
+    i1, i2 = wp.array(dtype=wp.int32), wp.array2d(dtype=wp.int32)
+    wp.overload(linet_forward, [x2, a2, a1, i2, int, int, a2])
+    wp.overload(linet_grad_x, [a2, a1, i1, i1, int, int, x2])
+    wp.overload(linet_grad_weight, [x2, a2, a2, i2, int, int, a2])
+    xv, v1 = wp.array(dtype=VEC_TYPES[xdt]), wp.array(dtype=VEC_TYPES[wdt])
+    wp.overload(linet_forward_fm, [xv, a1, a1, i1, int, int, int, int, v1])
+    wp.overload(linet_grad_x_fm, [v1, a1, i1, i1, i1, int, int, xv])
+    wp.overload(linet_grad_weight_fm, [xv, v1, i1, int, int, int, a1, a1])
+    if xdt == wdt:
+        wp.overload(linet_grad_bias, [a2, a2, int, int, a1])
+        wp.overload(linet_grad_bias_fm, [v1, int, int, a1])
+
+
 def _overload_all() -> None:
     for wdt in (wp.float32, wp.float64):
-        a1, a2 = wp.array(dtype=wdt), wp.array2d(dtype=wdt)
-        i1, i2 = wp.array(dtype=wp.int32), wp.array2d(dtype=wp.int32)
-        wp.overload(linet_forward, [a2, a2, a1, i2, int, int, a2])
-        wp.overload(linet_grad_x, [a2, a1, i1, i1, int, int, a2])
-        wp.overload(linet_grad_weight, [a2, a2, a2, i2, int, int, a2])
-        wp.overload(linet_grad_bias, [a2, a2, int, int, a1])
-        v1 = wp.array(dtype=VEC_TYPES[wdt])
-        wp.overload(linet_forward_fm, [v1, a1, a1, i1, int, int, int, int, v1])
-        wp.overload(linet_grad_x_fm, [v1, a1, i1, i1, i1, int, int, v1])
-        wp.overload(linet_grad_weight_fm, [v1, v1, i1, int, int, int, a1, a1])
-        wp.overload(linet_grad_bias_fm, [v1, int, int, a1])
+        _overload(wdt, wdt)
+    for hdt in HALF_TYPES:
+        _overload(hdt, wp.float32)
 
 
 _overload_all()

@@ -24,8 +24,7 @@ wp.set_module_options({"enable_backward": False})
 LANES = 64
 
 #: The 64-lane vector type of each scalar type, for feature-major arrays.
-VEC_TYPES = {wp.float32: wp.types.vector(length=LANES, dtype=wp.float32),
-             wp.float64: wp.types.vector(length=LANES, dtype=wp.float64)}
+VEC_TYPES = {t: wp.types.vector(length=LANES, dtype=t) for t in (wp.float32, wp.float64, wp.float16, wp.bfloat16)}
 
 
 @wp.kernel
@@ -45,24 +44,31 @@ def transpose_rows(x: wp.array2d(dtype=Any), offset: int, xT_out: wp.array2d(dty
     xT_out[f, c] = v
 
 
-# An 8 x 8 float32 block transpose in native code: the kernel language has no lane shuffles, and the
-# scalar gather above moves one element per load. With AVX2 (Warp compiles CPU kernels with
-# -march=native) the block is eight 32-byte loads, 24 shuffles and eight 32-byte stores; elsewhere
-# (CUDA, other CPUs, the ragged last block) it is a plain loop, and on the CPU it beats both
-# transpose_rows and torch's x.t().contiguous().
-_TILE8_SNIPPET = r"""
-    const float* src = (const float*)x.data;
-    float* dst = (float*)out.data;
+# An 8 x 8 block transpose in native code, for 4-byte (float32) and 2-byte (float16, bfloat16: moved as
+# int16 bits) elements: the kernel language has no lane shuffles, and the scalar gather above moves one
+# element per load. With AVX2 (Warp compiles CPU kernels with -march=native) the block is eight 32- (or
+# 16-) byte loads, 24 shuffles and eight stores; elsewhere (CUDA, other CPUs, the ragged last block) it
+# is a plain loop, and on the CPU it beats both transpose_rows and torch's x.t().contiguous().
+def _tile8_snippet(elem: str) -> str:
+    """The native 8 x 8 block transpose for elements of C type ``elem`` (4 or 2 bytes): eight rows of 8
+    loaded, shuffled (the same three interleaving stages for any element size) and stored."""
+    rowbytes = {"float": 32, "short": 16}[elem]
+    return _TILE8_TEMPLATE.replace("ELEM", elem).replace("ROWBYTES", str(rowbytes))
+
+
+_TILE8_TEMPLATE = r"""
+    const ELEM* src = (const ELEM*)x.data;
+    ELEM* dst = (ELEM*)out.data;
 #if defined(__AVX2__) && !defined(__CUDA_ARCH__)
     if (f0 + 8 <= F) {
-        typedef float v8 __attribute__((ext_vector_type(8)));
-        const float* s = src + (size_t)k0 * F + f0;
-        float* d = dst + (size_t)f0 * B + k0;
+        typedef ELEM v8 __attribute__((ext_vector_type(8)));
+        const ELEM* s = src + (size_t)k0 * F + f0;
+        ELEM* d = dst + (size_t)f0 * B + k0;
         v8 r0, r1, r2, r3, r4, r5, r6, r7;
-        __builtin_memcpy(&r0, s, 32); __builtin_memcpy(&r1, s + (size_t)F, 32);
-        __builtin_memcpy(&r2, s + 2 * (size_t)F, 32); __builtin_memcpy(&r3, s + 3 * (size_t)F, 32);
-        __builtin_memcpy(&r4, s + 4 * (size_t)F, 32); __builtin_memcpy(&r5, s + 5 * (size_t)F, 32);
-        __builtin_memcpy(&r6, s + 6 * (size_t)F, 32); __builtin_memcpy(&r7, s + 7 * (size_t)F, 32);
+        __builtin_memcpy(&r0, s, ROWBYTES); __builtin_memcpy(&r1, s + (size_t)F, ROWBYTES);
+        __builtin_memcpy(&r2, s + 2 * (size_t)F, ROWBYTES); __builtin_memcpy(&r3, s + 3 * (size_t)F, ROWBYTES);
+        __builtin_memcpy(&r4, s + 4 * (size_t)F, ROWBYTES); __builtin_memcpy(&r5, s + 5 * (size_t)F, ROWBYTES);
+        __builtin_memcpy(&r6, s + 6 * (size_t)F, ROWBYTES); __builtin_memcpy(&r7, s + 7 * (size_t)F, ROWBYTES);
         // interleave pairs of rows, then pairs of pairs, then the 128-bit halves
         v8 t0 = __builtin_shufflevector(r0, r1, 0, 8, 1, 9, 4, 12, 5, 13);
         v8 t1 = __builtin_shufflevector(r0, r1, 2, 10, 3, 11, 6, 14, 7, 15);
@@ -88,10 +94,10 @@ _TILE8_SNIPPET = r"""
         v8 o5 = __builtin_shufflevector(u1, u5, 4, 5, 6, 7, 12, 13, 14, 15);
         v8 o6 = __builtin_shufflevector(u2, u6, 4, 5, 6, 7, 12, 13, 14, 15);
         v8 o7 = __builtin_shufflevector(u3, u7, 4, 5, 6, 7, 12, 13, 14, 15);
-        __builtin_memcpy(d, &o0, 32); __builtin_memcpy(d + (size_t)B, &o1, 32);
-        __builtin_memcpy(d + 2 * (size_t)B, &o2, 32); __builtin_memcpy(d + 3 * (size_t)B, &o3, 32);
-        __builtin_memcpy(d + 4 * (size_t)B, &o4, 32); __builtin_memcpy(d + 5 * (size_t)B, &o5, 32);
-        __builtin_memcpy(d + 6 * (size_t)B, &o6, 32); __builtin_memcpy(d + 7 * (size_t)B, &o7, 32);
+        __builtin_memcpy(d, &o0, ROWBYTES); __builtin_memcpy(d + (size_t)B, &o1, ROWBYTES);
+        __builtin_memcpy(d + 2 * (size_t)B, &o2, ROWBYTES); __builtin_memcpy(d + 3 * (size_t)B, &o3, ROWBYTES);
+        __builtin_memcpy(d + 4 * (size_t)B, &o4, ROWBYTES); __builtin_memcpy(d + 5 * (size_t)B, &o5, ROWBYTES);
+        __builtin_memcpy(d + 6 * (size_t)B, &o6, ROWBYTES); __builtin_memcpy(d + 7 * (size_t)B, &o7, ROWBYTES);
         return;
     }
 #endif
@@ -99,6 +105,7 @@ _TILE8_SNIPPET = r"""
         for (int c = 0; c < 8; ++c)
             dst[(size_t)(f0 + a) * B + k0 + c] = src[(size_t)(k0 + c) * F + f0 + a];
 """
+_TILE8_SNIPPET = _tile8_snippet("float")
 
 
 @wp.func_native(_TILE8_SNIPPET)
@@ -119,7 +126,22 @@ def transpose_tiles(x: wp.array(dtype=wp.float32), F: int, B: int, offset: int, 
     _transpose_tile8(x, F, B, (t - fb * row_blocks) * 8, fb * 8, out)
 
 
-for _wdt in (wp.float32, wp.float64):
+@wp.func_native(_tile8_snippet("short"))
+def _transpose_tile8_16(x: wp.array(dtype=wp.int16), F: int, B: int, k0: int, f0: int, out: wp.array(dtype=wp.int16)):
+    """:func:`_transpose_tile8` for 2-byte elements."""
+    ...
+
+
+@wp.kernel
+def transpose_tiles_16(x: wp.array(dtype=wp.int16), F: int, B: int, offset: int, out: wp.array(dtype=wp.int16)):
+    """:func:`transpose_tiles` for a 2-byte x (float16 or bfloat16 seen as int16 bits)."""
+    t = offset + wp.tid()
+    row_blocks = B // 8
+    fb = t // row_blocks
+    _transpose_tile8_16(x, F, B, (t - fb * row_blocks) * 8, fb * 8, out)
+
+
+for _wdt in (wp.float32, wp.float64, wp.float16, wp.bfloat16):
     wp.overload(transpose_rows, [wp.array2d(dtype=_wdt), int, wp.array2d(dtype=VEC_TYPES[_wdt])])
 
 
@@ -156,7 +178,8 @@ TRANSPOSE_MAX_BYTES = 256 * 2**20
 def as_feature_major(x: Tensor) -> Tensor:
     """``x`` [B, F] in the layout the kernels read fastest: x itself if it is feature-major or B is
     not a multiple of 64 or it is larger than :data:`TRANSPOSE_MAX_BYTES`; else a feature-major copy
-    (one Warp transpose launch: 8 x 8 blocks for float32, 64-row gathers for float64)."""
+    in x's dtype (one Warp transpose launch: 8 x 8 blocks for float32, float16 and bfloat16, 64-row
+    gathers for float64)."""
     B, F = x.shape
     if feature_major(x) or B % LANES or not F or x.numel() * x.element_size() > TRANSPOSE_MAX_BYTES:
         return x
@@ -166,6 +189,10 @@ def as_feature_major(x: Tensor) -> Tensor:
     if x.dtype == torch.float32:
         _launch.launch_split(transpose_tiles, (F + 7) // 8 * (B // 8), [warp_array(x.reshape(-1)), F, B],
                              [warp_array(xT.reshape(-1))], dev)
+    elif x.element_size() == 2:
+        _launch.launch_split(transpose_tiles_16, (F + 7) // 8 * (B // 8),
+                             [warp_array(x.reshape(-1).view(torch.int16)), F, B],
+                             [warp_array(xT.reshape(-1).view(torch.int16))], dev)
     else:
         _launch.launch_split(transpose_rows, (B // LANES) * F, [warp_array(x)], [_vec(xT)], dev)
     return xT.t()

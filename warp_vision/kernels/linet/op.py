@@ -43,6 +43,8 @@ from warp_vision.kernels.linet.kernels import (
 from warp_vision.kernels.linet.layout import LANES, as_feature_major, feature_major, flat_vectors, warp_array
 
 _FLOATS = (torch.float32, torch.float64)
+#: x dtypes read with float32 weights: widened exactly on load, accumulated in float32
+_HALVES = (torch.float16, torch.bfloat16)
 _INDEX_DTYPES = (torch.int32, torch.int64)
 
 
@@ -189,13 +191,15 @@ def _check_tensor(name: str, t: Any, rank: int, like: Tensor | None = None) -> N
     if t.dim() != rank:
         raise ValueError(f"{name}: expected rank {rank}, got rank {t.dim()} shape {tuple(t.shape)}")
     if like is None:
-        if t.dtype not in _FLOATS:
-            raise ValueError(f"{name}: expected dtype float32 or float64, got {t.dtype}")
+        if t.dtype not in _FLOATS + _HALVES:
+            raise ValueError(f"{name}: expected dtype float32, float64, float16 or bfloat16, got {t.dtype}")
         if t.device.type not in ("cpu", "cuda"):
             raise ValueError(f"{name}: expected a cpu or cuda tensor, got device {t.device}")
     else:
-        if t.dtype != like.dtype:
-            raise ValueError(f"{name}: expected dtype {like.dtype} (the dtype of x), got {t.dtype}")
+        want = torch.float32 if like.dtype in _HALVES else like.dtype
+        if t.dtype != want:
+            why = f"float32 weights go with a {like.dtype} x" if like.dtype in _HALVES else "the dtype of x"
+            raise ValueError(f"{name}: expected dtype {want} ({why}), got {t.dtype}")
         if t.device != like.device:
             raise ValueError(f"{name}: expected device {like.device} (the device of x), got {t.device}")
 
@@ -227,7 +231,7 @@ def forward(x: Tensor, weight: Tensor, bias: Tensor, plan: LinetPlan, relu: bool
     N = plan.num_units
     dev = _launch.warp_device(x.device)
     if B and B % LANES == 0:
-        yT = torch.empty(N, B, dtype=x.dtype, device=x.device)
+        yT = torch.empty(N, B, dtype=weight.dtype, device=x.device)
         if N and feature_major(x):
             launch_kernel(linet_forward_fm, N,
                    [flat_vectors(x.t()), warp_array(weight.reshape(-1)), warp_array(bias), warp_array(plan.index.reshape(-1)),
@@ -237,7 +241,7 @@ def forward(x: Tensor, weight: Tensor, bias: Tensor, plan: LinetPlan, relu: bool
             launch_kernel(linet_forward, _blocks(B, BATCH_BLOCK) * N,
                    [warp_array(x), warp_array(weight), warp_array(bias), warp_array(plan.index), int(relu)], [warp_array(yT.t())], dev)
         return yT.t()
-    y = torch.empty(B, N, dtype=x.dtype, device=x.device)
+    y = torch.empty(B, N, dtype=weight.dtype, device=x.device)
     if B and N:
         launch_kernel(
             linet_forward,
@@ -256,11 +260,13 @@ def backward(
     grad_y: Tensor,
     y: Tensor | None,
     need: tuple[bool, bool, bool],
+    x_dtype: torch.dtype | None = None,
 ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
     """Kernel vector-Jacobian products (grad_x, grad_weight, grad_bias); ``need`` says which to compute.
 
     ``grad_y`` [B, N] is the gradient at the layer's output; ``y`` is the fused-ReLU output whose sign
-    masks it (None: no activation). ``x`` is needed only for grad_weight.
+    masks it (None: no activation). ``x`` is needed only for grad_weight. grad_x comes in ``x_dtype``
+    (default: grad_y's; float16 or bfloat16 for a half x: accumulated in float32, rounded once).
 
     When grad_x is needed the masked gradient is materialised once ([B, N], smaller than grad_x) so the
     hot grad_x kernel reads one array; otherwise (the first layer: the ONV needs no gradient, and
@@ -269,6 +275,7 @@ def backward(
     is read as [N, B] (transposed once if it arrives batch-major) and grad_x comes out feature-major.
     """
     dev = _launch.warp_device(grad_y.device)
+    x_dtype = grad_y.dtype if x_dtype is None else x_dtype
     relu = int(y is not None)
     if relu and need[0]:
         grad_y = torch.ops.aten.threshold_backward(grad_y, y, 0)
@@ -276,13 +283,13 @@ def backward(
     B, N = grad_y.shape
     R = plan.receptive_field
     if B and B % LANES == 0:
-        return _backward_fm(x, weight, plan, grad_y, y if relu else None, need, dev)
+        return _backward_fm(x, weight, plan, grad_y, y if relu else None, need, dev, x_dtype)
     grad_y = grad_y.contiguous()
     g = warp_array(grad_y)
     yy = warp_array(y) if relu else g  # unread when relu == 0
     grad_x = grad_w = grad_b = None
     if need[0]:
-        grad_x = torch.empty(B, plan.in_features, dtype=grad_y.dtype, device=grad_y.device)
+        grad_x = torch.empty(B, plan.in_features, dtype=x_dtype, device=grad_y.device)
         if B and plan.in_features:
             launch_kernel(
                 linet_grad_x,
@@ -302,7 +309,7 @@ def backward(
     return grad_x, grad_w, grad_b
 
 
-def _backward_fm(x, weight, plan, grad_y, y, need, dev):
+def _backward_fm(x, weight, plan, grad_y, y, need, dev, x_dtype):
     """:func:`backward` for B a multiple of 64: feature-major gradients; y (if given) masks grad_y.
 
     The feature-major kernels take an already masked gradient (:func:`backward` masks it when grad_x
@@ -320,7 +327,7 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev):
     chunks = B // LANES
     grad_x = grad_w = grad_b = None
     if need[0]:
-        gxT = torch.empty(plan.in_features, B, dtype=grad_y.dtype, device=grad_y.device)
+        gxT = torch.empty(plan.in_features, B, dtype=x_dtype, device=grad_y.device)
         if N and plan.in_features:
             t_offsets, t_entries, t_units = plan.transposed()
             launch_kernel(linet_grad_x_fm, plan.in_features,
@@ -362,6 +369,7 @@ class _LocallyConnectedFn(torch.autograd.Function):
         y = forward(x, weight, bias, plan, relu)
         ctx.plan = plan
         ctx.relu = relu
+        ctx.x_dtype = x.dtype
         # x is needed only for grad_weight; with a fused ReLU the output's sign masks the gradient.
         ctx.save_for_backward(
             x if ctx.needs_input_grad[1] else None, weight, y if relu else None
@@ -372,7 +380,7 @@ class _LocallyConnectedFn(torch.autograd.Function):
     def backward(ctx, grad_y):
         x, weight, y = ctx.saved_tensors
         need = tuple(ctx.needs_input_grad[:3])
-        grad_x, grad_w, grad_b = backward(x, weight, ctx.plan, grad_y, y, need)
+        grad_x, grad_w, grad_b = backward(x, weight, ctx.plan, grad_y.to(weight.dtype), y, need, ctx.x_dtype)
         return grad_x, grad_w, grad_b, None, None
 
 
@@ -388,11 +396,12 @@ def locally_connected(
     """The locally-connected irregular layer, differentiable in ``x``, ``weight`` and ``bias``.
 
     Args:
-        x:      [B, N_in] float32 or float64, batch-major (contiguous) or feature-major (``x.t()``
-                contiguous, as this op returns y when B is a multiple of 64); other strides are copied
-                to contiguous first.
-        weight: [N, R] same dtype and device as x; one weight per connection, no sharing.
-        bias:   [N]    same dtype and device as x.
+        x:      [B, N_in] float32, float64, float16 or bfloat16, batch-major (contiguous) or
+                feature-major (``x.t()`` contiguous, as this op returns y when B is a multiple of 64);
+                other strides are copied to contiguous first. A half-precision x (an ONV batch as the
+                dataset stores it) is read as it is, widened exactly in the kernels: no float32 copy.
+        weight: [N, R] x's dtype (float32 for a half x) and device; one weight per connection, no sharing.
+        bias:   [N]    weight's dtype, x's device.
         index:  [N, R] int32 or int64, values in [0, N_in); repeats allowed. A validated private int32
                 copy and its CSR transpose are built once per index tensor and cached; every call checks
                 that the index still holds the same values (however they were changed) and rebuilds if not.
@@ -400,7 +409,8 @@ def locally_connected(
         plan:   a prebuilt :class:`LinetPlan` for ``index`` (skips the cache lookup).
 
     Returns:
-        y: [B, N], ``y[b, n] = bias[n] + sum_r weight[n, r] * x[b, index[n, r]]`` (then ReLU if asked).
+        y: [B, N] in weight's dtype, ``y[b, n] = bias[n] + sum_r weight[n, r] * x[b, index[n, r]]`` (then
+        ReLU if asked), accumulated in weight's dtype. grad_x (when x requires one) comes in x's dtype.
         When B is a multiple of 64, y is feature-major: a view of a contiguous [N, B] buffer, so a next
         liNet layer reads each input's batch row as one 64-lane vector (the fast path;
         ``python -m warp_vision.bench linet`` measures both layouts).
