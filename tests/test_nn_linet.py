@@ -56,7 +56,7 @@ def test_locally_connected_buffers_init_and_forward():
     layer = LocallyConnected(index, in_features=5, relu=False, dtype=torch.float64)
     assert dict(layer.named_buffers()).keys() == {"index"}
     assert {n for n, _ in layer.named_parameters()} == {"weight", "bias"}
-    assert layer.index.dtype == torch.int64 and layer.weight.shape == (4, 3) and layer.bias.shape == (4,)
+    assert layer.index.dtype == torch.int32 and layer.weight.shape == (4, 3) and layer.bias.shape == (4,)
     assert (layer.out_features, layer.receptive_field, layer.in_features) == (4, 3, 5)
     assert torch.all(layer.bias == 0)
     assert "receptive_field=3" in repr(layer) and "relu=False" in repr(layer)
@@ -117,8 +117,8 @@ def test_linet_attributes_and_buffers(in_pos):
     conns = build_connectivity(in_pos, 3, [10, 8, 6], 5, seed=0)
     for h, (layer, c) in enumerate(zip(net.layers, conns), start=1):
         np.testing.assert_array_equal(layer.index.numpy(), c.index)
-        np.testing.assert_array_equal(net.layer_positions(h).numpy(), c.positions)
-    np.testing.assert_array_equal(net.layer_positions(0).numpy(), in_pos)
+        np.testing.assert_array_equal(net.layer_positions(h).numpy(), c.positions.astype(np.float32))
+    np.testing.assert_array_equal(net.layer_positions(0).numpy(), in_pos.astype(np.float32))  # kept in float32
     keys = set(net.state_dict())
     assert {f"positions_{h}" for h in range(4)} | {f"layers.{h}.index" for h in range(3)} <= keys
     with pytest.raises(ValueError, match="h"):
@@ -238,7 +238,7 @@ def test_plot_receptive_fields(in_pos):
     assert ax.get_aspect() == 1.0
     # A circle's radius is its unit's receptive-field radius, centred at the unit.
     conns = net.connectivity()
-    radius = receptive_field_radius(in_pos, conns[0])
+    radius = receptive_field_radius(in_pos.astype(np.float32).astype(np.float64), conns[0])  # the net's float32 positions
     unit_of = {tuple(p): n for n, p in enumerate(conns[0].positions)}
     for c in circles:
         n = unit_of[tuple(c.center)]
@@ -251,3 +251,30 @@ def test_plot_receptive_fields(in_pos):
         plot_receptive_fields(conns, layer=1)
     with pytest.raises(ValueError, match="layer"):
         plot_receptive_fields(net, layer=3)
+
+
+@pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
+def test_a_folded_standardisation_reads_half_inputs_as_the_float32_path_does(half):
+    """The first layer standardising in its weights (half-precision ONVs) computes what it computes on a
+    standardised float32 copy, up to float32 rounding; its gradients reach weight and bias alike."""
+    from warp_vision.nn.linet import LocallyConnected
+
+    g = torch.Generator().manual_seed(0)
+    index = torch.randint(0, 300, (60, 9), generator=g)
+    plain = LocallyConnected(index, 300, relu=True)
+    folded = LocallyConnected(index, 300, relu=True)
+    folded.load_state_dict(plain.state_dict())
+    folded.fold_input_standardisation()
+    mean, std = torch.tensor(0.7), torch.tensor(0.3)
+    folded.input_mean.copy_(mean)
+    folded.input_std.copy_(std)
+    x = (torch.rand(64, 300, generator=g) * 3).to(half)
+    want = plain(((x.float() - mean) / std))
+    got = folded(x)
+    scale = plain.bias.abs() + (x.float()[:, index].abs() / std + mean / std) @ torch.ones(9) * plain.weight.abs().max()
+    assert got.dtype == torch.float32 and ((got - want).abs() <= 1e-5 * scale + 1e-6).all()
+    got.sum().backward()
+    want.sum().backward()
+    assert torch.allclose(folded.weight.grad, plain.weight.grad, rtol=1e-4, atol=1e-5)
+    assert torch.allclose(folded.bias.grad, plain.bias.grad, rtol=1e-5, atol=1e-6)
+    assert {"input_mean", "input_std"} <= set(folded.state_dict())

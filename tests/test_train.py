@@ -124,9 +124,9 @@ def test_nan_loss_stops_with_the_last_good_checkpoint(tmp_path, smoke_data, monk
     real = foveation.net_input
     calls = {"n": 0}
 
-    def poisoned(onv, norm, device):
+    def poisoned(onv, norm, device, dtype=torch.float32):
         calls["n"] += 1
-        x = real(onv, norm, device)
+        x = real(onv, norm, device, dtype)
         return x * float("nan") if calls["n"] > 12 else x  # epoch 1 has 8 steps + 1 validation batch
 
     monkeypatch.setattr(foveation, "net_input", poisoned)
@@ -228,3 +228,28 @@ def test_compare_figure(tmp_path, smoke_data):
     assert train_main(["compare", str(tmp_path / "run"), "--out", str(fig)]) == 0
     assert fig.stat().st_size > 1000
     assert train_main(["compare", str(tmp_path / "nope"), "--out", str(fig)]) == 2
+
+
+def test_the_liNet_reads_the_stores_float16_onvs_and_float32_stays_available(tmp_path, smoke_data, monkeypatch):
+    """By default a liNet is fed the store's float16 ONVs (standardised in its first layer: no float32
+    copy of a batch); --onv-dtype float32 keeps the old path. Both train to similar errors."""
+    from warp_vision.kernels.linet import op
+    from warp_vision.nn.trained import load_net
+
+    seen = []
+    real = op.locally_connected
+    monkeypatch.setattr(op, "locally_connected", lambda x, *a, **k: seen.append(x.dtype) or real(x, *a, **k))
+    import warp_vision.nn.linet as nl
+
+    monkeypatch.setattr(nl, "locally_connected", op.locally_connected)
+    half = foveation.run(smoke(tmp_path / "h", smoke_data), progress=False, log=lambda *a: None)
+    assert seen and seen[0] == torch.float16
+    seen.clear()
+    full = foveation.run(smoke(tmp_path / "f", smoke_data, onv_dtype="float32"), progress=False, log=lambda *a: None)
+    assert seen[0] == torch.float32
+    net, ck = load_net(tmp_path / "h" / "run")
+    assert ck["net"]["onv_dtype"] == "float16" and net.backbone.layers[0].folds_input
+    assert float(net.backbone.layers[0].input_std) == pytest.approx(float(ck["norm"]["input_std"]))
+    assert abs(half["test_median_deg"] - full["test_median_deg"]) < 0.5, (half, full)
+    with pytest.raises(ValueError, match="onv_dtype: the fc baseline reads float32"):
+        smoke(tmp_path, smoke_data, model="fc", head="linear", onv_dtype="float16")

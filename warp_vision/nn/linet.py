@@ -36,7 +36,8 @@ class LocallyConnected(nn.Module):
     """One locally-connected irregular layer: ``y[b, n] = bias[n] + sum_r weight[n, r] * x[b, index[n, r]]``.
 
     Buffers and parameters:
-        index:  [N, R] int64 (or int32 when given int32), values in [0, in_features); a buffer, so it
+        index:  [N, R] int32 (the kernels' index type: half the memory of int64, and the op's plan
+                keeps its private copy in the same dtype), values in [0, in_features); a buffer, so it
                 is saved in ``state_dict`` and moves with ``.to(device)``.
         weight: [N, R] one weight per connection; He-initialised, Normal(0, sqrt(2 / R)).
         bias:   [N] zeros at initialisation.
@@ -68,8 +69,6 @@ class LocallyConnected(nn.Module):
             raise ValueError(f"index: expected an integer dtype, got {idx.dtype}")
         if idx.dim() != 2 or idx.shape[0] < 1 or idx.shape[1] < 1:
             raise ValueError(f"index: expected shape [N, R] with N, R >= 1, got shape {tuple(idx.shape)}")
-        if idx.dtype not in (torch.int32, torch.int64):
-            idx = idx.to(torch.int64)
         lo, hi = int(idx.min()), int(idx.max())
         if lo < 0 or hi >= in_features:
             raise ValueError(
@@ -77,11 +76,24 @@ class LocallyConnected(nn.Module):
             )
         self.in_features = in_features
         self.relu = bool(relu)
-        self.register_buffer("index", idx.detach().clone().contiguous())
+        if in_features >= 2**31:
+            raise ValueError(f"in_features: expected fewer than 2^31 inputs (int32 indices), got {in_features}")
+        self.register_buffer("index", idx.detach().to(torch.int32, copy=True).contiguous())
         n, r = idx.shape
         self.weight = nn.Parameter(torch.empty(n, r, dtype=dtype, device=idx.device))
         self.bias = nn.Parameter(torch.empty(n, dtype=dtype, device=idx.device))
+        self.folds_input = False
         self.reset_parameters()
+
+    def fold_input_standardisation(self) -> None:
+        """Make the layer read its input unstandardised: it computes what it would from
+        ``(x - input_mean) / input_std`` (two 0-d buffers, 0 and 1 until set) by folding them into its
+        weight and bias, ``w / std`` and ``b - (mean / std) sum_r w``, so a half-precision batch goes to
+        the kernels as it is, with no standardised float32 copy."""
+        if not self.folds_input:
+            self.register_buffer("input_mean", torch.zeros((), dtype=self.weight.dtype, device=self.weight.device))
+            self.register_buffer("input_std", torch.ones((), dtype=self.weight.dtype, device=self.weight.device))
+            self.folds_input = True
 
     @property
     def out_features(self) -> int:
@@ -100,11 +112,16 @@ class LocallyConnected(nn.Module):
             self.bias.zero_()
 
     def forward(self, x: Tensor) -> Tensor:
-        """x [B, in_features] -> y [B, out_features], same dtype and device as the parameters."""
+        """x [B, in_features] (the parameters' dtype, or float16/bfloat16 with float32 parameters) -> y
+        [B, out_features] in the parameters' dtype, on their device."""
         if not isinstance(x, Tensor) or x.dim() != 2 or x.shape[1] != self.in_features:
             got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
             raise ValueError(f"x: expected shape [B, {self.in_features}], got {got}")
-        return locally_connected(x, self.weight, self.bias, self.index, relu=self.relu)
+        w, b = self.weight, self.bias
+        if self.folds_input:
+            w = self.weight / self.input_std
+            b = self.bias - (self.input_mean / self.input_std) * self.weight.sum(1)
+        return locally_connected(x, w, b, self.index, relu=self.relu)
 
     def extra_repr(self) -> str:
         return (
@@ -124,7 +141,8 @@ class LiNet(nn.Module):
         layers:          ``nn.ModuleList`` of H :class:`LocallyConnected` (relu=True); layer h - 1 of
                          the list holds C_h as its ``index`` buffer.
 
-    Buffers ``positions_0`` .. ``positions_H`` ([N_h, 2] float64, retinal domain, the units of
+    Buffers ``positions_0`` .. ``positions_H`` ([N_h, 2] float32: plenty for figures, and half the memory
+    of float64 at 3P = 1.28e7, where positions_0 alone is 100 MB; retinal domain, the units of
     ``in_positions``) hold each layer's unit positions; they and the index buffers are in
     ``state_dict``, so loading a state dict restores the connectivity as well as the weights.
     """
@@ -164,7 +182,7 @@ class LiNet(nn.Module):
             LocallyConnected(c.index, n_in, relu=True) for c, n_in in zip(conns, self.layer_sizes[:-1])
         )
         for h, pos in enumerate([pos0] + [c.positions for c in conns]):
-            self.register_buffer(f"positions_{h}", torch.from_numpy(np.array(pos, dtype=np.float64)))
+            self.register_buffer(f"positions_{h}", torch.from_numpy(np.array(pos, dtype=np.float32)))
 
     @property
     def num_layers(self) -> int:
@@ -172,7 +190,7 @@ class LiNet(nn.Module):
         return len(self.layers)
 
     def layer_positions(self, h: int) -> Tensor:
-        """[N_h, 2] float64 positions of layer h's units (h = 0: the inputs), retinal domain."""
+        """[N_h, 2] float32 positions of layer h's units (h = 0: the inputs), retinal domain."""
         if isinstance(h, bool) or not isinstance(h, (int, np.integer)) or not 0 <= h <= self.num_layers:
             raise ValueError(f"h: expected an int in [0, {self.num_layers}], got {h!r}")
         return getattr(self, f"positions_{h}")

@@ -55,13 +55,41 @@ def _oculomotor(spec: dict):
 #: spec["kind"] -> the function that builds the untrained net from the spec
 BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor}
 
+#: the ONV dtypes a net can read (spec["onv_dtype"]; checkpoints without one read float32)
+ONV_DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
+
+
+def onv_dtype(spec: dict) -> torch.dtype:
+    """The dtype a net built from ``spec`` reads its ONVs in (:func:`net_input`)."""
+    return ONV_DTYPES[spec.get("onv_dtype", "float32")]
+
+
+def _read_half_onvs(model: torch.nn.Module, spec: dict) -> torch.nn.Module:
+    """A liNet net whose spec reads half-precision ONVs standardises them in its first layer."""
+    if onv_dtype(spec) != torch.float32:
+        first = getattr(getattr(model, "backbone", None), "layers", [None])[0]
+        if not hasattr(first, "fold_input_standardisation"):
+            raise ValueError(f"onv_dtype: {spec['onv_dtype']} ONVs need a liNet backbone; use float32 for {spec.get('model')!r}")
+        first.fold_input_standardisation()
+    return model
+
+
+def set_input_standardisation(model: torch.nn.Module, norm: dict) -> None:
+    """Give a net that standardises its input in its first layer (half-precision ONVs) the mean and std
+    of :func:`fit_input_norm`; nets that read standardised float32 ONVs are left as they are."""
+    first = getattr(getattr(model, "backbone", None), "layers", [None])[0]
+    if getattr(first, "folds_input", False):
+        with torch.no_grad():
+            first.input_mean.copy_(torch.as_tensor(norm["input_mean"]))
+            first.input_std.copy_(torch.as_tensor(norm["input_std"]))
+
 
 def build_net(spec: dict, device: str = "cpu") -> torch.nn.Module:
     """The untrained net a spec describes, on ``device`` (initialised from the spec's seed)."""
     kind = spec.get("kind") if isinstance(spec, dict) else None
     if kind not in BUILDERS:
         raise ValueError(f"net spec: expected a dict with kind one of {sorted(BUILDERS)}, got {kind!r}")
-    return BUILDERS[kind](spec).to(device)
+    return _read_half_onvs(BUILDERS[kind](spec), spec).to(device)
 
 
 INTEGRITY_VERSION = 1
@@ -131,13 +159,21 @@ def load_net(path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
     return model.eval(), ck
 
 
-def net_input(onv: torch.Tensor, norm: dict, device) -> torch.Tensor:
+def net_input(onv: torch.Tensor, norm: dict, device, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """What a net trained on ONVs sees: a compressive (log) photoreceptor response,
     log(1 + irradiance / scale) with the scale the training set's mean irradiance (it keeps dim scenes and
     a lamp's hot spot in one range), standardised with the training set's mean and std over all inputs.
     One mean and std for every input keeps "brighter" meaning the same everywhere on the retina;
     standardising each input on its own turns a rarely lit peripheral photoreceptor's noise into large
-    values."""
+    values.
+
+    ``dtype`` is the net's (:func:`onv_dtype`). float32: the standardised response, float32. float16 or
+    bfloat16: the response in that dtype, computed in one copy of the batch, and not standardised: the
+    net's first layer does that (:meth:`warp_vision.nn.linet.LocallyConnected.fold_input_standardisation`),
+    so no float32 copy of the batch is made."""
+    if dtype != torch.float32:
+        x = onv.to(device=device, dtype=dtype, copy=True)
+        return x.div_(norm["input_scale"]).log1p_()
     x = torch.log1p(onv.to(device=device, dtype=torch.float32) / norm["input_scale"])
     return (x - norm["input_mean"].to(device)) / norm["input_std"].to(device)
 

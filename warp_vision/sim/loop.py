@@ -67,7 +67,7 @@ class Foveator:
 
     def __init__(self, run_dir: str, device: str = "cpu"):
         from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
-        from warp_vision.nn.trained import load_net
+        from warp_vision.nn.trained import load_net, onv_dtype
 
         self.model, ck = load_net(run_dir, device)
         data = FoveationDataConfig(**ck["data"])
@@ -76,12 +76,13 @@ class Foveator:
         self.samples_per_receptor = data.samples_per_receptor
         self.norm = ck["norm"]
         self.device = device
+        self.onv_dtype = onv_dtype(ck["net"])
 
     @torch.no_grad()
     def __call__(self, onv: torch.Tensor) -> np.ndarray:
         from warp_vision.nn.trained import net_input
 
-        z = self.model(net_input(onv, self.norm, self.device)).cpu()
+        z = self.model(net_input(onv, self.norm, self.device, self.onv_dtype)).cpu()
         return (z * self.norm["target_std"] + self.norm["target_mean"]).numpy()
 
 

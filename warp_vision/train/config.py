@@ -12,6 +12,7 @@ from warp_vision.data.foveation import FoveationDataConfig
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
 CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc"], "eye": ["left", "right"],
+           "onv_dtype": ["auto", "float16", "bfloat16", "float32"],
            "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"]}
 
 
@@ -35,6 +36,16 @@ def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
         raise ValueError(f"lr: expected > 0, got {cfg.lr}")
     if cfg.device not in ("auto", "cpu", "cuda") and not cfg.device.startswith("cuda:"):
         raise ValueError(f"device: expected cpu, cuda or auto, got {cfg.device!r}")
+    if hasattr(cfg, "onv_dtype") and cfg.model == "fc" and cfg.onv_dtype not in ("auto", "float32"):
+        raise ValueError(f"onv_dtype: the fc baseline reads float32 ONVs, got {cfg.onv_dtype!r}")
+
+
+def onv_dtype_name(cfg) -> str:
+    """The dtype ``cfg``'s net reads its ONVs in: ``cfg.onv_dtype``, with "auto" meaning float16 (the
+    store's) for a liNet and float32 for the fc baseline."""
+    if cfg.onv_dtype != "auto":
+        return cfg.onv_dtype
+    return "float32" if cfg.model == "fc" else "float16"
 
 
 def epoch_lr(cfg, epoch: int) -> float:
@@ -74,6 +85,7 @@ class TrainConfig:
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
     lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs), plateau (x0.3 after every 3 epochs without a better validation loss) or constant
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored; standardised in the first layer), bfloat16, float32 (a standardised float32 copy of each batch), or auto (float16 for a liNet, float32 for fc)
     epochs: int = 40  # at most
     patience: int = 8  # early stopping: epochs without a better validation loss
     val_fraction: float = 0.1
@@ -146,6 +158,7 @@ class FaceTrainConfig:
     reduction: int = 2  # f, each layer has 1/f of the previous layer's units
     # optimisation
     loss_lambda: float = 6.0  # loss = cross-entropy + loss_lambda * MSE(standardised pose)
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for fc)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (betas 0.9, 0.999)
     epochs: int = 60  # at most

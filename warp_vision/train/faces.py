@@ -20,9 +20,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from warp_vision.nn.trained import fit_input_norm, net_input
+from warp_vision.nn.trained import ONV_DTYPES, fit_input_norm, net_input, set_input_standardisation
 from warp_vision.train import harness
-from warp_vision.train.config import FaceTrainConfig
+from warp_vision.train.config import FaceTrainConfig, onv_dtype_name
 
 
 def shuffled_labels(ident, pose, tr, seed: int):
@@ -66,6 +66,10 @@ class FaceTask(harness.Task):
         dc = self.cfg.data_config()
         return dataset_bytes(dataset_fields(dc), dc.samples)
 
+    @property
+    def onv_dtype(self):
+        return ONV_DTYPES[onv_dtype_name(self.cfg)]
+
     def splits(self):
         c = self.cfg
         tr, va, te = harness.splits(len(self.ident), c.data_seed, c.val_fraction, c.test_fraction, min_test=1)
@@ -80,7 +84,7 @@ class FaceTask(harness.Task):
     def net_spec(self):
         c = self.cfg
         return {"kind": "afr", "model": c.model, "identities": c.identities, "layers": c.layers,
-                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed,
+                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
 
     def data_config(self):
@@ -90,6 +94,7 @@ class FaceTask(harness.Task):
 
     def prepare(self, model, norm):
         model.set_pose_norm(norm["pose_mean"], norm["pose_std"])
+        set_input_standardisation(model, norm)
 
     def describe(self, model):
         c = self.cfg
@@ -99,7 +104,7 @@ class FaceTask(harness.Task):
 
     def batch_loss(self, net, idx, norm, device):
         ident, pose = self.labels
-        logits, z = net(net_input(self.onv16[idx], norm, device))
+        logits, z = net(net_input(self.onv16[idx], norm, device, self.onv_dtype))
         ce = F.cross_entropy(logits, ident[idx].to(device))
         mse = F.mse_loss(z, ((pose[idx] - norm["pose_mean"]) / norm["pose_std"]).to(device))
         acc = (logits.detach().argmax(1).cpu() == ident[idx]).float().mean().item()
@@ -110,7 +115,7 @@ class FaceTask(harness.Task):
         logits, z = [], []
         with torch.no_grad():
             for s in range(0, len(idx), batch):
-                a, b = model(net_input(self.onv16[torch.as_tensor(idx[s : s + batch])], norm, device))
+                a, b = model(net_input(self.onv16[torch.as_tensor(idx[s : s + batch])], norm, device, self.onv_dtype))
                 logits.append(a.cpu())
                 z.append(b.cpu())
         model.train()

@@ -14,9 +14,9 @@ import numpy as np
 import torch
 
 from warp_vision.frames import gaze_directions
-from warp_vision.nn.trained import fit_input_norm, net_input
+from warp_vision.nn.trained import ONV_DTYPES, fit_input_norm, net_input, set_input_standardisation
 from warp_vision.train import harness
-from warp_vision.train.config import TrainConfig
+from warp_vision.train.config import TrainConfig, onv_dtype_name
 
 #: Huber loss threshold in standardised target units (the targets' std is about 20 degrees, so ~2 degrees).
 HUBER_DELTA = 0.1
@@ -60,6 +60,10 @@ class FoveationTask(harness.Task):
         dc = self.cfg.data_config()
         return dataset_bytes(dataset_fields(dc), dc.samples)
 
+    @property
+    def onv_dtype(self):
+        return ONV_DTYPES[onv_dtype_name(self.cfg)]
+
     def splits(self):
         c = self.cfg
         return harness.splits(len(self.target), c.data_seed, c.val_fraction, c.test_fraction)
@@ -74,7 +78,7 @@ class FoveationTask(harness.Task):
         c = self.cfg
         angles = self.retina.visual_angles(make_eye(c.data_config())) if c.head_kind() == "softargmax" else None
         return {"kind": "foveation", "model": c.model, "head": c.head_kind(), "layers": c.layers,
-                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed,
+                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
                 "photoreceptor_angles": None if angles is None else torch.from_numpy(np.asarray(angles, np.float64))}
 
@@ -85,6 +89,7 @@ class FoveationTask(harness.Task):
 
     def prepare(self, model, norm):
         model.set_target_norm(norm["target_mean"], norm["target_std"])
+        set_input_standardisation(model, norm)
 
     def describe(self, model):
         return (f"{self.cfg.model} ({self.cfg.head_kind()} head): {sum(p.numel() for p in model.parameters()):,} "
@@ -92,7 +97,7 @@ class FoveationTask(harness.Task):
 
     def batch_loss(self, net, idx, norm, device):
         y = ((self.target[idx] - norm["target_mean"]) / norm["target_std"]).to(device)
-        pred = net(net_input(self.onv16[idx], norm, device))
+        pred = net(net_input(self.onv16[idx], norm, device, self.onv_dtype))
         loss = train_loss(self.cfg.loss, pred, y)
         return loss, {"loss": float(loss.detach()), "mse": float(torch.nn.functional.mse_loss(pred.detach(), y))}
 
@@ -101,7 +106,7 @@ class FoveationTask(harness.Task):
         preds = []
         with torch.no_grad():
             for s in range(0, len(idx), batch):
-                preds.append(model(net_input(self.onv16[torch.as_tensor(idx[s : s + batch])], norm, device)).cpu())
+                preds.append(model(net_input(self.onv16[torch.as_tensor(idx[s : s + batch])], norm, device, self.onv_dtype)).cpu())
         model.train()
         z = torch.cat(preds) if preds else torch.zeros(0, 2)
         true = self.target[torch.as_tensor(idx)]
