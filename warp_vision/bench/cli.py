@@ -34,7 +34,7 @@ def _parser() -> argparse.ArgumentParser:
     mem.add_argument("--budget-gib", type=float, default=14.0,
                      help="run only configurations whose memory floor fits this (GiB); estimate the rest")
     mem.add_argument("--out", default="bench_results/memory.json", help="JSON output path (the PNG goes beside it)")
-    mem.add_argument("--worker", nargs=2, metavar=("MODEL", "ONV"), help=argparse.SUPPRESS)
+    mem.add_argument("--worker", nargs=3, metavar=("MODEL", "ONV", "DTYPE"), help=argparse.SUPPRESS)
 
     rtp = sub.add_parser("raytrace", help="closest-hit rays/s (Warp packets vs wp.Mesh vs Embree) and ONVs/s")
     rtp.add_argument("--photoreceptors", type=int, default=14_400, help="P per retina (default 14,400)")
@@ -56,7 +56,7 @@ def _bench(args) -> int:
     if args.bench == "memory" and args.worker:
         from warp_vision.bench.memory import worker
 
-        print(json.dumps(worker(args.worker[0], int(args.worker[1]), args.batch)))
+        print(json.dumps(worker(args.worker[0], int(args.worker[1]), args.batch, input_dtype=args.worker[2])))
         return 0
     t0 = time.time()
     info = machine_info()

@@ -13,9 +13,12 @@ The layer's inputs are the ONV of the paper's noisy log-polar retina (:meth:`Ret
 medians after warm-up, for both input layouts (x
 batch-major, as an ONV batch arrives; x feature-major, as one liNet layer hands it to the next). It
 reports each torch variant's time over Warp's, and the memory bandwidth Warp achieves against the
-minimum bytes the op must move. Last, the op's three feature-major kernels are timed alone on
-preallocated outputs (``warp_kernels_only_ms``): how much of the op is kernel time, and the best
-torch time over that sum, the speed-up these kernels would give with no overhead at all.
+minimum bytes the op must move. Then the first layer as training runs it (``half_onv``): a batch-major
+ONV batch that needs no gradient, fed as float16 (as the dataset stores it; the kernels widen it on
+load) against float32, forward and forward+backward, with the bytes each moves against its traffic
+floor. Last, the op's three feature-major kernels are timed alone on preallocated outputs
+(``warp_kernels_only_ms``): how much of the op is kernel time, and the best torch time over that sum,
+the speed-up these kernels would give with no overhead at all.
 """
 
 from __future__ import annotations
@@ -50,14 +53,17 @@ def _threads(n: int | None):
             os.environ["WARP_VISION_THREADS"] = old
 
 
-def min_bytes(B: int, n_in: int, N: int, R: int, itemsize: int = 4, grad_x: bool = True) -> dict:
-    """Minimum bytes each pass must move (each array read or written once)."""
+def min_bytes(B: int, n_in: int, N: int, R: int, itemsize: int = 4, grad_x: bool = True,
+              x_itemsize: int | None = None) -> dict:
+    """Minimum bytes each pass must move (each array read or written once); x (and grad_x) in
+    ``x_itemsize`` bytes (default ``itemsize``), everything else in ``itemsize``."""
+    xs = itemsize if x_itemsize is None else x_itemsize
     params = N * R * (itemsize + 4) + N * itemsize  # weight + int32 index + bias
-    fwd = B * n_in * itemsize + params + B * N * itemsize
+    fwd = B * n_in * xs + params + B * N * itemsize
     # backward: read grad_y, x, weight, index (+ transposed index for grad_x); write grads
-    bwd = B * N * itemsize + B * n_in * itemsize + params + N * R * itemsize + N * itemsize
+    bwd = B * N * itemsize + B * n_in * xs + params + N * R * itemsize + N * itemsize
     if grad_x:
-        bwd += B * n_in * itemsize + N * R * 4 + (n_in + 1) * 4
+        bwd += B * n_in * xs + N * R * 4 + (n_in + 1) * 4
     return {"forward": fwd, "backward": bwd, "forward_backward": fwd + bwd}
 
 
@@ -240,6 +246,46 @@ def _add_kernels_only(result: dict, inp: dict, repeats: int, log) -> None:
     )
 
 
+def half_onv(inp: dict, repeats: int, log) -> dict:
+    """The first layer on a batch-major ONV batch that needs no gradient (as training feeds it): the op
+    on the float32 batch and on the same batch in float16, forward and forward+backward (weight and
+    bias), timed in interleaved rounds; the float32/float16 time ratio and the bandwidth each achieves
+    against its traffic floor (:func:`min_bytes` with x in 4 or 2 bytes, no grad_x)."""
+    w, b, index, gy = inp["weight"], inp["bias"], inp["index"], inp["grad_y_bm"]
+    xs = {"float32": inp["x_bm"], "float16": inp["x_bm"].half()}
+    B, n_in = xs["float32"].shape
+    N, R = w.shape
+    cases = {}
+    for name, x in xs.items():
+        def fwd(x=x):
+            with torch.no_grad():
+                locally_connected(x, w, b, index)
+
+        def fwd_bwd(x=x):
+            y = locally_connected(x, w, b, index)
+            torch.autograd.grad(y, (w, b), gy if y.is_contiguous() else _layout(gy, True))
+
+        cases[f"{name}/forward"], cases[f"{name}/forward_backward"] = (fwd, None), (fwd_bwd, None)
+    timed = interleaved_ms(cases, repeats)
+    out = {"ratio_float32_over_float16": {}, "GBps_vs_min_bytes": {}, "min_bytes": {}, "median_ms": {}}
+    for name, x in xs.items():
+        mb = min_bytes(B, n_in, N, R, grad_x=False, x_itemsize=x.element_size())
+        out["min_bytes"][name] = {k: mb[k] for k in ("forward", "forward_backward")}
+        for phase in ("forward", "forward_backward"):
+            ms = timed[f"{name}/{phase}"]["median_ms"]
+            out["median_ms"].setdefault(name, {})[phase] = ms
+            out["GBps_vs_min_bytes"].setdefault(name, {})[phase] = mb[phase] / (ms * 1e-3) / 1e9
+    for phase in ("forward", "forward_backward"):
+        out["ratio_float32_over_float16"][phase] = out["median_ms"]["float32"][phase] / out["median_ms"]["float16"][phase]
+    m, g = out["median_ms"], out["GBps_vs_min_bytes"]
+    log(f" first layer, batch-major ONV, no grad x: float32 fwd {m['float32']['forward']:.2f} ms, fwd+bwd "
+        f"{m['float32']['forward_backward']:.2f} ms ({g['float32']['forward_backward']:.2f} GB/s of its floor); float16 fwd "
+        f"{m['float16']['forward']:.2f} ms, fwd+bwd {m['float16']['forward_backward']:.2f} ms "
+        f"({g['float16']['forward_backward']:.2f} GB/s); float32/float16 "
+        f"{out['ratio_float32_over_float16']['forward_backward']:.2f}x")
+    return out
+
+
 def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int = 0, log=print) -> dict:
     """Benchmark one layer: ONV of P photoreceptors (N_in = 3P) -> N = N_in // reduction units.
 
@@ -259,6 +305,7 @@ def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int =
         log(f" x {layout.replace('_', '-')}:")
         per_layout = _time_layout(impls, inp, layout == "feature_major", repeats, log)
         result["layouts"][layout] = _layout_summary(per_layout, result["min_bytes"], log)
+    result["half_onv"] = half_onv(inp, repeats, log)
     if inp["x_bm"].device.type == "cpu":
         _add_kernels_only(result, inp, repeats, log)
     sync()
