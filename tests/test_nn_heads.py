@@ -74,3 +74,27 @@ def test_state_dict_round_trip_and_errors():
         FoveationNet(a.backbone, head="attention")
     with pytest.raises(ValueError, match="directions"):
         FoveationNet(a.backbone, head="softargmax", directions=[torch.zeros(len(xy), 2)])
+
+
+def test_the_softargmax_head_votes_alike_on_half_onvs_standardised_in_the_first_layer():
+    """A foveation net reading half-precision ONVs (standardised in its first layer) gives what the same
+    net gives on the standardised float32 ONVs: the layer-0 vote included."""
+    import numpy as np
+    import torch
+
+    from warp_vision.eye.retina import Retina
+    from warp_vision.nn.trained import build_net, set_input_standardisation
+
+    retina = Retina.log_polar(200, seed=0)
+    spec = {"kind": "foveation", "model": "linet", "head": "softargmax", "layers": 2, "receptive_field": 6,
+            "reduction": 5, "seed": 0, "photoreceptor_xy": torch.from_numpy(np.asarray(retina.domain_xy, np.float64)),
+            "photoreceptor_angles": torch.from_numpy(np.random.default_rng(0).uniform(-1.0, 1.0, (200, 2)))}
+    plain = build_net(spec)
+    half = build_net({**spec, "onv_dtype": "float16"})
+    half.load_state_dict({**plain.state_dict(), **{k: v for k, v in half.state_dict().items() if "input_" in k}})
+    norm = {"input_mean": torch.tensor(0.8), "input_std": torch.tensor(0.4)}
+    set_input_standardisation(half, norm)
+    x = (torch.rand(64, 600, generator=torch.Generator().manual_seed(1)) * 3).half()
+    want = plain((x.float() - 0.8) / 0.4)
+    got = half(x)
+    assert torch.allclose(got, want, rtol=1e-4, atol=1e-4), (got - want).abs().max()

@@ -110,14 +110,24 @@ class FoveationNet(nn.Module):
             self.target_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
             self.target_std.copy_(torch.as_tensor(std, dtype=torch.float32))
 
-    def _vote(self, h: int, x: Tensor) -> Tensor:
-        w = torch.softmax(x * self.log_temperature[h].exp() + self.vote_bias[h], dim=1)
+    def _vote(self, h: int, x: Tensor, scale: Tensor | None = None) -> Tensor:
+        t = self.log_temperature[h].exp() if scale is None else self.log_temperature[h].exp() * scale
+        w = torch.softmax(x * t + self.vote_bias[h], dim=1)
         return w @ getattr(self, f"directions_{h}")
 
     def votes(self, onv: Tensor) -> tuple[Tensor, list[Tensor]]:
         """(last hidden layer [B, N_H], gaze votes [B, 2] in radians of layers h = 0..H) for the
-        soft-argmax head (h = 0: the net's input, one vote per ONV element)."""
-        x, votes = onv, [self._vote(0, onv)]
+        soft-argmax head (h = 0: the net's input, one vote per ONV element).
+
+        A backbone whose first layer standardises its (half-precision) input itself gets the same layer-0
+        vote as one fed standardised input: the temperature is divided by the input's std, and the mean,
+        a shift common to every element, cancels in the softmax."""
+        first = self.backbone.layers[0]
+        if getattr(first, "folds_input", False):
+            votes = [self._vote(0, onv.to(self.target_mean.dtype), 1.0 / first.input_std)]
+        else:
+            votes = [self._vote(0, onv)]
+        x = onv
         for h, layer in enumerate(self.backbone.layers, start=1):
             x = layer(x)
             votes.append(self._vote(h, x))
