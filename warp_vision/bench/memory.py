@@ -132,7 +132,7 @@ def run(sizes: Sequence[int] = DEFAULT_SIZES, batch: int = 64, budget_gib: float
             }
             if floor["total"] > budget_gib * 2**30:
                 row.update(estimated=True, peak_bytes=floor["total"])
-                log(f"  {model:6s} {dtype:8s} 3P={onv:>10,d}: floor {floor['total'] / 2**20:10.0f} MB > budget: estimated")
+                log(f"  {model:6s} {dtype:8s} 3P={onv:>10,d}: floor {floor['total'] / 2**20:10.0f} MiB > budget: estimated")
             else:
                 cmd = [sys.executable, "-m", "warp_vision.bench", "memory", "--worker", model, str(onv), dtype,
                        "--batch", str(batch)]
@@ -146,8 +146,8 @@ def run(sizes: Sequence[int] = DEFAULT_SIZES, batch: int = 64, budget_gib: float
                            process_peak_bytes=res["process_peak_bytes"])
                 row["peak_over_floor"] = res["peak_bytes"] / floor["total"]
                 log(
-                    f"  {model:6s} {dtype:8s} 3P={onv:>10,d}: params {row['params']:>14,d}  peak {res['peak_bytes'] / 2**20:9.0f} MB"
-                    f"  floor {floor['total'] / 2**20:9.0f} MB  ({row['peak_over_floor']:.2f}x)  process {res['process_peak_bytes'] / 2**20:9.0f} MB"
+                    f"  {model:6s} {dtype:8s} 3P={onv:>10,d}: params {row['params']:>14,d}  peak {res['peak_bytes'] / 2**20:9.0f} MiB"
+                    f"  floor {floor['total'] / 2**20:9.0f} MiB  ({row['peak_over_floor']:.2f}x)  process {res['process_peak_bytes'] / 2**20:9.0f} MiB"
                 )
             rows.append(row)
     return {"batch": batch, "layers": 4, "reduction": 5, "receptive_field": 5, "optimizer": "Adam", "rows": rows}
@@ -175,7 +175,7 @@ def plot(result: dict, path: str) -> None:
             ax_m.plot([r["onv"] for r in xs], [r["peak_bytes"] / 2**20 for r in xs], "x--", color=colour, label=f"{label} (estimated floor)")
         if dtype == "float32":  # the parameters do not depend on the input's dtype
             ax_p.plot([r["onv"] for r in rows], [r["params"] for r in rows], "o-", color=colour, label=label.split(",")[0])
-    ax_m.set(xscale="log", yscale="log", xlabel="ONV dimension 3P", ylabel="peak memory of one training step (MB)",
+    ax_m.set(xscale="log", yscale="log", xlabel="ONV dimension 3P", ylabel="peak memory of one training step (MiB)",
              title="(a) memory: batch 64, Adam")
     ax_p.set(xscale="log", yscale="log", xlabel="ONV dimension 3P", ylabel="trainable parameters",
              title="(b) parameters: H=4, f=5, R=5")
