@@ -111,8 +111,12 @@ class FoveationNet(nn.Module):
             self.target_std.copy_(torch.as_tensor(std, dtype=torch.float32))
 
     def _vote(self, h: int, x: Tensor, scale: Tensor | None = None) -> Tensor:
-        t = self.log_temperature[h].exp() if scale is None else self.log_temperature[h].exp() * scale
-        w = torch.softmax(x * t + self.vote_bias[h], dim=1)
+        t = self.log_temperature[h].exp()
+        if scale is None:
+            logits = x * t + self.vote_bias[h]
+        else:  # a half-precision x: widened element by element, no float32 copy of it
+            logits = torch.addcmul(self.vote_bias[h], x, t * scale)
+        w = torch.softmax(logits, dim=1)
         return w @ getattr(self, f"directions_{h}")
 
     def votes(self, onv: Tensor) -> tuple[Tensor, list[Tensor]]:
@@ -124,7 +128,7 @@ class FoveationNet(nn.Module):
         a shift common to every element, cancels in the softmax."""
         first = self.backbone.layers[0]
         if getattr(first, "folds_input", False):
-            votes = [self._vote(0, onv.to(self.target_mean.dtype), 1.0 / first.input_std)]
+            votes = [self._vote(0, onv, 1.0 / first.input_std)]
         else:
             votes = [self._vote(0, onv)]
         x = onv
