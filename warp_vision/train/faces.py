@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from warp_vision.nn.trained import ONV_DTYPES, fit_input_norm, net_input, set_input_standardisation
+from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
 from warp_vision.train import harness
 from warp_vision.train.config import FaceTrainConfig, onv_dtype_name
 
@@ -34,9 +34,10 @@ def shuffled_labels(ident, pose, tr, seed: int):
     return ident, pose
 
 
-class FaceTask(harness.Task):
+class FaceTask(harness.OnvTask):
     name = "faces"
     config_cls = FaceTrainConfig
+    data_module = "warp_vision.data.faces"
     selection = {"mse": "min", "accuracy": "max"}
 
     def load(self, shard, progress, synthesize: bool = True):
@@ -59,17 +60,6 @@ class FaceTask(harness.Task):
         super().resolve_paths(cfg)
         cfg.identities_cache = str(Path(cfg.identities_cache or identities_cache(cfg.identities, cfg.identity_seed)).resolve())
 
-    def dataset_bytes(self):
-        from warp_vision.data.faces import dataset_fields
-        from warp_vision.data.store import dataset_bytes
-
-        dc = self.cfg.data_config()
-        return dataset_bytes(dataset_fields(dc), dc.samples)
-
-    @property
-    def onv_dtype(self):
-        return ONV_DTYPES[onv_dtype_name(self.cfg)]
-
     def splits(self):
         c = self.cfg
         tr, va, te = harness.splits(len(self.ident), c.data_seed, c.val_fraction, c.test_fraction, min_test=1)
@@ -86,11 +76,6 @@ class FaceTask(harness.Task):
         return {"kind": "afr", "model": c.model, "identities": c.identities, "layers": c.layers,
                 "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
-
-    def data_config(self):
-        from dataclasses import asdict
-
-        return asdict(self.cfg.data_config())
 
     def prepare(self, model, norm):
         model.set_pose_norm(norm["pose_mean"], norm["pose_std"])

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from warp_vision.frames import gaze_directions
-from warp_vision.nn.trained import ONV_DTYPES, fit_input_norm, net_input, set_input_standardisation
+from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
 from warp_vision.train import harness
 from warp_vision.train.config import TrainConfig, onv_dtype_name
 
@@ -37,9 +37,10 @@ def train_loss(kind: str, pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.huber_loss(pred, y, delta=HUBER_DELTA)
 
 
-class FoveationTask(harness.Task):
+class FoveationTask(harness.OnvTask):
     name = "foveation"
     config_cls = TrainConfig
+    data_module = "warp_vision.data.foveation"
 
     def load(self, shard, progress, synthesize: bool = True):
         from warp_vision.data.foveation import synthesize as render
@@ -52,17 +53,6 @@ class FoveationTask(harness.Task):
         data = ChunkedStore.open(self.ddir).load(["onv", "target"])
         self.onv16, self.target = torch.from_numpy(data["onv"]), torch.from_numpy(data["target"])
         self.retina = Retina.load(self.ddir / "retina.npz")
-
-    def dataset_bytes(self):
-        from warp_vision.data.foveation import dataset_fields
-        from warp_vision.data.store import dataset_bytes
-
-        dc = self.cfg.data_config()
-        return dataset_bytes(dataset_fields(dc), dc.samples)
-
-    @property
-    def onv_dtype(self):
-        return ONV_DTYPES[onv_dtype_name(self.cfg)]
 
     def splits(self):
         c = self.cfg
@@ -81,11 +71,6 @@ class FoveationTask(harness.Task):
                 "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
                 "photoreceptor_angles": None if angles is None else torch.from_numpy(np.asarray(angles, np.float64))}
-
-    def data_config(self):
-        from dataclasses import asdict
-
-        return asdict(self.cfg.data_config())
 
     def prepare(self, model, norm):
         model.set_target_norm(norm["target_mean"], norm["target_std"])

@@ -38,8 +38,8 @@ import torch
 import torch.distributed as dist
 
 from warp_vision.fileio import write_json
-from warp_vision.nn.trained import build_net, read_checkpoint
-from warp_vision.train.config import epoch_lr
+from warp_vision.nn.trained import ONV_DTYPES, build_net, read_checkpoint
+from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, run_config, sync_metrics)
 
@@ -134,6 +134,29 @@ class Task:
 
     def eval_line(self, run_dir: str, split: str, n: int, ev: dict) -> str:
         raise NotImplementedError
+
+
+class OnvTask(Task):
+    """A task whose samples are ONVs in a chunked store built by ``data_module`` (``warp_vision.data.
+    foveation`` or ``.faces``, with its ``dataset_fields``): the dataset's size, the dtype its net reads
+    ONVs in (``cfg.onv_dtype``) and the data config its checkpoints carry."""
+
+    data_module: str = ""
+
+    def dataset_bytes(self) -> int:
+        import importlib
+
+        from warp_vision.data.store import dataset_bytes
+
+        dc = self.cfg.data_config()
+        return dataset_bytes(importlib.import_module(self.data_module).dataset_fields(dc), dc.samples)
+
+    @property
+    def onv_dtype(self) -> torch.dtype:
+        return ONV_DTYPES[onv_dtype_name(self.cfg)]
+
+    def data_config(self) -> dict:
+        return asdict(self.cfg.data_config())
 
 
 def select(selection: dict, ev: dict, best: dict) -> tuple[bool, bool, dict]:
