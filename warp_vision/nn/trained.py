@@ -64,10 +64,15 @@ def onv_dtype(spec: dict) -> torch.dtype:
     return ONV_DTYPES[spec.get("onv_dtype", "float32")]
 
 
+def _first_layer(model: torch.nn.Module):
+    """The first layer of a net's liNet backbone (None for a net without one)."""
+    return getattr(getattr(model, "backbone", None), "layers", [None])[0]
+
+
 def _read_half_onvs(model: torch.nn.Module, spec: dict) -> torch.nn.Module:
     """A liNet net whose spec reads half-precision ONVs standardises them in its first layer."""
     if onv_dtype(spec) != torch.float32:
-        first = getattr(getattr(model, "backbone", None), "layers", [None])[0]
+        first = _first_layer(model)
         if not hasattr(first, "fold_input_standardisation"):
             raise ValueError(f"onv_dtype: {spec['onv_dtype']} ONVs need a liNet backbone; use float32 for {spec.get('model')!r}")
         first.fold_input_standardisation()
@@ -77,7 +82,7 @@ def _read_half_onvs(model: torch.nn.Module, spec: dict) -> torch.nn.Module:
 def set_input_standardisation(model: torch.nn.Module, norm: dict) -> None:
     """Give a net that standardises its input in its first layer (half-precision ONVs) the mean and std
     of :func:`fit_input_norm`; nets that read standardised float32 ONVs are left as they are."""
-    first = getattr(getattr(model, "backbone", None), "layers", [None])[0]
+    first = _first_layer(model)
     if getattr(first, "folds_input", False):
         with torch.no_grad():
             first.input_mean.copy_(torch.as_tensor(norm["input_mean"]))

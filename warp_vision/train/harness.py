@@ -379,12 +379,13 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     ``overwrite``, which deletes them first. ``epochs`` gives a resumed run a new epoch cap (see
     :func:`open_run`). ``stop_after_epoch`` (tests) interrupts the run after that epoch, as Ctrl-C would,
     and returns ``{"interrupted": True}``."""
-    say = log if int(os.environ.get("RANK", "0")) == 0 else (lambda *a, **k: None)
+    rank0 = int(os.environ.get("RANK", "0")) == 0  # (torchrun's; Dist reads it again below)
+    say = log if rank0 else (lambda *a, **k: None)
     cfg, out, ck = open_run(task_cls, cfg, resume, overwrite, epochs, say)
     device = pick_device(cfg.device)
     task = task_cls(cfg, say)
-    if int(os.environ.get("RANK", "0")) == 0:
-        preflight(task, out, Path(dataset_dir(cfg, task_cls.name, cfg.data_config())), say)
+    if rank0:
+        preflight(task, out, Path(cfg.data_dir), say)  # (open_run made data_dir absolute)
         write_json(out / "config.json", asdict(cfg))
     dd = Dist(device)
     t_start = time.perf_counter()

@@ -48,7 +48,7 @@ def claim_out_dir(out: Path, overwrite: bool) -> None:
                 f.unlink(missing_ok=True)
 
 
-def _usable_checkpoint(out: Path, log) -> tuple[dict, Path]:
+def _usable_checkpoint(out: Path, log) -> dict:
     """The newest checkpoint of run ``out`` that reads and verifies (latest.pt, else previous.pt, else
     best.pt), saying which when it is not latest.pt; one ValueError naming them all if none does."""
     problems = []
@@ -64,7 +64,7 @@ def _usable_checkpoint(out: Path, log) -> tuple[dict, Path]:
             continue
         if problems:
             log(f"{'; '.join(problems)}; resuming from {path} (epoch {ck['epoch'] + 1}) instead")
-        return ck, path
+        return ck
     raise ValueError(f"--resume {out}: no checkpoint to resume from: {'; '.join(problems)}")
 
 
@@ -89,7 +89,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         cfg.out = str(out)
         task_cls.resolve_paths(cfg)  # (a run made before paths were recorded absolute: as the working directory says)
         _check_device(cfg.device)
-        ck, _ = _usable_checkpoint(out, log)
+        ck = _usable_checkpoint(out, log)
     elif epochs is not None:
         raise ValueError("epochs: only a resumed run takes a new epoch cap; set it in the config otherwise")
     elif cfg is None:
@@ -206,11 +206,11 @@ def sync_metrics(out: Path, history: list) -> None:
     from the history (without its timing)."""
     path = out / "metrics.jsonl"
     rows = [x for x in path.read_text().splitlines() if x.strip()] if path.exists() else []
-    done = len(history)
-    kept = [x for x in rows if _row_epoch(x) <= done]
-    have = {_row_epoch(x) for x in kept}
-    kept += [json.dumps(r) for r in history if int(r["epoch"]) not in have]
-    kept.sort(key=_row_epoch)
+    by_epoch = {int(r["epoch"]): json.dumps(r) for r in history}  # every epoch the checkpoint holds ...
+    for x in rows:  # ... with its own row (and timing) where metrics.jsonl has one; nothing past them
+        if _row_epoch(x) in by_epoch:
+            by_epoch[_row_epoch(x)] = x
+    kept = [by_epoch[e] for e in sorted(by_epoch)]
     if kept != rows:
         atomic_write(path, "".join(x + "\n" for x in kept))
 
