@@ -120,6 +120,8 @@ class _SceneGeometry:
             nv += len(V)
         arr = lambda x, dt: wp.array(np.ascontiguousarray(x), dtype=dt, device=device)  # noqa: E731
         packed = concat_bvhs(self.bvhs)
+        self.root_lo = np.array([b.node_lo[0] for b in self.bvhs], np.float64)  # [n_inst, 3], instance frames
+        self.root_hi = np.array([b.node_hi[0] for b in self.bvhs], np.float64)
         self.bvh = {k: arr(v, wp.vec3 if v.ndim == 2 else wp.int32) for k, v in packed.items()}
         self.faces = arr(np.concatenate(faces), wp.vec3i)
         self.face_offset = arr(np.array(f_off, np.int32), wp.int32)
@@ -143,6 +145,19 @@ class _SceneGeometry:
         )
 
 
+def _world_bounds(geo: _SceneGeometry, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each instance's box in the world, [rows, n_inst, 3] (lo, hi) float32: the 8 corners of its root
+    node's box through its transforms T [rows, n_inst, 4, 4], widened by a relative 1e-5 and 1e-6 m so
+    float32 rounding never culls a ray that grazes the instance."""
+    corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
+    box = np.stack([geo.root_lo, geo.root_hi])  # [2, n_inst, 3]
+    pts = np.where(corners[:, None, :] == 0, box[0][None], box[1][None])  # [8, n_inst, 3]
+    w = np.einsum("rnij,cnj->rcni", T[..., :3, :3], pts) + T[:, None, :, :3, 3]  # [rows, 8, n_inst, 3]
+    lo, hi = w.min(axis=1), w.max(axis=1)
+    pad = 1e-5 * np.abs(w).max(axis=1) + 1e-6
+    return np.ascontiguousarray(lo - pad, np.float32), np.ascontiguousarray(hi + pad, np.float32)
+
+
 def _instance_bvh_data(scene, geo: _SceneGeometry, device: str) -> BvhData:
     """The instances' BVHs with their per-batch transforms and visibility (one row when no object
     varies across the batch)."""
@@ -155,6 +170,9 @@ def _instance_bvh_data(scene, geo: _SceneGeometry, device: str) -> BvhData:
     for name, a in geo.bvh.items():
         setattr(bv, name, a)
     bv.world_from_inst = wp.array(to_warp_transforms(T), dtype=wp.transform, device=device)
+    lo, hi = _world_bounds(geo, T)
+    bv.inst_world_lo = wp.array(lo, dtype=wp.vec3, device=device)
+    bv.inst_world_hi = wp.array(hi, dtype=wp.vec3, device=device)
     bv.inst_from_world = wp.array(to_warp_transforms(_inverse_rigid(T)), dtype=wp.transform, device=device)
     per_vis = [np.ones(1, dtype=bool) if k < 0 else scene.objects[k].visible for k in geo.instance_objects]
     vis = np.stack([np.broadcast_to(v, (B,)) for v in per_vis], axis=1)  # [B, n_inst]

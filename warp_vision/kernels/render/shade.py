@@ -6,8 +6,8 @@ shadow packet per point light plus ambient light and emission, and mirror reflec
 ``max_depth`` bounces. Its steps are the ``_hit_surfaces``, ``_direct_light``, ``_add_surface_light`` and
 ``_mirror`` functions below, each a loop over the 8 lanes.
 
-The kernels launch one thread per photoreceptor (``render_onv_kernel``: its rays, 8 at a time, summed
-by their weights into the ONV), per 4 x 2 pixel tile (``camera_kernel``) or per 8 rays
+The kernels launch one thread per group of G photoreceptors (``render_onv_kernel``: their rays, 8 at a
+time in full packets, summed by their weights into the ONV; G = 2 at S = 4), per 4 x 2 pixel tile (``camera_kernel``) or per 8 rays
 (``radiance_kernel``, ``closest_hit_kernel``). Every thread writes only its own outputs, so there are
 no atomics and CPU launches split over threads give bit-identical results. The host side (scene
 upload, argument checks, launches) is :mod:`warp_vision.kernels.render.scene_data` and
@@ -15,6 +15,8 @@ upload, argument checks, launches) is :mod:`warp_vision.kernels.render.scene_dat
 """
 
 from __future__ import annotations
+
+import math
 
 import warp as wp
 
@@ -317,53 +319,72 @@ def render_onv_kernel(
     ray_weight: wp.array(dtype=float),
     P: int,
     S: int,
+    G: int,
     offset: int,
     onv_out: wp.array2d(dtype=float),
 ):
-    """Thread (b, p): onv_out[b, 3p + c] = sum_s weight * radiance_c over photoreceptor p's rays, 8 at a time."""
+    """Thread (b, group): onv_out[b, 3p + c] = sum_s weight * radiance_c over the rays of photoreceptors
+    p = group * G ... group * G + G - 1 (clipped to P), traced 8 at a time.
+
+    The group's G * 3 S rays (photoreceptor-major, then channel, then pupil sample, as ``eye_rays``
+    stores them) fill packets whole whatever the channel or photoreceptor: G is the smallest count for
+    which G * 3 S is a multiple of 8 (:func:`photoreceptors_per_thread`; S = 4 packs 2 photoreceptors'
+    24 rays into 3 packets where one packet per channel traced 6 half-empty ones). Photoreceptors are in
+    Morton order, so a group's rays are neighbours and its packets stay coherent. A lane adds its
+    weighted radiance of its own channel to its photoreceptor's entry; only this thread writes them."""
     k = offset + wp.tid()
-    b = k / P
-    p = k - b * P
+    groups = (P + G - 1) / G
+    b = k / groups
+    p0 = (k - b * groups) * G
     T = world_from_eye[b]
-    for c in range(3):
-        acc = float(0.0)
-        for j in range((S + 7) / 8):
-            ox = vec8()
-            oy = vec8()
-            oz = vec8()
-            dx = vec8()
-            dy = vec8()
-            dz = vec8()
-            w = vec8()
-            live = vec8(DEAD)
-            for l in range(8):
-                s = j * 8 + l
-                if s >= S:
-                    continue
-                r = (p * 3 + c) * S + s
-                wr = ray_weight[r]
-                if wr == 0.0:
-                    continue
-                o = wp.transform_point(T, ray_origin[r])
-                d = wp.transform_vector(T, ray_dir[r])
-                ox[l] = o[0]
-                oy[l] = o[1]
-                oz[l] = o[2]
-                dx[l] = d[0]
-                dy[l] = d[1]
-                dz[l] = d[2]
-                w[l] = wr
-                live[l] = FAR
-            if all_negative(live):
+    n = wp.min(G, P - p0) * 3 * S  # this group's rays
+    base = p0 * 3 * S
+    for j in range((n + 7) / 8):
+        ox = vec8()
+        oy = vec8()
+        oz = vec8()
+        dx = vec8()
+        dy = vec8()
+        dz = vec8()
+        w = vec8()
+        live = vec8(DEAD)
+        for l in range(8):
+            q = j * 8 + l
+            if q >= n:
                 continue
-            R, G, Bc = packet_radiance(sc, b, ox, oy, oz, dx, dy, dz, live)
-            if c == 0:
-                acc = acc + wp.dot(w, R)
-            elif c == 1:
-                acc = acc + wp.dot(w, G)
-            else:
-                acc = acc + wp.dot(w, Bc)
-        onv_out[b, p * 3 + c] = acc
+            r = base + q
+            wr = ray_weight[r]
+            if wr == 0.0:
+                continue
+            o = wp.transform_point(T, ray_origin[r])
+            d = wp.transform_vector(T, ray_dir[r])
+            ox[l] = o[0]
+            oy[l] = o[1]
+            oz[l] = o[2]
+            dx[l] = d[0]
+            dy[l] = d[1]
+            dz[l] = d[2]
+            w[l] = wr
+            live[l] = FAR
+        if all_negative(live):
+            continue
+        R, G_, Bc = packet_radiance(sc, b, ox, oy, oz, dx, dy, dz, live)
+        for l in range(8):
+            if live[l] < 0.0:
+                continue
+            e = (base + j * 8 + l) / S  # photoreceptor * 3 + channel
+            c = e % 3
+            v = R[l]
+            if c == 1:
+                v = G_[l]
+            elif c == 2:
+                v = Bc[l]
+            onv_out[b, e] = onv_out[b, e] + w[l] * v
+
+
+def photoreceptors_per_thread(S: int) -> int:
+    """G, the photoreceptors one render_onv_kernel thread traces: the fewest whose 3 S rays fill packets of 8."""
+    return 8 // math.gcd(3 * int(S), 8)
 
 
 @wp.kernel

@@ -26,7 +26,7 @@ from warp_vision.eye.optics import NavarroEye
 from warp_vision.kernels import launch as _launch
 from warp_vision.kernels.render.eye_rays import _check_samples, _retina_positions, eye_rays, eye_rays_bytes
 from warp_vision.kernels.render.scene_data import scene_data, to_warp_transforms
-from warp_vision.kernels.render.shade import camera_kernel, closest_hit_kernel, radiance_kernel, render_onv_kernel
+from warp_vision.kernels.render.shade import camera_kernel, closest_hit_kernel, photoreceptors_per_thread, radiance_kernel, render_onv_kernel
 from warp_vision.resources import require_memory
 
 #: CPU launch splitting for tracing kernels (``launch_split`` keywords): threads are heavy and unequal
@@ -105,9 +105,10 @@ def render_onv(
     if B == 0:
         return onv
     sc = scene_data(scene, device, max_depth)
+    G = photoreceptors_per_thread(rays.S)
     _launch.launch_split(
         render_onv_kernel,
-        B * rays.P,
+        B * ((rays.P + G - 1) // G),
         inputs=[
             sc,
             wp.array(to_warp_transforms(T), dtype=wp.transform, device=device),
@@ -116,6 +117,7 @@ def render_onv(
             rays.weights,
             rays.P,
             rays.S,
+            G,
         ],
         outputs=[wp.from_torch(onv)],
         device=device,
