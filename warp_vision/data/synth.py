@@ -49,7 +49,8 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
     if todo:
         probe_writable(store.root)  # a read-only or full directory fails now, not after the first chunk
     t0 = time.perf_counter()
-    with tqdm(total=mine, initial=mine - todo, unit="ONV", desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:
+    unit = "ONV" if what == "ONVs" else "sample"
+    with tqdm(total=mine, initial=mine - todo, unit=unit, desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:
         for c in store.missing_chunks():
             lo, hi = store.chunk_range(c)
             parts = []
@@ -58,4 +59,4 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
                 bar.update(min(hi, s + batch) - s)
             store.write_chunk(c, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
     dt = time.perf_counter() - t0
-    log(f"synthesised {todo:,} {what} in {dt:.0f} s ({todo / dt:.1f} ONV/s)")
+    log(f"synthesised {todo:,} {what} in {dt:.0f} s ({todo / dt:.1f} {what}/s)")
