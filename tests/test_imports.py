@@ -26,7 +26,7 @@ ALLOWED = {
     "data": {"foundation", "eye", "viz", "kernels", "scene", "nn"},
     "sim": {"foundation", "eye", "viz", "kernels", "scene", "nn", "data"},
     "train": {"foundation", "eye", "viz", "kernels", "scene", "nn", "data", "sim"},
-    "bench": {"foundation", "eye", "viz", "kernels", "scene", "nn", "data"},
+    "bench": {"foundation", "eye", "viz", "kernels", "scene", "nn", "data", "sim"},
     "package": {"foundation"},
 }
 

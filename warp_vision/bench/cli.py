@@ -42,7 +42,14 @@ def _parser() -> argparse.ArgumentParser:
     rtp.add_argument("--batch", type=int, default=4, help="ONVs rendered per launch (default 4)")
     rtp.add_argument("--repeats", type=int, default=5, help="timed repeats per measurement (median reported)")
     rtp.add_argument("--out", default="bench_results/raytrace.json", help="JSON output path")
-    for q in (lin, mem, rtp):
+    lop = sub.add_parser("loop", help="the closed loop: simulated/wall, time shares and accuracy per visual frame rate")
+    lop.add_argument("--frame-every", type=int, nargs="+", default=None,
+                     help="settings: the eyes render every N control periods of 10 ms (default: 1, the loop as it "
+                          "was, and the loop's default)")
+    lop.add_argument("--quick", action="store_true", help="the --quick nets of python -m warp_vision.sim")
+    lop.add_argument("--no-progress", action="store_true", help="no progress bars")
+    lop.add_argument("--out", default="bench_results/loop.json", help="JSON output path")
+    for q in (lin, mem, rtp, lop):
         add_debug_flag(q)
     return p
 
@@ -74,6 +81,10 @@ def _bench(args) -> int:
             if getattr(args, name) < 1:
                 raise ValueError(f"--{name}: expected a positive integer, got {getattr(args, name)}")
         result = raytrace.run(args.repeats, args.photoreceptors, args.samples, args.batch)
+    elif args.bench == "loop":
+        from warp_vision.bench import loop
+
+        result = loop.run(args.frame_every or (1, None), quick=args.quick, progress=not args.no_progress)
     else:
         from warp_vision.bench import memory
 

@@ -1,15 +1,18 @@
 """``python -m warp_vision.sim``: the virtual human's closed-loop demos and measurements.
 
   demo         the cannon scenario: a ball flies into the periphery; both eyes saccade, converge and track
-               it, the head follows. Writes a third-person GIF with the gaze lines, the left retina at four
-               moments (Fig. 7) and the gaze error over time.
+               it, the head follows. Writes an MP4 (640x480 third-person view with the gaze lines beside
+               both eyes' retina images, simulated time on every frame; --gif for a GIF too), the left
+               retina at four moments (Fig. 7) and the gaze error over time.
   experiments  saccades to a ball appearing at 20 deg in eight directions, vergence at 1 m, tracking a
                ball moving at 15 and 30 deg/s, the loop's time shares. Writes experiments.json.
-  oculomotor   both eyes' oculomotor nets: runs 'python -m warp_vision.train oculomotor --eye left|right'
-               for each eye whose net is missing (about 6 minutes for both).
+  oculomotor   both eyes' oculomotor nets only: trains the missing ones.
 
-The foveation nets come from ``python -m warp_vision.train --eye left --out runs/foveation_left`` and
-``--eye right --out runs/foveation_right`` (about 8 minutes each on a 2-core CPU).
+Both demo and experiments work from a fresh clone: each net the loop needs (both eyes' foveation liNets
+and oculomotor nets) that is missing is trained first, after a plan with time estimates, and cached
+(``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``; with --quick, smaller
+nets in ``runs/quick/``). Each output directory gets ``nets.json``: the nets used, with their training
+configs and checksums.
 """
 
 from __future__ import annotations
@@ -17,132 +20,64 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import time
 
 import numpy as np
 
 from warp_vision.errors import add_debug_flag, guarded
 from warp_vision.fileio import write_json
 from warp_vision.sim.body import SIDES, Body, BodyConfig
+from warp_vision.sim.scenarios import SETTLE_S, experiments, run_scenario
 
-SETTLE_S = 0.2  # s of simulation before a scenario starts: the passive arms settle under gravity
+
+def _specs(args):
+    from warp_vision.sim.provision import default_runs, plan
+
+    runs = default_runs(args.quick)
+    left = getattr(args, "left", None) or runs["left"]
+    right = getattr(args, "right", None) or runs["right"]
+    return plan(left, right, args.oculomotor or runs["oculomotor"], quick=args.quick)
 
 
 def _setup(args):
+    """Provide the nets (training missing ones), build the body and the loop; writes nets.json to --out."""
     from warp_vision.sim.loop import Foveator, VisuomotorLoop
     from warp_vision.sim.oculomotor import load_oculomotor
+    from warp_vision.sim.provision import manifest, provide
 
-    for side, run in (("left", args.left), ("right", args.right)):
-        if not os.path.exists(os.path.join(run, "best.pt")):
-            raise SystemExit(f"--{side} {run}: no trained foveation net there; make one with\n"
-                             f"  python -m warp_vision.train --eye {side} --out {run}")
-    provide_oculomotor(args.oculomotor, progress=not args.no_progress)
+    specs = _specs(args)
+    provide(specs, progress=not args.no_progress)
+    os.makedirs(args.out, exist_ok=True)
+    write_json(os.path.join(args.out, "nets.json"), manifest(specs))
     body = Body(BodyConfig(arms=not args.no_arms))
     body.step(int(SETTLE_S / body.model.opt.timestep))
-    fov = {"left": Foveator(args.left), "right": Foveator(args.right)}
-    return body, VisuomotorLoop(body, fov, load_oculomotor(args.oculomotor), seed=args.seed)
+    fov = {s: Foveator(spec.run) for s, spec in zip(SIDES, specs[:2])}
+    ocu_root = os.path.dirname(specs[2].run)
+    return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every)
 
 
-def provide_oculomotor(root: str, progress: bool = True) -> None:
-    """Train each eye's oculomotor net that ``root/<eye>`` lacks, with the training command (a process of
-    its own: the simulation does not import the training code)."""
-    import subprocess
-    import sys
+class _Viewer:
+    """MuJoCo's passive viewer on the running loop, where a display exists (``--viewer``); on a headless
+    machine, one line saying so and nothing else."""
 
-    for side in SIDES:
-        out = os.path.join(root, side)
-        if os.path.exists(os.path.join(out, "best.pt")):
-            continue
-        cmd = [sys.executable, "-m", "warp_vision.train", "oculomotor", "--eye", side, "--out", out]
-        if os.path.exists(os.path.join(out, "latest.pt")):
-            cmd = [sys.executable, "-m", "warp_vision.train", "oculomotor", "--resume", out]
-        print(f"training the {side} eye's oculomotor net into {out} (about 3 minutes): {' '.join(cmd[1:])}", flush=True)
-        if subprocess.run(cmd + ([] if progress else ["--no-progress"])).returncode != 0:
-            raise SystemExit(f"training the {side} eye's oculomotor net failed (see above)")
+    def __init__(self, body: Body, wanted: bool):
+        self.handle = None
+        if not wanted:
+            return
+        if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") or os.name == "nt"
+                or os.uname().sysname == "Darwin"):
+            print("--viewer: no display here (DISPLAY and WAYLAND_DISPLAY are unset); running without the viewer")
+            return
+        import mujoco.viewer
 
+        self.handle = mujoco.viewer.launch_passive(body.model, body.data)
 
-def run_scenario(loop, duration: float, ball=None, record=None, progress: bool = True) -> dict:
-    """Run the loop for ``duration`` s. ``ball(t)`` (optional) places the ball kinematically each period
-    (t from the start); otherwise it flies freely. Returns per-period traces: time, ball position, each
-    eye's gaze error (deg) and distance from its gaze line to the ball (m), neck angles (rad), the eyes'
-    mean eccentricity in the head (deg)."""
-    from tqdm import tqdm
+    def sync(self) -> None:
+        if self.handle is not None and self.handle.is_running():
+            self.handle.sync()
 
-    from warp_vision.sim.loop import CONTROL_DT, gaze_error_deg, line_distance
-
-    body = loop.body
-    t0 = body.time
-    tr = {"t": [], "ball": [], "neck": [], "eye_in_head": [], **{f"error_{s}": [] for s in SIDES}, **{f"line_{s}": [] for s in SIDES}}
-    for _ in tqdm(range(int(round(duration / CONTROL_DT))), desc="closed loop", disable=not progress, leave=False):
-        if ball is not None:
-            body.set_ball(ball(body.time - t0))
-        loop.step()
-        if ball is not None:
-            body.set_ball(ball(body.time - t0))
-        p = body.ball_position()
-        tr["t"].append(body.time - t0)
-        tr["ball"].append(p)
-        tr["neck"].append(body.neck_angles())
-        tr["eye_in_head"].append(np.mean([np.degrees(np.linalg.norm(body.gaze_in_head(s))) for s in SIDES]))
-        for s in SIDES:
-            tr[f"error_{s}"].append(gaze_error_deg(body, s, p))
-            tr[f"line_{s}"].append(line_distance(body, s, p))
-        if record is not None:
-            record(loop)
-    return {k: np.asarray(v) for k, v in tr.items()}
-
-
-def experiments(args) -> dict:
-    """Saccades to a ball appearing at 20 deg in eight directions (1 m away), vergence at the end of each,
-    and tracking a ball circling the eyes at 15 and 30 deg/s; the loop's time shares."""
-    from warp_vision.sim.loop import point_at
-
-    body, loop = _setup(args)
-    body.model.opt.gravity[:] = 0  # the ball is placed kinematically in these
-    t = time.perf_counter()
-    sim = 0.0
-    trials = []
-    for k in range(8):
-        loop.reset(SETTLE_S)
-        ang = np.radians(45.0 * k)
-        p = point_at(body, 20.0 * np.cos(ang), 20.0 * np.sin(ang), 1.0)
-        tr = run_scenario(loop, 0.8, ball=lambda _t: p, progress=not args.no_progress)
-        sim += tr["t"][-1]
-        both = np.maximum(tr["error_left"], tr["error_right"])
-        within = both < 1.0
-        trials.append({"direction_deg": 45.0 * k, "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
-                       "error_at_0.3s_deg": float(np.interp(0.3, tr["t"], both)),
-                       "max_error_after_0.3s_deg": float(both[tr["t"] >= 0.3].max()),
-                       "gaze_line_distance_cm": 100 * float(max(tr["line_left"][-1], tr["line_right"][-1])),
-                       # the eye-head synergy: the eyes' eccentricity in the head falls as the head turns
-                       "eye_in_head_deg_peak": float(tr["eye_in_head"].max()), "eye_in_head_deg_end": float(tr["eye_in_head"][-1]),
-                       "head_turn_deg_end": float(np.degrees(np.linalg.norm(tr["neck"][-1][:2])))})
-    times = [tt["time_both_within_1deg_s"] for tt in trials]
-    out = {"saccade_20deg": {"trials": trials,
-                             "all_within_1deg_by_0.3s": all(tt is not None and tt <= 0.3 for tt in times),
-                             "time_both_within_1deg_s_max": max(tt if tt is not None else np.inf for tt in times),
-                             "error_at_0.3s_deg_max": max(tt["error_at_0.3s_deg"] for tt in trials),
-                             "max_error_after_0.3s_deg_median": float(np.median([tt["max_error_after_0.3s_deg"] for tt in trials]))},
-           "vergence_1m": {"gaze_line_distance_cm_max": max(tt["gaze_line_distance_cm"] for tt in trials),
-                           "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials]))}}
-    for omega in (15.0, 30.0):
-        loop.reset(SETTLE_S)
-        # a circle of 1 m around the eyes' midpoint in the horizontal plane, fixed in the world as the head turns
-        mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
-
-        def orbit(tt, omega=omega, mid=mid):
-            yaw = np.radians(-18.0 + omega * tt)
-            return mid + np.array([np.sin(yaw), -np.cos(yaw), 0.0])
-
-        tr = run_scenario(loop, 1.2, ball=orbit, progress=not args.no_progress)
-        sim += tr["t"][-1]
-        late = tr["t"] > 0.3  # after the first saccade onto it
-        out[f"tracking_{omega:g}deg_s"] = {"median_error_deg": {s: float(np.median(tr[f"error_{s}"][late])) for s in SIDES},
-                                           "p90_error_deg": {s: float(np.percentile(tr[f"error_{s}"][late], 90)) for s in SIDES}}
-    wall = time.perf_counter() - t
-    out["timing"] = {"sim_s": sim, "wall_s": wall, "sim_to_wall": sim / wall,
-                     "share": {k: v / wall for k, v in loop.timing.items()}}
-    return out
+    def close(self) -> None:
+        if self.handle is not None:
+            self.handle.close()
 
 
 def demo(args) -> dict:
@@ -150,46 +85,65 @@ def demo(args) -> dict:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from PIL import Image
 
     from warp_vision.frames import look_at
     from warp_vision.kernels.render import render_camera
-    from warp_vision.sim.loop import set_eye_view, sync_scene
+    from warp_vision.sim.loop import CONTROL_DT, set_eye_view, sync_scene
+    from warp_vision.sim.video import RetinaRaster, VideoWriter, compose_frame
     from warp_vision.viz import plot_onv, tone_map
 
-    os.makedirs(args.out, exist_ok=True)
     body, loop = _setup(args)
+    viewer = _Viewer(body, args.viewer)
     head = body.head_pose()[:3, 3]
     # the cannon, 25 deg to the left in the periphery, lobs the ball to a point 1 m before the face
     muzzle = body.data.site_xpos[body.model.site("muzzle").id]
     v = body.fire_cannon(head + args.stop * (muzzle - head) / np.linalg.norm(muzzle - head), after=args.flight)
-    frames, retinas = [], []
+    retinas = []
     t_start = body.time
     # behind the body's right shoulder, so the body, the gaze lines, the ball's path and the cannon show
     cam = look_at([-1.3, 1.6, 2.0], [0.4, -1.0, 1.0])
+    rasters = {s: RetinaRaster(loop.fov[s].retina, size=args.height // 2) for s in SIDES}
+    # one exposure per eye for the whole video (set on the first frame), so brightness changes are real
+    white: dict = {}
+    # a frame every --frame-every-video periods, played at --fps: slow motion by --slow-motion
+    fps = 1.0 / (args.video_every * CONTROL_DT * args.slow_motion)
+    paths = [os.path.join(args.out, "demo.mp4")] + ([os.path.join(args.out, "demo.gif")] if args.gif else [])
+    writers = [VideoWriter(p, fps) for p in paths]
 
     def record(lp):
-        sync_scene(lp.scene, body)
-        set_eye_view(lp.scene, False)
         k = len(retinas)
         retinas.append((body.time - t_start, lp.onv["left"][0].clone()))
-        if k % args.frame_every == 0:
-            img = render_camera(lp.scene, cam, args.width, args.height, fov_deg=50).numpy()
-            frames.append(_draw_gaze(tone_map(img), body, cam, args.width, args.height, 50))
+        viewer.sync()
+        if k % args.video_every:
+            return
+        sync_scene(lp.scene, body)
+        set_eye_view(lp.scene, False)
+        img = render_camera(lp.scene, cam, args.width, args.height, fov_deg=50).numpy()
+        third = _draw_gaze(tone_map(img), body, cam, args.width, args.height, 50)
+        eyes = {}
+        for s in SIDES:
+            onv = lp.onv[s][0].numpy()
+            white.setdefault(s, max(float(np.percentile(onv, 99.5)), 1e-12))
+            eyes[s] = rasters[s](onv, white=white[s])
+        frame = compose_frame(third, eyes["left"], eyes["right"], body.time - t_start)
+        for w in writers:
+            w.append(frame)
 
-    tr = run_scenario(loop, args.duration, record=record, progress=not args.no_progress)
-    gif = os.path.join(args.out, "demo.gif")
-    Image.fromarray(frames[0]).save(gif, save_all=True, append_images=[Image.fromarray(f) for f in frames[1:]],
-                                    duration=int(1000 * 0.01 * args.frame_every), loop=0)
+    try:
+        tr = run_scenario(loop, args.duration, record=record, progress=not args.no_progress)
+    finally:
+        viewer.close()
+    for w in writers:
+        w.close()
     # the left retina at four moments: the ball's entry, mid-saccade, fixation and tracking (Fig. 7)
     err = tr["error_left"]
     seen = np.nonzero(err < 60)[0]
     k0 = int(seen[0]) if len(seen) else 0
     moments = [k0, min(k0 + 4, len(err) - 1), min(k0 + 15, len(err) - 1), len(err) - 1]
     fig, axes = plt.subplots(1, 4, figsize=(16, 4.4))
-    white = max(float(np.percentile(retinas[k][1].numpy(), 99.5)) for k in moments)  # one exposure for all four
+    white_fig = max(float(np.percentile(retinas[k][1].numpy(), 99.5)) for k in moments)  # one exposure for all four
     for ax, k, label in zip(axes, moments, ("t0", "t1", "t2", "t3")):
-        plot_onv(loop.fov["left"].retina, retinas[k][1], ax=ax, white=white,
+        plot_onv(loop.fov["left"].retina, retinas[k][1], ax=ax, white=white_fig,
                  title=f"{label}: t = {retinas[k][0]:.2f} s, error {err[k]:.1f} deg")
     fig.tight_layout()
     fig.savefig(os.path.join(args.out, "left_retina.png"), dpi=110)
@@ -206,7 +160,18 @@ def demo(args) -> dict:
     fig.savefig(os.path.join(args.out, "gaze_error.png"), dpi=110)
     plt.close(fig)
     return {"launch_velocity_m_s": v.tolist(), "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES},
+            "video": {"paths": paths, "frames": writers[0].frames, "fps": fps, "size": [int(x) for x in frame_size(args)]},
             "timing_s": dict(loop.timing)}
+
+
+def frame_size(args) -> tuple[int, int]:
+    """(width, height) of the demo video's frames: the third-person view and the retinas' column beside it."""
+    from warp_vision.sim.video import compose_frame
+
+    blank = np.zeros((args.height, args.width, 3), np.uint8)
+    eye = np.zeros((args.height // 2, args.height // 2, 3), np.uint8)
+    f = compose_frame(blank, eye, eye, 0.0)
+    return f.shape[1], f.shape[0]
 
 
 def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov_deg: float) -> np.ndarray:
@@ -231,37 +196,66 @@ def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov
 
 
 def main(argv=None) -> int:
+    from warp_vision.sim.loop import FRAME_EVERY
+
     ap = argparse.ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
     for name in ("demo", "experiments", "oculomotor"):
         p = sub.add_parser(name)
-        p.add_argument("--oculomotor", default="runs/oculomotor", help="the oculomotor runs' directory: <dir>/left, <dir>/right (trained there if missing)")
+        p.add_argument("--quick", action="store_true",
+                       help="smaller nets (runs/quick/..., trained in a few minutes when missing) for a first look")
+        p.add_argument("--oculomotor", default=None,
+                       help="the oculomotor runs' directory: <dir>/left, <dir>/right, trained there if missing "
+                            "(default runs/oculomotor, or runs/quick/oculomotor with --quick)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         add_debug_flag(p)
         if name == "oculomotor":
             continue
-        p.add_argument("--left", default="runs/foveation_left", help="the left eye's foveation run")
-        p.add_argument("--right", default="runs/foveation_right", help="the right eye's foveation run")
+        p.add_argument("--left", default=None, help="the left eye's foveation run, trained there if missing "
+                                                    "(default runs/foveation_left, or runs/quick/foveation_left)")
+        p.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
         p.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
         p.add_argument("--seed", type=int, default=0, help="the room's seed")
+        p.add_argument("--frame-every", type=int, default=FRAME_EVERY,
+                       help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
+                            f"(default {FRAME_EVERY}: 25 frames a second; 1 renders every period)")
         p.add_argument("--out", default=f"runs/sim_{name}", help="output directory")
         if name == "demo":
             p.add_argument("--duration", type=float, default=0.8, help="simulated seconds")
             p.add_argument("--flight", type=float, default=0.9, help="s of flight to the point --stop m before the face")
             p.add_argument("--stop", type=float, default=1.0, help="m from the head where the ball's flight is aimed")
-            p.add_argument("--width", type=int, default=320, help="GIF width (pixels)")
-            p.add_argument("--height", type=int, default=240, help="GIF height (pixels)")
-            p.add_argument("--frame-every", type=int, default=2, help="GIF frame every N control periods (10 ms)")
+            p.add_argument("--width", type=int, default=640, help="third-person view width (pixels)")
+            p.add_argument("--height", type=int, default=480, help="third-person view height (pixels); the "
+                                                                   "retina images beside it are half as high")
+            p.add_argument("--video-every", type=int, default=1, help="a video frame every N control periods (10 ms)")
+            p.add_argument("--slow-motion", type=float, default=4.0,
+                           help="the video plays this many times slower than simulated time (default 4)")
+            p.add_argument("--gif", action="store_true", help="also write demo.gif (same frames)")
+            p.add_argument("--viewer", action="store_true",
+                           help="open MuJoCo's passive viewer on the running loop (skipped, with a note, without a display)")
     args = ap.parse_args(argv)
     return guarded(lambda: _run(args), args.debug)
 
 
 def _run(args) -> None:
+    # bad settings are refused before any net is trained
+    for flag in ("width", "height", "video_every", "frame_every"):
+        if getattr(args, flag, 1) < 1:
+            raise ValueError(f"--{flag.replace('_', '-')}: expected >= 1, got {getattr(args, flag)}")
+    if not getattr(args, "slow_motion", 1.0) > 0:
+        raise ValueError(f"--slow-motion: expected > 0, got {args.slow_motion}")
     if args.command == "oculomotor":
-        provide_oculomotor(args.oculomotor, progress=not args.no_progress)
-        print(json.dumps({s: json.loads(open(os.path.join(args.oculomotor, s, "summary.json")).read()) for s in SIDES}, indent=2))
+        from warp_vision.sim.provision import provide
+
+        specs = _specs(args)[2:]
+        provide(specs, progress=not args.no_progress)
+        print(json.dumps({s.eye: json.loads(open(os.path.join(s.run, "summary.json")).read()) for s in specs}, indent=2))
         return
-    result = demo(args) if args.command == "demo" else experiments(args)
+    if args.command == "demo":
+        result = demo(args)
+    else:
+        _body, loop = _setup(args)
+        result = experiments(loop, progress=not args.no_progress)
     write_json(os.path.join(args.out, f"{args.command}.json"), result)
     print(json.dumps(result, indent=2))

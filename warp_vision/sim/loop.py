@@ -1,10 +1,11 @@
 """The closed loop: MuJoCo body -> scene -> both eyes' ONVs -> foveation liNets -> gaze and neck control
 -> oculomotor nets -> muscles -> MuJoCo.
 
-Each control period (``CONTROL_DT``) the scene follows the MuJoCo state, each eye renders its ONV from its
-eye body's pose with its own retina and current optical state (pupil, accommodation), its foveation liNet
-(trained by ``python -m warp_vision.train --eye left|right``) estimates the ball's direction in the eye
-frame, and the gaze controller turns that retinal error into a change of the commanded gaze:
+On each visual frame (every ``FRAME_EVERY`` control periods of ``CONTROL_DT``) the scene follows the MuJoCo
+state, each eye renders its ONV from its eye body's pose with its own retina and current optical state
+(pupil, accommodation), and its foveation liNet (trained by ``python -m warp_vision.train --eye
+left|right``) estimates the ball's direction in the eye frame. Every control period the gaze controller
+turns the latest estimate into a change of the commanded gaze:
 
 - where the eye is: an internal model (efference copy through a first-order lag of ``EYE_MODEL_TAU``)
   of the commanded gaze, so the ball's direction in the head is that belief plus the retinal error,
@@ -15,7 +16,10 @@ frame, and the gaze controller turns that retinal error into a change of the com
   muscles' static error;
 - the vestibulo-ocular reflex: the head's rotation since the last period (from the neck joints) is taken
   off the believed eye-in-head gaze, so the ball's estimated direction, and with it the command, stays
-  put in the world while the head turns.
+  put in the world while the head turns;
+- between frames: the last frame's estimate of the ball's direction in the head, turned with the head
+  and moved at the estimated angular velocity, stands in for a new one (no saccade is decided and nothing
+  is learned without a frame). With ``frame_every=1`` the loop is the one that rendered every period.
 
 The oculomotor net maps (change of commanded gaze, current activations) to the next activations. The
 neck controller moves the head's target a fraction ``NECK_GAIN`` per period toward the eyes' mean gaze
@@ -40,6 +44,11 @@ from warp_vision.sim.body import SIDES, Body
 from warp_vision.sim.oculomotor import holding_activations
 
 CONTROL_DT = 0.01  # s
+#: The eyes render (and the foveation nets run) every FRAME_EVERY control periods: 25 frames a second.
+#: Human visual latency is 50-100 ms and flicker fusion in the periphery 20-60 Hz; at 40 ms a frame the
+#: loop's saccades and tracking match those of a frame every period (``python -m warp_vision.bench loop``
+#: measures both), at a quarter of the rendering.
+FRAME_EVERY = 4
 SACCADE_DEG = 2.0
 EYE_MODEL_TAU = 0.03  # s
 LEAD = 0.03  # s
@@ -55,8 +64,11 @@ MAX_GAZE_DEG = 35.0
 #: lose the ball. The loop clips each period's change to this rate.
 ACTIVATION_PER_DEG = 0.12
 ACTIVATION_SLACK = 0.005
+#: torch's intra-op threads while the loop runs (set process-wide when a loop is built; see __init__)
+TORCH_THREADS = 1
 OPTICS_STEP_D = 0.5
 PUPIL_STEP_MM = 0.5
+OPTICS_HYSTERESIS = 0.75  # of a step: how far from its rendered state the eye must be to change it
 #: Bodies the eyes do not see: the skull and cervical spine around them (its inside would shadow every
 #: ray) and the eyes themselves; the third-person camera sees them.
 HIDDEN_FROM_EYES = ("head", "neck", "eye_left", "eye_right", "orbit_left", "orbit_right")
@@ -182,8 +194,16 @@ class EyeState:
     believed: np.ndarray = field(default_factory=lambda: np.zeros(2))  # the internal model's gaze, rad
     bias: np.ndarray = field(default_factory=lambda: np.zeros(2))  # learned static offset, rad
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))  # the target's, rad/s in the head
-    last_target: np.ndarray | None = None
+    last_target: np.ndarray | None = None  # the estimate of the last frame that learned the velocity
+    target: np.ndarray | None = None  # the ball's direction in the head, rad: the last frame's estimate, carried forward
     quiet_from: float = 0.0  # time the last saccade's movement ends
+
+
+def _quantise(x: float, step: float, last: float | None) -> float:
+    """``x`` to the nearest multiple of ``step``, but ``last`` while ``x`` is within OPTICS_HYSTERESIS steps of it."""
+    if last is not None and abs(x - last) <= OPTICS_HYSTERESIS * step:
+        return last
+    return round(x / step) * step
 
 
 def _clamp_gaze(g: np.ndarray) -> np.ndarray:
@@ -196,8 +216,16 @@ class VisuomotorLoop:
     """Both eyes, their foveation and oculomotor nets, the neck controller; :meth:`step` advances one
     control period. ``timing`` accumulates wall seconds per stage (render, nets, mujoco, control)."""
 
-    def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0):
+    def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, frame_every: int = FRAME_EVERY):
+        if not isinstance(frame_every, (int, np.integer)) or frame_every < 1:
+            raise ValueError(f"frame_every: expected a whole number of control periods >= 1, got {frame_every!r}")
         self.body, self.fov, self.ocu = body, foveators, oculomotor
+        self.frame_every = int(frame_every)
+        # The loop's nets run at batch 1, where a second torch (OpenMP) thread buys nothing, and its
+        # spin-waiting after each op steals a core from Warp's render workers: with torch's default two
+        # threads a frame's render took 35 ms and the foveation net after it 12 ms; with one, 21 and 4.
+        torch.set_num_threads(TORCH_THREADS)
+        self.period = 0
         self.scene = body_scene(body, seed)
         self.eyes = {s: EyeState() for s in SIDES}
         self.neck_target = np.zeros(3)
@@ -207,12 +235,16 @@ class VisuomotorLoop:
         self.neck_dofs = body.model.jnt_dofadr[body.neck_joints]
         self.onv: dict = {}
         self.estimate: dict = {}
+        self._pupil_command: dict = {}
+        self._optics: dict = {}  # per eye, the quantised (accommodation, pupil) it renders with
         self._neck_hold()
 
     def reset(self, settle_s: float = 0.0) -> None:
         """Reset the body (then let it settle ``settle_s`` s with the eyes and neck held centred) and the
         controllers' state; the timing totals are kept."""
         self.body.reset()
+        self.period = 0
+        self._pupil_command = {}
         self.eyes = {s: EyeState() for s in SIDES}
         self.neck_target = np.zeros(3)
         self._neck_hold()
@@ -235,10 +267,16 @@ class VisuomotorLoop:
         out = {}
         for s in SIDES:
             pupil, acc = self.body.intraocular(s)
-            # quantised so the eye-ray cache (keyed by the optical state) is reused between periods: a new
-            # state costs a new aiming of every ray through the optics, several periods' rendering.
-            # Steps of OPTICS_STEP_D stay within the eye's depth of focus (about +-0.3 D).
-            eye = NavarroEye(round(acc / OPTICS_STEP_D) * OPTICS_STEP_D, round(pupil / PUPIL_STEP_MM) * PUPIL_STEP_MM)
+            # quantised so the eye-ray cache (keyed by the optical state) is reused between frames: a new
+            # state costs a new aiming of every ray through the optics, several frames' rendering. Steps
+            # of OPTICS_STEP_D stay within the eye's depth of focus (about +-0.3 D); a state is left only
+            # when the eye is OPTICS_HYSTERESIS steps beyond it, so a state near a boundary does not
+            # flicker between two ray sets.
+            last = self._optics.get(s)
+            q = (_quantise(acc, OPTICS_STEP_D, None if last is None else last[0]),
+                 _quantise(pupil, PUPIL_STEP_MM, None if last is None else last[1]))
+            self._optics[s] = q
+            eye = NavarroEye(*q)
             out[s] = render_onv(self.scene, self.fov[s].retina, eye, self.body.eye_pose(s)[None],
                                 self.fov[s].samples_per_receptor, seed=0)
         self.timing["render"] += time.perf_counter() - t0
@@ -246,38 +284,60 @@ class VisuomotorLoop:
         return out
 
     def step(self) -> None:
+        """One control period. On a visual frame (every ``frame_every``-th period, the first included) both
+        eyes render and their foveation nets estimate the ball's direction; in between, the gaze
+        controller carries its last estimate forward (see the module docstring)."""
         body = self.body
-        onv = self.render()
-        t0 = time.perf_counter()
-        err = {s: self.fov[s](onv[s])[0] for s in SIDES}  # the ball's (yaw, pitch) in each eye frame
-        self.estimate = err
-        self.timing["nets"] += time.perf_counter() - t0
+        seen = self.period % self.frame_every == 0
+        self.period += 1
+        err = None
+        if seen:
+            onv = self.render()
+            t0 = time.perf_counter()
+            err = {s: self.fov[s](onv[s])[0] for s in SIDES}  # the ball's (yaw, pitch) in each eye frame
+            self.estimate = err
+            self.timing["nets"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         neck = body.neck_angles()
         head_turn = (neck - self.last_neck)[:2]  # (yaw, pitch): same signs as the eyes' in the head
         self.last_neck = neck
         changes = {}
         k = 1 - np.exp(-CONTROL_DT / EYE_MODEL_TAU)
+        frame_dt = self.frame_every * CONTROL_DT
         for s in SIDES:
             e = self.eyes[s]
             e.believed = e.believed - head_turn  # vestibulo-ocular: the head turned under the eye
-            target = e.believed + err[s]  # the ball's direction in the head, as the eye believes it
-            if np.degrees(np.linalg.norm(err[s])) > SACCADE_DEG:
-                e.velocity[:] = 0
-                e.last_target = None
-                e.quiet_from = body.time + POST_SACCADE
-                new = target + e.bias
-            else:
+            if e.target is not None:
+                e.target = e.target - head_turn  # the last estimate, fixed in the world, as the head turned
+            if err is None:  # no new frame: the last estimate carried forward at its estimated velocity
+                if e.target is None:
+                    changes[s] = np.zeros(2)
+                    continue
                 if body.time >= e.quiet_from:
-                    if e.last_target is not None:
-                        v = (target - e.last_target) / CONTROL_DT
-                        e.velocity = (1 - VELOCITY_SMOOTHING) * e.velocity + VELOCITY_SMOOTHING * v
-                        speed = np.linalg.norm(e.velocity)
-                        if speed > MAX_TARGET_SPEED:
-                            e.velocity *= MAX_TARGET_SPEED / speed
-                    e.last_target = target
-                    e.bias = e.bias + BIAS_GAIN * err[s]
-                new = target + e.velocity * LEAD + e.bias
+                    e.target = e.target + e.velocity * CONTROL_DT
+                new = e.target + e.velocity * LEAD + e.bias
+            else:
+                target = e.believed + err[s]  # the ball's direction in the head, as the eye believes it
+                e.target = target
+                if np.degrees(np.linalg.norm(err[s])) > SACCADE_DEG:
+                    e.velocity[:] = 0
+                    e.last_target = None
+                    e.quiet_from = body.time + POST_SACCADE
+                    new = target + e.bias
+                else:
+                    if body.time >= e.quiet_from:
+                        if e.last_target is not None:
+                            v = (target - e.last_target) / frame_dt
+                            # the running estimate's weight per frame, so its time constant does not
+                            # depend on the frame rate
+                            w = 1 - (1 - VELOCITY_SMOOTHING) ** self.frame_every
+                            e.velocity = (1 - w) * e.velocity + w * v
+                            speed = np.linalg.norm(e.velocity)
+                            if speed > MAX_TARGET_SPEED:
+                                e.velocity *= MAX_TARGET_SPEED / speed
+                        e.last_target = target
+                        e.bias = e.bias + BIAS_GAIN * self.frame_every * err[s]
+                    new = target + e.velocity * LEAD + e.bias
             changes[s] = _clamp_gaze(new) - e.command
             e.command = e.command + changes[s]
             e.believed = e.believed + k * (e.command - e.bias - e.believed)
@@ -299,24 +359,27 @@ class VisuomotorLoop:
         self.neck_target[:2] += NECK_GAIN * mean_gaze
         self.neck_target[2] = 0.0
         self._neck_hold()
-        self._intraocular()
+        self._intraocular(seen)
         self.timing["control"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         body.step(int(round(CONTROL_DT / body.model.opt.timestep)))
         self.timing["mujoco"] += time.perf_counter() - t0
 
-    def _intraocular(self) -> None:
-        """Accommodate to where the gaze lines converge; the pupil follows the retinal irradiance."""
+    def _intraocular(self, seen: bool) -> None:
+        """Accommodate to where the gaze lines converge; the pupil follows the retinal irradiance of the
+        last frame (``seen``: a new one this period)."""
         from warp_vision.eye.pupil import pupil_diameter_mm
 
         dist = vergence_distance(self.body)
         for s in SIDES:
             pupil, _ = self.body.intraocular(s)
-            trained = self.fov[s].trained_eye.pupil_diameter_mm
-            mean = float(self.onv[s].mean()) * (trained / pupil) ** 2  # as bright as through the training pupil
-            # a retina as bright as the training set's mean sees the luminance that gives the training pupil
-            lum = _luminance_for(trained) * mean / float(self.fov[s].norm["input_scale"])
-            self.body.set_intraocular(s, pupil_mm=pupil_diameter_mm(lum), accommodation_D=1.0 / max(dist, 0.1))
+            if seen or s not in self._pupil_command:
+                trained = self.fov[s].trained_eye.pupil_diameter_mm
+                mean = float(self.onv[s].mean()) * (trained / pupil) ** 2  # as bright as through the training pupil
+                # a retina as bright as the training set's mean sees the luminance that gives the training pupil
+                lum = _luminance_for(trained) * mean / float(self.fov[s].norm["input_scale"])
+                self._pupil_command[s] = pupil_diameter_mm(lum)
+            self.body.set_intraocular(s, pupil_mm=self._pupil_command[s], accommodation_D=1.0 / max(dist, 0.1))
 
 
 @lru_cache(maxsize=8)

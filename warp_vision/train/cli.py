@@ -1,10 +1,10 @@
 """Command line of ``python -m warp_vision.train``.
 
-    python -m warp_vision.train [--preset smoke|default|paper] [--flag value ...]   train (the default)
+    python -m warp_vision.train [--preset smoke|quick|default|paper] [--flag value ...]   train (the default)
     python -m warp_vision.train --resume RUN_DIR [--epochs N]                          continue a stopped run
     python -m warp_vision.train faces [--preset smoke|default|paper] [--flag value ...]  active face recognition
     python -m warp_vision.train faces --resume RUN_DIR [--epochs N]                    continue a stopped AFR run
-    python -m warp_vision.train oculomotor --eye left|right [--preset smoke|default]   an eye's oculomotor net
+    python -m warp_vision.train oculomotor --eye left|right [--preset smoke|quick|default]   an eye's oculomotor net
     python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """

@@ -64,7 +64,7 @@ def epoch_lr(cfg, epoch: int) -> float:
 class TrainConfig:
     """Everything a foveation training run depends on (written to RUN_DIR/config.json)."""
 
-    preset: str = "default"  # smoke | default | paper: sets the defaults of everything below
+    preset: str = "default"  # smoke | quick | default | paper: sets the defaults of everything below
     out: str = "runs/foveation"  # output directory (config, checkpoints, metrics, figures)
     data_dir: str = ""  # dataset directory; default: runs/datasets/foveation-<config hash>
     # the dataset
@@ -125,6 +125,8 @@ class TrainConfig:
 PRESETS: dict[str, dict] = {
     # end to end in well under a minute (tests)
     "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1, layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
+    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU
+    "quick": dict(samples=2000, epochs=12, patience=12),
     # the default run: about 10 minutes on a 2-core CPU (8,000 ONVs of P=14,400, S=4)
     "default": {},
     # the paper's set-up: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
@@ -136,7 +138,7 @@ PRESETS: dict[str, dict] = {
 class FaceTrainConfig:
     """Everything an active-face-recognition run depends on (written to RUN_DIR/config.json)."""
 
-    preset: str = "default"  # smoke | default | paper: sets the defaults of everything below
+    preset: str = "default"  # smoke | quick | default | paper: sets the defaults of everything below
     task: str = "faces"  # fixed: tells evaluate which kind of run a directory holds
     out: str = "runs/faces"  # output directory (config, checkpoints, metrics, figures)
     data_dir: str = ""  # dataset directory; default: runs/datasets/faces-<config hash>
@@ -204,7 +206,7 @@ FACE_PRESETS: dict[str, dict] = {
 class OculomotorTrainConfig:
     """Everything an oculomotor-net run depends on (one eye; written to RUN_DIR/config.json)."""
 
-    preset: str = "default"  # smoke | default: sets the defaults of everything below
+    preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
     task: str = "oculomotor"  # fixed: tells evaluate which kind of run a directory holds
     out: str = ""  # output directory; default: runs/oculomotor/<eye>
     data_dir: str = ""  # holding-activation dataset directory; default: runs/datasets/oculomotor-<config hash>
@@ -246,6 +248,8 @@ class OculomotorTrainConfig:
 OCULOMOTOR_PRESETS: dict[str, dict] = {
     # seconds, for tests
     "smoke": dict(gazes=80, transitions=2000, hidden=32, epochs=2, patience=2, body_checks=8),
+    # a first look (``python -m warp_vision.sim demo --quick``): both eyes in about 2 minutes on a 2-core CPU
+    "quick": dict(gazes=1500, transitions=40_000, epochs=25, patience=25, body_checks=30),
     # both eyes in about 6 minutes on a 2-core CPU
     "default": {},
 }

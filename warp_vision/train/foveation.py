@@ -1,6 +1,6 @@
 """The foveation task: from an ONV, the eye rotation (yaw, pitch) that brings the ball onto the fovea.
 
-``python -m warp_vision.train [--preset smoke|default|paper] [--flag value ...]``
+``python -m warp_vision.train [--preset smoke|quick|default|paper] [--flag value ...]``
 
 The dataset is :mod:`warp_vision.data.foveation` (self-synthesised ONVs of a ball in a room, cached by its
 config). The net is a liNet (or its fully-connected baseline) with a linear or soft-argmax read-out

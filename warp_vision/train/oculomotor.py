@@ -1,7 +1,7 @@
 """The oculomotor task: each eye's net from (desired change of gaze, current activations) to the next
 six extraocular activations, trained on holding activations the body solves for itself.
 
-``python -m warp_vision.train oculomotor --eye left|right [--preset smoke|default] [--flag value ...]``
+``python -m warp_vision.train oculomotor --eye left|right [--preset smoke|quick|default] [--flag value ...]``
 
 The dataset is :func:`warp_vision.sim.oculomotor.synthesize_holding` (gazes in a disc and their
 least-effort holding activations, cached by config). The samples are transitions between gazes

@@ -1,0 +1,151 @@
+"""The closed loop at a visual frame rate below its control rate, and the provisioning of its nets."""
+
+import hashlib
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from warp_vision.sim.body import SIDES, Body, BodyConfig
+
+
+# --- provisioning ------------------------------------------------------------------------------------
+
+
+def _fake_trainer(calls, fail_on=None):
+    """A runner that 'trains' by writing the run's best.pt and config.json (as the training command would)."""
+
+    def run(cmd):
+        calls.append(cmd)
+        if fail_on and fail_on in cmd:
+            return 1
+        out = cmd[cmd.index("--out") + 1]
+        os.makedirs(out, exist_ok=True)
+        with open(os.path.join(out, "best.pt"), "wb") as f:
+            f.write(out.encode())
+        with open(os.path.join(out, "config.json"), "w") as f:
+            json.dump({"out": out}, f)
+        return 0
+
+    return run
+
+
+def test_provide_trains_only_what_is_missing_and_the_manifest_names_it(tmp_path):
+    from warp_vision.sim.provision import manifest, plan, provide
+
+    specs = plan(str(tmp_path / "fl"), str(tmp_path / "fr"), str(tmp_path / "ocu"), quick=True)
+    assert [(s.kind, s.eye) for s in specs] == [("foveation", "left"), ("foveation", "right"),
+                                                ("oculomotor", "left"), ("oculomotor", "right")]
+    os.makedirs(tmp_path / "fr")
+    (tmp_path / "fr" / "best.pt").write_bytes(b"already here")
+    lines, calls = [], []
+    trained = provide(specs, progress=False, log=lines.append, runner=_fake_trainer(calls))
+    assert [s.run for s in trained] == [str(tmp_path / "fl"), str(tmp_path / "ocu" / "left"), str(tmp_path / "ocu" / "right")]
+    assert len(calls) == 3 and all("--no-progress" in c and c[c.index("--preset") + 1] == "quick" for c in calls)
+    assert calls[1][3] == "oculomotor" and calls[0][3] == "--preset"  # foveation is the training command's default task
+    assert "about" in lines[0] and "min" in lines[0] and len([ln for ln in lines if ln.startswith("  ")]) == 3  # the plan first
+    assert provide(specs, progress=False, log=lines.append, runner=_fake_trainer(calls)) == []  # cached: nothing to do
+    assert len(calls) == 3
+    m = manifest(specs)
+    assert m["foveation_right"]["sha256"] == hashlib.sha256(b"already here").hexdigest()
+    assert m["oculomotor_left"]["config"] == {"out": str(tmp_path / "ocu" / "left")}
+
+
+def test_provide_resumes_a_stopped_run_and_stops_on_a_failed_one(tmp_path):
+    from warp_vision.sim.provision import plan, provide
+
+    specs = plan(str(tmp_path / "fl"), str(tmp_path / "fr"), str(tmp_path / "ocu"))
+    os.makedirs(tmp_path / "fl")
+    (tmp_path / "fl" / "latest.pt").write_bytes(b"x")
+    assert specs[0].command() == ["--resume", str(tmp_path / "fl")]
+    assert specs[2].command()[:3] == ["oculomotor", "--preset", "default"]
+    with pytest.raises(SystemExit, match="right eye's foveation net failed"):
+        provide(specs[1:], progress=False, log=lambda _m: None, runner=_fake_trainer([], fail_on=str(tmp_path / "fr")))
+
+
+# --- the loop between frames ---------------------------------------------------------------------------
+
+
+class _OracleFoveator:
+    """Stands in for a trained foveation net: the true direction of the ball in the eye frame, read from
+    the body whenever the loop renders (it counts the frames)."""
+
+    def __init__(self, body, side):
+        from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
+
+        cfg = FoveationDataConfig(photoreceptors=300, samples_per_receptor=1, eye=side)
+        self.retina, self.trained_eye, self.samples_per_receptor = make_retina(cfg), make_eye(cfg), 1
+        self.norm = {"input_scale": 1.0}
+        self.body, self.side, self.frames = body, side, 0
+
+    def __call__(self, onv):
+        from warp_vision.frames import gaze_angles
+
+        self.frames += 1
+        T = self.body.eye_pose(self.side)
+        d = T[:3, :3].T @ (self.body.ball_position() - T[:3, 3])
+        return np.asarray(gaze_angles(d / np.linalg.norm(d)))[None]
+
+
+class _HoldingOculomotor:
+    """Stands in for a trained oculomotor net: integrates the commanded changes into a gaze and returns
+    the least-effort activations that hold it (what the nets are trained to reproduce)."""
+
+    def __init__(self, body, side):
+        self.body, self.side, self.gaze = body, side, np.zeros(2)
+
+    def __call__(self, change, activations):
+        from warp_vision.sim.oculomotor import eye_holding_activations
+
+        self.gaze = self.gaze + change[0].numpy()
+        a, _ = eye_holding_activations(self.body, self.side, self.gaze[None])
+        return torch.as_tensor(a, dtype=torch.float32)
+
+
+@pytest.fixture(scope="module")
+def bare_body():
+    return Body(BodyConfig(arms=False))
+
+
+@pytest.mark.parametrize("frame_every", [1, 4])
+def test_the_loop_renders_every_nth_period_and_still_saccades(bare_body, frame_every):
+    from warp_vision.sim.loop import VisuomotorLoop, point_at
+    from warp_vision.sim.scenarios import run_scenario
+
+    body = bare_body
+    body.reset()
+    body.model.opt.gravity[:] = 0
+    fov = {s: _OracleFoveator(body, s) for s in SIDES}
+    ocu = {s: _HoldingOculomotor(body, s) for s in SIDES}
+    loop = VisuomotorLoop(body, fov, ocu, frame_every=frame_every)
+    p = point_at(body, 15.0, 5.0, 1.0)
+    tr = run_scenario(loop, 0.4, ball=lambda _t: p, progress=False)
+    periods = len(tr["t"])
+    assert periods == 40
+    assert fov["left"].frames == -(-periods // frame_every)  # frames on periods 0, n, 2n, ...
+    err = np.maximum(tr["error_left"], tr["error_right"])
+    assert err[0] > 10  # the ball starts in the periphery
+    assert err[-5:].max() < 1.0, err  # and ends on both foveas
+
+
+def test_the_loop_rejects_a_bad_frame_rate(bare_body):
+    from warp_vision.sim.loop import VisuomotorLoop
+
+    for bad in (0, -1, 2.5):
+        with pytest.raises(ValueError, match="frame_every"):
+            VisuomotorLoop(bare_body, {}, {}, frame_every=bad)
+
+
+def test_bad_settings_are_refused_before_any_training(tmp_path, monkeypatch, capsys):
+    """A typo must not cost the user a quarter of an hour of training first."""
+    from warp_vision.bench.cli import main as bench_main
+    from warp_vision.sim.cli import main as sim_main
+
+    monkeypatch.chdir(tmp_path)
+    assert bench_main(["loop", "--frame-every", "0", "--out", str(tmp_path / "loop.json")]) == 2
+    assert "frame_every" in capsys.readouterr().err
+    for bad in (["--width", "0"], ["--slow-motion", "0"], ["--frame-every", "0"]):
+        assert sim_main(["demo", *bad, "--out", str(tmp_path / "demo")]) == 2
+    assert not (tmp_path / "runs").exists()  # nothing was trained

@@ -1,0 +1,119 @@
+"""What the closed loop needs, made on first use: each eye's foveation liNet and oculomotor net.
+
+``python -m warp_vision.sim demo`` (and ``experiments``) call :func:`provide` before they build the loop.
+It looks for each net's run directory (``best.pt``), prints the plan for the missing ones with an
+estimate of their wall time, and trains them with the training command (``python -m warp_vision.train
+...``, a process of its own: the simulation never imports the training code), whose progress bars show.
+A stopped training run (``latest.pt`` without ``best.pt``) is resumed. Later runs find the nets there and
+reuse them; the datasets behind them stay cached in ``runs/datasets``.
+
+Two sets: the default nets (``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``,
+the training presets ``default``) and, with ``--quick``, smaller ones (``runs/quick/...``, the presets
+``quick``) for a first look in a few minutes. :func:`manifest` records which nets a simulation used:
+their run directories, training configs and the SHA-256 of their checkpoints.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+
+from warp_vision.sim.body import SIDES
+
+#: Wall minutes of each training on the 2-core reference CPU (measured; README has the runs): the
+#: foveation net's dataset synthesis plus its training, and the oculomotor net's holding-activation
+#: dataset plus its training.
+MINUTES = {("foveation", "default"): 9.0, ("foveation", "quick"): 2.5,
+           ("oculomotor", "default"): 3.0, ("oculomotor", "quick"): 1.0}
+
+
+@dataclass
+class NetSpec:
+    """One net the loop needs: its kind (foveation | oculomotor), eye, run directory and training preset."""
+
+    kind: str
+    eye: str
+    run: str
+    preset: str
+
+    @property
+    def checkpoint(self) -> str:
+        return os.path.join(self.run, "best.pt")
+
+    def ready(self) -> bool:
+        return os.path.isfile(self.checkpoint)
+
+    def command(self) -> list[str]:
+        """The training command (after ``python -m warp_vision.train``)."""
+        if os.path.isfile(os.path.join(self.run, "latest.pt")):  # a stopped run: carry on
+            return ([] if self.kind == "foveation" else [self.kind]) + ["--resume", self.run]
+        head = [] if self.kind == "foveation" else [self.kind]
+        return head + ["--preset", self.preset, "--eye", self.eye, "--out", self.run]
+
+    def minutes(self) -> float:
+        return MINUTES.get((self.kind, self.preset), MINUTES[(self.kind, "default")])
+
+
+def default_runs(quick: bool) -> dict:
+    """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor"}."""
+    root = os.path.join("runs", "quick") if quick else "runs"
+    return {"left": os.path.join(root, "foveation_left"), "right": os.path.join(root, "foveation_right"),
+            "oculomotor": os.path.join(root, "oculomotor")}
+
+
+def plan(left: str, right: str, oculomotor: str, quick: bool = False) -> list[NetSpec]:
+    """The four nets of the loop: both eyes' foveation nets in ``left`` and ``right``, their oculomotor
+    nets in ``oculomotor/<eye>``; ``quick`` trains missing ones with the ``quick`` presets."""
+    preset = "quick" if quick else "default"
+    fov = {"left": left, "right": right}
+    return ([NetSpec("foveation", s, fov[s], preset) for s in SIDES]
+            + [NetSpec("oculomotor", s, os.path.join(oculomotor, s), preset) for s in SIDES])
+
+
+def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None) -> list[NetSpec]:
+    """Train every net of ``specs`` that is missing; returns those it trained. Prints the plan and its
+    estimated wall time first. ``runner(cmd) -> returncode`` runs a command (default: a subprocess);
+    a failed training stops the simulation with the command to rerun."""
+    todo = [s for s in specs if not s.ready()]
+    if not todo:
+        return []
+    total = sum(s.minutes() for s in todo)
+    log(f"the closed loop needs {len(todo)} net(s) not trained yet; about {total:.0f} min on a 2-core CPU, "
+        "cached for later runs:")
+    for k, s in enumerate(todo, 1):
+        log(f"  {k}. {s.eye} eye's {s.kind} net into {s.run} (about {s.minutes():.0f} min): "
+            f"python -m warp_vision.train {' '.join(s.command())}")
+    runner = runner or (lambda cmd: subprocess.run(cmd).returncode)
+    t0 = time.perf_counter()
+    for k, s in enumerate(todo, 1):
+        cmd = [sys.executable, "-m", "warp_vision.train", *s.command()] + ([] if progress else ["--no-progress"])
+        log(f"[{k}/{len(todo)}] training the {s.eye} eye's {s.kind} net ({(time.perf_counter() - t0) / 60:.1f} min so far)")
+        if runner(cmd) != 0 or not s.ready():
+            raise SystemExit(f"training the {s.eye} eye's {s.kind} net failed (see above); rerun it with\n"
+                             f"  python -m warp_vision.train {' '.join(s.command())}")
+    log(f"trained {len(todo)} net(s) in {(time.perf_counter() - t0) / 60:.1f} min")
+    return todo
+
+
+def sha256_file(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def manifest(specs: list[NetSpec]) -> dict:
+    """Which nets a simulation used: per net its run directory, training config and checkpoint SHA-256."""
+    out = {}
+    for s in specs:
+        cfg_path = os.path.join(s.run, "config.json")
+        cfg = json.loads(open(cfg_path).read()) if os.path.isfile(cfg_path) else None
+        out[f"{s.kind}_{s.eye}"] = {"run": os.path.abspath(s.run), "checkpoint": os.path.abspath(s.checkpoint),
+                                    "sha256": sha256_file(s.checkpoint), "config": cfg}
+    return out

@@ -1,0 +1,141 @@
+"""The closed loop's scenarios: :func:`run_scenario` runs the loop with the ball free or placed by a
+function of time and records traces; :func:`experiments` is the measured set (saccades in eight
+directions, vergence at 1 m, tracking at 15 and 30 deg/s) that ``python -m warp_vision.sim experiments``
+and ``python -m warp_vision.bench loop`` report."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from warp_vision.sim.body import SIDES
+
+SETTLE_S = 0.2  # s of simulation before a scenario starts: the passive arms settle under gravity
+
+
+def run_scenario(loop, duration: float, ball=None, record=None, progress: bool = True) -> dict:
+    """Run the loop for ``duration`` s. ``ball(t)`` (optional) places the ball kinematically each period
+    (t from the start); otherwise it flies freely. Returns per-period traces: time, ball position, each
+    eye's gaze error (deg) and distance from its gaze line to the ball (m), neck angles (rad), the eyes'
+    mean eccentricity in the head (deg)."""
+    from tqdm import tqdm
+
+    from warp_vision.sim.loop import CONTROL_DT, gaze_error_deg, line_distance
+
+    body = loop.body
+    t0 = body.time
+    tr = {"t": [], "ball": [], "neck": [], "eye_in_head": [], **{f"error_{s}": [] for s in SIDES}, **{f"line_{s}": [] for s in SIDES}}
+    for _ in tqdm(range(int(round(duration / CONTROL_DT))), desc="closed loop", disable=not progress, leave=False):
+        if ball is not None:
+            body.set_ball(ball(body.time - t0))
+        loop.step()
+        if ball is not None:
+            body.set_ball(ball(body.time - t0))
+        p = body.ball_position()
+        tr["t"].append(body.time - t0)
+        tr["ball"].append(p)
+        tr["neck"].append(body.neck_angles())
+        tr["eye_in_head"].append(np.mean([np.degrees(np.linalg.norm(body.gaze_in_head(s))) for s in SIDES]))
+        for s in SIDES:
+            tr[f"error_{s}"].append(gaze_error_deg(body, s, p))
+            tr[f"line_{s}"].append(line_distance(body, s, p))
+        if record is not None:
+            record(loop)
+    return {k: np.asarray(v) for k, v in tr.items()}
+
+
+def _scenarios():
+    """(name, duration s, ball maker) of the experiments: eight saccades, two pursuits. A maker takes the
+    body, just reset, and returns ball(t), the ball's position at t s from the start."""
+    from warp_vision.sim.loop import point_at
+
+    out = []
+    for k in range(8):
+        ang = np.radians(45.0 * k)
+        out.append((f"saccade_{45 * k}", 0.8,
+                    lambda body, ang=ang: _fixed(point_at(body, 20.0 * np.cos(ang), 20.0 * np.sin(ang), 1.0))))
+    for omega in (15.0, 30.0):
+        out.append((f"tracking_{omega:g}", 1.2, lambda body, omega=omega: _orbit(body, omega)))
+    return out
+
+
+def _fixed(p):
+    return lambda _t: p
+
+
+def _orbit(body, omega: float):
+    """A circle of 1 m around the eyes' midpoint in the horizontal plane at ``omega`` deg/s, fixed in the
+    world as the head turns (starting 18 deg to the right)."""
+    mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
+
+    def orbit(tt):
+        yaw = np.radians(-18.0 + omega * tt)
+        return mid + np.array([np.sin(yaw), -np.cos(yaw), 0.0])
+
+    return orbit
+
+
+def experiments(loops, progress: bool = True):
+    """Saccades to a ball appearing at 20 deg in eight directions (1 m away), vergence at the end of each,
+    and tracking a ball circling the eyes at 15 and 30 deg/s; the loop's time shares (over these runs
+    alone). The bodies' gravity is switched off: the ball is placed kinematically.
+
+    ``loops``: one loop, or a list of them (each with its own body); a list runs each scenario on every
+    loop in turn (the first of them rotating) before the next scenario, so the loops meet the same machine
+    (speed drifts fall on all alike), and returns one result per loop."""
+    from warp_vision.sim.loop import CONTROL_DT
+
+    single = not isinstance(loops, (list, tuple))
+    loops = [loops] if single else list(loops)
+    state = []
+    for loop in loops:
+        loop.body.model.opt.gravity[:] = 0
+        loop.timing = dict.fromkeys(loop.timing, 0.0)
+        state.append({"wall": 0.0, "sim": 0.0, "traces": {}})
+    for i, (name, duration, make_ball) in enumerate(_scenarios()):
+        order = [(i + j) % len(loops) for j in range(len(loops))]  # who goes first rotates
+        for loop, st in ((loops[j], state[j]) for j in order):
+            loop.reset(SETTLE_S)
+            ball = make_ball(loop.body)
+            t = time.perf_counter()
+            tr = run_scenario(loop, duration, ball=ball, progress=progress)
+            st["wall"] += time.perf_counter() - t
+            st["sim"] += tr["t"][-1]
+            st["traces"][name] = tr
+    out = [_summary(loop, st, CONTROL_DT) for loop, st in zip(loops, state)]
+    return out[0] if single else out
+
+
+def _summary(loop, st: dict, control_dt: float) -> dict:
+    trials = []
+    for k in range(8):
+        tr = st["traces"][f"saccade_{45 * k}"]
+        both = np.maximum(tr["error_left"], tr["error_right"])
+        within = both < 1.0
+        trials.append({"direction_deg": 45.0 * k, "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
+                       "error_at_0.3s_deg": float(np.interp(0.3, tr["t"], both)),
+                       "max_error_after_0.3s_deg": float(both[tr["t"] >= 0.3].max()),
+                       "gaze_line_distance_cm": 100 * float(max(tr["line_left"][-1], tr["line_right"][-1])),
+                       # the eye-head synergy: the eyes' eccentricity in the head falls as the head turns
+                       "eye_in_head_deg_peak": float(tr["eye_in_head"].max()), "eye_in_head_deg_end": float(tr["eye_in_head"][-1]),
+                       "head_turn_deg_end": float(np.degrees(np.linalg.norm(tr["neck"][-1][:2])))})
+    times = [tt["time_both_within_1deg_s"] for tt in trials]
+    out = {"saccade_20deg": {"trials": trials,
+                             "all_within_1deg_by_0.3s": all(tt is not None and tt <= 0.3 for tt in times),
+                             "time_both_within_1deg_s_max": max(tt if tt is not None else np.inf for tt in times),
+                             "error_at_0.3s_deg_max": max(tt["error_at_0.3s_deg"] for tt in trials),
+                             "max_error_after_0.3s_deg_median": float(np.median([tt["max_error_after_0.3s_deg"] for tt in trials]))},
+           "vergence_1m": {"gaze_line_distance_cm_max": max(tt["gaze_line_distance_cm"] for tt in trials),
+                           "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials]))}}
+    for omega in (15.0, 30.0):
+        tr = st["traces"][f"tracking_{omega:g}"]
+        late = tr["t"] > 0.3  # after the first saccade onto it
+        out[f"tracking_{omega:g}deg_s"] = {"median_error_deg": {s: float(np.median(tr[f"error_{s}"][late])) for s in SIDES},
+                                           "p90_error_deg": {s: float(np.percentile(tr[f"error_{s}"][late], 90)) for s in SIDES}}
+    wall = st["wall"]
+    share = {k: v / wall for k, v in loop.timing.items()}
+    share["other"] = max(0.0, 1.0 - sum(share.values()))  # traces, progress bars, Python between the stages
+    out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall, "frame_every": loop.frame_every,
+                     "frames_per_s": 1.0 / (loop.frame_every * control_dt), "share": share}
+    return out
