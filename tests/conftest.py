@@ -14,6 +14,8 @@ def pytest_configure(config):
     # some other program left in ~/.cache/warp. This must happen before Warp is initialised.
     cache = os.environ.get("WARP_VISION_TEST_KERNEL_CACHE") or tempfile.mkdtemp(prefix="warp_vision_kernels_")
     os.environ["WARP_VISION_KERNEL_CACHE"] = cache
+    # ... and the BVHs kept on disk go to a directory of the session's own, never the user's cache
+    os.environ["WARP_VISION_CACHE"] = tempfile.mkdtemp(prefix="warp_vision_cache_")
     import warp as wp
 
     wp.config.kernel_cache_dir = cache

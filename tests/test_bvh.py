@@ -78,3 +78,36 @@ def test_packet_closest_hit_matches_brute_force(device):
     tr2, objr2, *_ = ref.closest_hit_ref(sc, o, d)
     assert np.array_equal(np.isfinite(t2), np.isfinite(tr2))
     assert np.mean(obj2 == objr2) > 0.998
+
+
+def test_large_meshes_keep_their_bvh_on_disk(tmp_path, monkeypatch):
+    """The second build of the same mesh is a load (the builder is never called), equal to the first; a
+    corrupt file is rebuilt; small meshes and WARP_VISION_CACHE=off never touch the disk."""
+    import trimesh
+
+    from warp_vision.kernels.render import bvh as B
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    V, F = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces)
+    monkeypatch.setenv("WARP_VISION_CACHE", str(tmp_path))
+    monkeypatch.setattr(B, "DISK_CACHE_MIN_TRIANGLES", 100)
+    first = B.build_bvh_cached(V, F)
+    files = list((tmp_path / "bvh").glob("*.npz"))
+    assert len(files) == 1
+    real = B.build_bvh
+    monkeypatch.setattr(B, "build_bvh", lambda *a: (_ for _ in ()).throw(AssertionError("rebuilt")))
+    again = B.build_bvh_cached(V, F)
+    for f in ("node_lo", "node_left", "tri_v0", "tri_face"):
+        np.testing.assert_array_equal(getattr(again, f), getattr(first, f))
+    files[0].write_bytes(b"not a zip")
+    monkeypatch.setattr(B, "build_bvh", real)
+    rebuilt = B.build_bvh_cached(V, F)
+    np.testing.assert_array_equal(rebuilt.tri_face, first.tri_face)
+    with np.load(files[0]) as z:  # replaced by a good file
+        assert len(z["tri_face"]) == len(F)
+    monkeypatch.setattr(B, "DISK_CACHE_MIN_TRIANGLES", 10**9)
+    B.build_bvh_cached(V * 2, F)
+    monkeypatch.setattr(B, "DISK_CACHE_MIN_TRIANGLES", 100)
+    monkeypatch.setenv("WARP_VISION_CACHE", "off")
+    B.build_bvh_cached(V * 3, F)
+    assert len(list((tmp_path / "bvh").glob("*.npz"))) == 1

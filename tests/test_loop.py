@@ -149,3 +149,17 @@ def test_bad_settings_are_refused_before_any_training(tmp_path, monkeypatch, cap
     for bad in (["--width", "0"], ["--slow-motion", "0"], ["--frame-every", "0"]):
         assert sim_main(["demo", *bad, "--out", str(tmp_path / "demo")]) == 2
     assert not (tmp_path / "runs").exists()  # nothing was trained
+
+
+def test_the_viewer_is_skipped_with_one_line_where_there_is_no_display(monkeypatch, capsys):
+    from warp_vision.sim.cli import _Viewer
+
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(var, raising=False)
+    v = _Viewer(None, True)
+    assert v.handle is None
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and "no display" in out[0]
+    v.sync()
+    v.close()  # no-ops
+    assert _Viewer(None, False).handle is None and capsys.readouterr().out == ""

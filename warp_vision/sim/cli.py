@@ -220,7 +220,7 @@ def main(argv=None) -> int:
         p.add_argument("--frame-every", type=int, default=FRAME_EVERY,
                        help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
                             f"(default {FRAME_EVERY}: 25 frames a second; 1 renders every period)")
-        p.add_argument("--out", default=f"runs/sim_{name}", help="output directory")
+        p.add_argument("--out", default=None, help=f"output directory (default runs/sim_{name}, or runs/quick/sim_{name} with --quick)")
         if name == "demo":
             p.add_argument("--duration", type=float, default=0.8, help="simulated seconds")
             p.add_argument("--flight", type=float, default=0.9, help="s of flight to the point --stop m before the face")
@@ -239,6 +239,8 @@ def main(argv=None) -> int:
 
 
 def _run(args) -> None:
+    if getattr(args, "out", "") is None:
+        args.out = os.path.join("runs", "quick", f"sim_{args.command}") if args.quick else f"runs/sim_{args.command}"
     # bad settings are refused before any net is trained
     for flag in ("width", "height", "video_every", "frame_every"):
         if getattr(args, flag, 1) < 1:

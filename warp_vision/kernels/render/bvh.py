@@ -16,7 +16,12 @@ raytrace`` compares the two). The layout is plain arrays, so the same kernels ru
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import os
+import zipfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -25,6 +30,11 @@ import numpy as np
 MAX_LEAF = 4
 #: SAH bins per axis
 BINS = 16
+#: Meshes with at least this many triangles keep their BVH on disk (:func:`build_bvh_cached`): building
+#: one of myo-sim's hands (114k triangles) takes seconds, loading it milliseconds.
+DISK_CACHE_MIN_TRIANGLES = 20_000
+#: Bump when build_bvh's output changes for the same mesh (cached BVHs are keyed by it).
+BVH_FORMAT = 1
 
 
 @dataclass
@@ -190,3 +200,47 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> BVH:
         f32(tri_o[:, 2] - tri_o[:, 0]),
         np.ascontiguousarray(order, dtype=np.int32),
     )
+
+
+def bvh_cache_dir() -> Path | None:
+    """Where :func:`build_bvh_cached` keeps BVHs: ``$WARP_VISION_CACHE/bvh`` (``off`` turns the cache
+    off), else ``$XDG_CACHE_HOME/warp_vision/bvh``, else ``~/.cache/warp_vision/bvh``."""
+    root = os.environ.get("WARP_VISION_CACHE")
+    if root is not None and root.strip().lower() == "off":
+        return None
+    if not root:
+        root = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "warp_vision")
+    return Path(root) / "bvh"
+
+
+def _bvh_key(V: np.ndarray, F: np.ndarray) -> str:
+    h = hashlib.sha256(f"bvh v{BVH_FORMAT} leaf{MAX_LEAF} bins{BINS} {V.dtype} {V.shape} {F.dtype} {F.shape}".encode())
+    h.update(np.ascontiguousarray(V).tobytes())
+    h.update(np.ascontiguousarray(F).tobytes())
+    return h.hexdigest()
+
+
+def build_bvh_cached(vertices: np.ndarray, faces: np.ndarray) -> BVH:
+    """:func:`build_bvh`, kept on disk (:func:`bvh_cache_dir`, keyed by the mesh's bytes) for meshes of at
+    least ``DISK_CACHE_MIN_TRIANGLES`` triangles. An unreadable or mismatched cache file is rebuilt and
+    replaced; a cache directory that cannot be written is skipped."""
+    from warp_vision.fileio import atomic_write
+
+    V, F = _check_mesh(vertices, faces)
+    root = bvh_cache_dir()
+    if root is None or len(F) < DISK_CACHE_MIN_TRIANGLES:
+        return build_bvh(V, F)
+    path = root / f"{_bvh_key(V, F)}.npz"
+    try:
+        with np.load(path) as z:
+            b = BVH(**{f.name: z[f.name] for f in dataclasses.fields(BVH)})
+        if len(b.tri_face) == len(F) and len(b.node_lo) == len(b.node_left) > 0:
+            return b
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+        pass
+    b = build_bvh(V, F)
+    try:
+        atomic_write(path, lambda f: np.savez(f, **dataclasses.asdict(b)))
+    except OSError:
+        pass
+    return b

@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from warp_vision.kernels import launch as _launch
-from warp_vision.kernels.render.bvh import build_bvh
+from warp_vision.kernels.render.bvh import build_bvh_cached
 from warp_vision.kernels.render.packet import BvhData, concat_bvhs
 from warp_vision.kernels.render.shade import FLAG_SMOOTH, FLAG_VERTEX_COLORS, SceneData
 
@@ -47,11 +47,11 @@ def _cached_bvh(scene, group, V, F):
     cache = scene.__dict__.setdefault("_bvh_cache", {})
     obj = scene.objects[group[0]]
     if obj.static:
-        return build_bvh(V, F)
+        return build_bvh_cached(V, F)
     key = (id(obj.mesh), len(V), len(F))
     hit = cache.get(key)
     if hit is None or hit[0] is not obj.mesh:
-        cache[key] = hit = (obj.mesh, build_bvh(V, F))
+        cache[key] = hit = (obj.mesh, build_bvh_cached(V, F))
     return hit[1]
 
 
