@@ -64,8 +64,6 @@ MAX_GAZE_DEG = 35.0
 #: lose the ball. The loop clips each period's change to this rate.
 ACTIVATION_PER_DEG = 0.12
 ACTIVATION_SLACK = 0.005
-#: torch's intra-op threads while the loop runs (set process-wide when a loop is built; see __init__)
-TORCH_THREADS = 1
 OPTICS_STEP_D = 0.5
 PUPIL_STEP_MM = 0.5
 OPTICS_HYSTERESIS = 0.75  # of a step: how far from its rendered state the eye must be to change it
@@ -221,10 +219,6 @@ class VisuomotorLoop:
             raise ValueError(f"frame_every: expected a whole number of control periods >= 1, got {frame_every!r}")
         self.body, self.fov, self.ocu = body, foveators, oculomotor
         self.frame_every = int(frame_every)
-        # The loop's nets run at batch 1, where a second torch (OpenMP) thread buys nothing, and its
-        # spin-waiting after each op steals a core from Warp's render workers: with torch's default two
-        # threads a frame's render took 35 ms and the foveation net after it 12 ms; with one, 21 and 4.
-        torch.set_num_threads(TORCH_THREADS)
         self.period = 0
         self.scene = body_scene(body, seed)
         self.eyes = {s: EyeState() for s in SIDES}
