@@ -28,8 +28,8 @@ from warp_vision.sim.body import SIDES
 #: Wall minutes of each training on the 2-core reference CPU (measured; README has the runs): the
 #: foveation net's dataset synthesis plus its training, and the oculomotor net's holding-activation
 #: dataset plus its training.
-MINUTES = {("foveation", "default"): 6.0, ("foveation", "quick"): 1.2,
-           ("oculomotor", "default"): 3.0, ("oculomotor", "quick"): 0.5}
+MINUTES = {("foveation", "default"): 4.5, ("foveation", "quick"): 1.2,
+           ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5}
 
 
 @dataclass
