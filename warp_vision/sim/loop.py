@@ -303,6 +303,10 @@ class VisuomotorLoop:
             e.believed = e.believed - head_turn  # vestibulo-ocular: the head turned under the eye
             if e.target is not None:
                 e.target = e.target - head_turn  # the last estimate, fixed in the world, as the head turned
+            if e.last_target is not None:
+                # likewise the estimate the velocity is measured from, so the velocity is the ball's own
+                # (in the world, in head axes) and the head's turn is not counted twice between frames
+                e.last_target = e.last_target - head_turn
             if err is None:  # no new frame: the last estimate carried forward at its estimated velocity
                 if e.target is None:
                     changes[s] = np.zeros(2)
