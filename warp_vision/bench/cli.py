@@ -44,8 +44,8 @@ def _parser() -> argparse.ArgumentParser:
     rtp.add_argument("--out", default="bench_results/raytrace.json", help="JSON output path")
     lop = sub.add_parser("loop", help="the closed loop: simulated/wall, time shares and accuracy per visual frame rate")
     lop.add_argument("--frame-every", type=int, nargs="+", default=None,
-                     help="settings: the eyes render every N control periods of 10 ms (default: 1, the loop as it "
-                          "was, and the loop's default)")
+                     help="settings: the eyes render every N control periods of 10 ms (default: 1, a render every "
+                          "period as the loop used to, and the loop's default)")
     lop.add_argument("--quick", action="store_true", help="the --quick nets of python -m warp_vision.sim")
     lop.add_argument("--no-progress", action="store_true", help="no progress bars")
     lop.add_argument("--out", default="bench_results/loop.json", help="JSON output path")

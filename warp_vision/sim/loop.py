@@ -19,7 +19,7 @@ turns the latest estimate into a change of the commanded gaze:
   put in the world while the head turns;
 - between frames: the last frame's estimate of the ball's direction in the head, turned with the head
   and moved at the estimated angular velocity, stands in for a new one (no saccade is decided and nothing
-  is learned without a frame). With ``frame_every=1`` the loop is the one that rendered every period.
+  is learned without a frame). With ``frame_every=1`` every period is a frame.
 
 The oculomotor net maps (change of commanded gaze, current activations) to the next activations. The
 neck controller moves the head's target a fraction ``NECK_GAIN`` per period toward the eyes' mean gaze
