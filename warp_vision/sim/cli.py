@@ -18,6 +18,7 @@ configs and checksums.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 
@@ -105,10 +106,10 @@ def demo(args) -> dict:
     rasters = {s: RetinaRaster(loop.fov[s].retina, size=args.height // 2) for s in SIDES}
     # one exposure per eye for the whole video (set on the first frame), so brightness changes are real
     white: dict = {}
-    # a frame every --frame-every-video periods, played at --fps: slow motion by --slow-motion
+    # a video frame every --video-every periods, played --slow-motion times slower than simulated time
     fps = 1.0 / (args.video_every * CONTROL_DT * args.slow_motion)
     paths = [os.path.join(args.out, "demo.mp4")] + ([os.path.join(args.out, "demo.gif")] if args.gif else [])
-    writers = [VideoWriter(p, fps) for p in paths]
+    size: list = []  # (width, height) of the frames written
 
     def record(lp):
         k = len(retinas)
@@ -126,15 +127,15 @@ def demo(args) -> dict:
             white.setdefault(s, max(float(np.percentile(onv, 99.5)), 1e-12))
             eyes[s] = rasters[s](onv, white=white[s])
         frame = compose_frame(third, eyes["left"], eyes["right"], body.time - t_start)
+        size[:] = [frame.shape[1], frame.shape[0]]
         for w in writers:
             w.append(frame)
 
-    try:
+    # a failed run leaves no video: each writer removes its temporary file when the block raises
+    with contextlib.ExitStack() as stack:
+        writers = [stack.enter_context(VideoWriter(p, fps)) for p in paths]
+        stack.callback(viewer.close)
         tr = run_scenario(loop, args.duration, record=record, progress=not args.no_progress)
-    finally:
-        viewer.close()
-    for w in writers:
-        w.close()
     # the left retina at four moments: the ball's entry, mid-saccade, fixation and tracking (Fig. 7)
     err = tr["error_left"]
     seen = np.nonzero(err < 60)[0]
@@ -160,18 +161,8 @@ def demo(args) -> dict:
     fig.savefig(os.path.join(args.out, "gaze_error.png"), dpi=110)
     plt.close(fig)
     return {"launch_velocity_m_s": v.tolist(), "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES},
-            "video": {"paths": paths, "frames": writers[0].frames, "fps": fps, "size": [int(x) for x in frame_size(args)]},
+            "video": {"paths": paths, "frames": writers[0].frames, "fps": fps, "size": size},
             "timing_s": dict(loop.timing)}
-
-
-def frame_size(args) -> tuple[int, int]:
-    """(width, height) of the demo video's frames: the third-person view and the retinas' column beside it."""
-    from warp_vision.sim.video import compose_frame
-
-    blank = np.zeros((args.height, args.width, 3), np.uint8)
-    eye = np.zeros((args.height // 2, args.height // 2, 3), np.uint8)
-    f = compose_frame(blank, eye, eye, 0.0)
-    return f.shape[1], f.shape[0]
 
 
 def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov_deg: float) -> np.ndarray:

@@ -45,9 +45,9 @@ from warp_vision.sim.oculomotor import holding_activations
 
 CONTROL_DT = 0.01  # s
 #: The eyes render (and the foveation nets run) every FRAME_EVERY control periods: 25 frames a second.
-#: Human visual latency is 50-100 ms and flicker fusion in the periphery 20-60 Hz; at 40 ms a frame the
-#: loop's saccades and tracking match those of a frame every period (``python -m warp_vision.bench loop``
-#: measures both), at a quarter of the rendering.
+#: Human visual latency is 50-100 ms and flicker fusion in the periphery 20-60 Hz. At 40 ms a frame the
+#: loop renders a quarter as often; its saccades are as fast as with a frame every period, its tracking
+#: errors somewhat larger (``python -m warp_vision.bench loop`` measures both; README has the numbers).
 FRAME_EVERY = 4
 SACCADE_DEG = 2.0
 EYE_MODEL_TAU = 0.03  # s
@@ -308,9 +308,7 @@ class VisuomotorLoop:
                 # (in the world, in head axes) and the head's turn is not counted twice between frames
                 e.last_target = e.last_target - head_turn
             if err is None:  # no new frame: the last estimate carried forward at its estimated velocity
-                if e.target is None:
-                    changes[s] = np.zeros(2)
-                    continue
+                # (period 0, after construction or reset, is always a frame, so e.target is set here)
                 if body.time >= e.quiet_from:
                     e.target = e.target + e.velocity * CONTROL_DT
                 new = e.target + e.velocity * LEAD + e.bias

@@ -50,9 +50,9 @@ class NetSpec:
 
     def command(self) -> list[str]:
         """The training command (after ``python -m warp_vision.train``)."""
+        head = [] if self.kind == "foveation" else [self.kind]  # foveation is the command's default task
         if os.path.isfile(os.path.join(self.run, "latest.pt")):  # a stopped run: carry on
-            return ([] if self.kind == "foveation" else [self.kind]) + ["--resume", self.run]
-        head = [] if self.kind == "foveation" else [self.kind]
+            return head + ["--resume", self.run]
         return head + ["--preset", self.preset, "--eye", self.eye, "--out", self.run]
 
     def minutes(self) -> float:

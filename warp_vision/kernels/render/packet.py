@@ -205,11 +205,18 @@ def _inverse_dirs(dx: vec8, dy: vec8, dz: vec8):
 
 
 @wp.func
+def _slab_terms(ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8):
+    """What :func:`box_hit` takes of a packet: inverse directions and origin * inverse."""
+    ix, iy, iz = _inverse_dirs(dx, dy, dz)
+    return ix, iy, iz, wp.cw_mul(ox, ix), wp.cw_mul(oy, iy), wp.cw_mul(oz, iz)
+
+
+@wp.func
 def _packet_in_instance(X: wp.transform, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8):
     """The packet in an instance's frame: origins, directions, inverse directions, origin * inverse."""
     lx, ly, lz, mx, my, mz = _to_instance(X, ox, oy, oz, dx, dy, dz)
-    ix, iy, iz = _inverse_dirs(mx, my, mz)
-    return lx, ly, lz, mx, my, mz, ix, iy, iz, wp.cw_mul(lx, ix), wp.cw_mul(ly, iy), wp.cw_mul(lz, iz)
+    ix, iy, iz, oix, oiy, oiz = _slab_terms(lx, ly, lz, mx, my, mz)
+    return lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz
 
 
 @wp.func
@@ -247,10 +254,7 @@ def packet_closest(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, 
         tri[l] = -1
     stack = stack64()
     bt, bv_ = _batch_rows(bv, b)
-    wix, wiy, wiz = _inverse_dirs(dx, dy, dz)
-    woix = wp.cw_mul(ox, wix)
-    woiy = wp.cw_mul(oy, wiy)
-    woiz = wp.cw_mul(oz, wiz)
+    wix, wiy, wiz, woix, woiy, woiz = _slab_terms(ox, oy, oz, dx, dy, dz)  # for the instances' world boxes
     for inst in range(bv.inst_root.shape[0]):
         if bv.inst_visible[bv_, inst] == 0:
             continue
@@ -316,10 +320,7 @@ def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
     tb = t_in
     stack = stack64()
     bt, bv_ = _batch_rows(bv, b)
-    wix, wiy, wiz = _inverse_dirs(dx, dy, dz)
-    woix = wp.cw_mul(ox, wix)
-    woiy = wp.cw_mul(oy, wiy)
-    woiz = wp.cw_mul(oz, wiz)
+    wix, wiy, wiz, woix, woiy, woiz = _slab_terms(ox, oy, oz, dx, dy, dz)  # for the instances' world boxes
     for inst in range(bv.inst_root.shape[0]):
         if all_negative(tb):
             break
