@@ -379,3 +379,157 @@ def test_emission_is_seen_without_light_and_matches_the_reference(device):
     assert np.isclose(got, expect, rtol=2e-3, atol=1e-6).all(axis=1).mean() > 0.995
     with pytest.raises(ValueError, match="emission"):
         Material(emission=(-1.0, 0.0, 0.0))
+
+
+# --------------------------------------------------------------------------------------------------
+# per-batch materials and ambient light
+
+#: the ball's material per batch element: a red matte one, a green glowing one, a blue glossy mirror
+BALL = [
+    Material((0.9, 0.15, 0.1), smooth=True),
+    Material((0.2, 0.8, 0.3), emission=(0.4, 0.9, 0.2), smooth=True),
+    Material((0.1, 0.2, 0.9), specular=0.9, shininess=60, reflectivity=0.35, smooth=True),
+]
+#: the (static) floor's: its reflectivity and albedo change from sample to sample too
+FLOOR = [
+    Material((0.5, 0.5, 0.4), reflectivity=0.0),
+    Material((0.3, 0.6, 0.6), reflectivity=0.5),
+    Material((0.8, 0.7, 0.2), specular=0.4, shininess=10, reflectivity=0.2),
+]
+AMBIENT = np.array([[0.08, 0.06, 0.05], [0.0, 0.0, 0.0], [0.3, 0.2, 0.4]])
+
+
+def batch_scene():
+    sc = small_scene()
+    sc.set_material("ball", BALL)
+    sc.set_material("floor", FLOOR)
+    sc.set_ambient(AMBIENT)
+    return sc
+
+
+def shared_scene(k):
+    """The batch scene's element k, as a scene whose materials and ambient light are shared."""
+    sc = small_scene()
+    sc.set_material("ball", BALL[k])
+    sc.set_material("floor", FLOOR[k])
+    sc.ambient = AMBIENT[k]
+    return sc
+
+
+def _onv_inputs():
+    rng = np.random.default_rng(7)
+    # the ball fills the fovea and the near periphery; the rest sees the floor, the wall and the cube
+    q = retina_points(np.concatenate([rng.uniform(0, 8, 30), rng.uniform(8, 60, 30)]), rng.uniform(0, 360, 60))
+    return q, NavarroEye(pupil_diameter_mm=4.0)
+
+
+def test_per_batch_materials_match_the_reference_and_shared_renders(device):
+    q, eye = _onv_inputs()
+    sc = batch_scene()
+    assert sc.batch_size() == 3
+    poses = np.stack([EYE_POSE, eye_look_at([0.2, -0.6, 1.0], [0.0, 1.0, 1.2]), EYE_POSE])
+    got = rt.render_onv(sc, q, eye, poses, samples_per_receptor=4, seed=5, device=device).cpu().numpy()
+    expect = ref.render_onv_ref(sc, q, eye, poses, 4, seed=5)
+    for b in range(3):  # the tolerances of test_onv_matches_the_reference, per batch element
+        rel = np.abs(got[b] - expect[b]) / (np.abs(expect[b]) + 1e-3 * expect[b].max())
+        assert np.mean(rel < 2e-3) > 0.97, b
+    # each element is its own scene: the same render as a scene whose shared material is material k
+    for b in range(3):
+        alone = rt.render_onv(shared_scene(b), q, eye, poses[b], 4, seed=5, device=device).cpu().numpy()
+        np.testing.assert_allclose(got[b], alone[0], rtol=1e-6, atol=1e-9)
+    # ... and the materials matter: elements 0 and 2 share a pose but not a ball, floor or ambient light
+    assert np.abs(got[0] - got[2]).max() > 0.2 * got[0].max()
+
+
+def test_per_batch_materials_in_radiance_and_camera(device):
+    sc = batch_scene()
+    # straight at the ball's front, lit by the first light: red, glowing green, blue
+    front = [rt.radiance(sc, [[0.0, -0.6, 1.2]], [[0.0, 1.0, 0.0]], batch=b, device=device).cpu().numpy()[0]
+             for b in range(3)]
+    assert front[0][0] > 3 * front[0][1:].max() and front[2][2] > 3 * front[2][:2].max()
+    assert front[1][1] > 0.9 and front[1][1] > 2 * front[1][[0, 2]].max()  # its emission alone is (0.4, 0.9, 0.2)
+    o, d = random_rays(1500, seed=3)
+    T = look_at([0.3, -1.0, 1.3], [0.0, 1.0, 1.0])
+    for b in range(3):
+        L = rt.radiance(sc, o, d, batch=b, device=device).cpu().numpy()
+        assert np.isclose(L, ref.radiance_ref(sc, o, d, b), rtol=2e-3, atol=1e-6).all(axis=1).mean() > 0.995
+        alone = rt.radiance(shared_scene(b), o, d, device=device).cpu().numpy()
+        np.testing.assert_allclose(L, alone, rtol=1e-6, atol=1e-9)
+        img = rt.render_camera(sc, T, 32, 24, batch=b, device=device).cpu().numpy()
+        alone = rt.render_camera(shared_scene(b), T, 32, 24, device=device).cpu().numpy()
+        np.testing.assert_allclose(img, alone, rtol=1e-6, atol=1e-9)
+
+
+def test_set_material_takes_effect_without_a_rebuild():
+    q, eye = _onv_inputs()
+    sc = small_scene()
+    before = rt.render_onv(sc, q, eye, EYE_POSE, 2).numpy()
+    version, geo = sc._version, next(iter(sc._gpu.values()))
+    sc.set_material("ball", BALL[1])  # shared: replaces the ball's material
+    sc.set_ambient(AMBIENT[2])
+    shared = rt.render_onv(sc, q, eye, EYE_POSE, 2).numpy()
+    assert sc._version == version and next(iter(sc._gpu.values())) is geo  # no BVH or geometry rebuild
+    assert not np.allclose(shared, before)
+    fresh = small_scene()
+    fresh.objects[fresh.index("ball")].material = BALL[1]  # before the scene is first packed
+    fresh.ambient = AMBIENT[2]
+    np.testing.assert_allclose(shared, rt.render_onv(fresh, q, eye, EYE_POSE, 2).numpy(), rtol=1e-6, atol=1e-9)
+    sc.set_material("ball", BALL)  # per batch, then shared again
+    sc.set_ambient(AMBIENT[[0, 2, 1]])  # element 1: BALL[1] under AMBIENT[2], as just rendered shared
+    assert sc.batch_size() == 3 and sc._version == version
+    three = rt.render_onv(sc, q, eye, np.repeat(EYE_POSE[None], 3, 0), 2).numpy()
+    np.testing.assert_allclose(three[1], shared[0], rtol=1e-6, atol=1e-9)
+    assert not np.allclose(three[0], three[1])
+    sc.set_material("ball", Material((1, 1, 1), specular=0.5, shininess=20, smooth=True))  # small_scene's own
+    sc.set_ambient((0.08, 0.06, 0.05))
+    assert sc.objects[sc.index("ball")].batch_materials is None and sc.batch_size() == 1
+    np.testing.assert_array_equal(rt.render_onv(sc, q, eye, EYE_POSE, 2).numpy(), before)
+    assert sc._version == version and next(iter(sc._gpu.values())) is geo
+    # smooth / vertex_colors are how the mesh is shaded: a shared material that changes them repacks
+    sc.set_material("ball", Material((1, 1, 1), specular=0.5, shininess=20, smooth=False))
+    assert sc._version == version + 1
+    flat = rt.render_onv(sc, q, eye, EYE_POSE, 2).numpy()
+    fresh = small_scene()
+    fresh.objects[fresh.index("ball")].material = Material((1, 1, 1), specular=0.5, shininess=20, smooth=False)
+    np.testing.assert_array_equal(flat, rt.render_onv(fresh, q, eye, EYE_POSE, 2).numpy())
+    assert not np.array_equal(flat, before)
+
+
+def test_bad_materials_and_ambient():
+    q, eye = _onv_inputs()
+    sc = small_scene()
+    with pytest.raises(ValueError, match="smooth"):  # the ball is smooth-shaded
+        sc.set_material("ball", [Material((1, 0, 0), smooth=True), Material((0, 1, 0))])
+    with pytest.raises(ValueError, match="vertex_colors"):  # the cube uses its vertex colours
+        sc.set_material("cube", [Material(), Material()])
+    with pytest.raises(ValueError, match="empty"):
+        sc.set_material("ball", [])
+    with pytest.raises(ValueError, match="not a Material"):
+        sc.set_material("ball", [BALL[0], (1, 0, 0)])
+    with pytest.raises(ValueError, match="Material"):
+        sc.set_material("ball", "red")
+    with pytest.raises(KeyError):
+        sc.set_material("nothing", BALL[0])
+    assert sc.objects[sc.index("ball")].batch_materials is None  # the failed calls changed nothing
+    for bad, what in [((-0.1, 0, 0), ">= 0"), ((np.nan, 0, 0), "finite"), ((0.1, 0.1), "shape"),
+                      (np.zeros((2, 4)), "shape"), (np.zeros((2, 2, 3)), "shape"), (0.1, "shape")]:
+        with pytest.raises(ValueError, match=what):
+            sc.set_ambient(bad)
+        with pytest.raises(ValueError, match=what):
+            Scene(ambient=bad)
+    np.testing.assert_array_equal(sc.ambient, [0.08, 0.06, 0.05])
+    # per-batch things must agree on B, and with the eye poses
+    sc.set_material("ball", BALL)  # B = 3
+    with pytest.raises(ValueError, match="batch"):
+        rt.render_onv(sc, q, eye, np.repeat(EYE_POSE[None], 2, 0))
+    with pytest.raises(ValueError, match="batch"):
+        rt.render_camera(sc, np.eye(4), 8, 8, batch=3)
+    sc.set_ambient(np.full((2, 3), 0.1))
+    with pytest.raises(ValueError, match="disagree"):
+        sc.batch_size()
+    with pytest.raises(ValueError, match="disagree"):
+        rt.render_onv(sc, q, eye, np.repeat(EYE_POSE[None], 3, 0))
+    sc.set_ambient(np.full((3, 3), 0.1))
+    sc.set_transform("ball", np.repeat(np.eye(4)[None], 4, 0))
+    with pytest.raises(ValueError, match="disagree"):
+        rt.radiance(sc, np.zeros((1, 3)), np.ones((1, 3)))

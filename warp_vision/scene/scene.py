@@ -7,6 +7,14 @@ B different ball positions) only changes a transform. Objects added with ``stati
 furniture) are merged into one BVH in the world frame, so a ray pays one traversal for all of them
 instead of one per object; moving a static object rebuilds that merged BVH.
 
+Per batch element (so that one launch of B samples renders B different scenes), each may be shared
+(one value) or given B values: a dynamic object's transform (:meth:`Scene.set_transform`) and
+visibility (:meth:`Scene.set_visible`), any object's material (:meth:`Scene.set_material`: diffuse,
+specular, shininess, reflectivity and emission; ``smooth`` and ``vertex_colors`` stay per object), the
+point lights' positions, colours and intensities, and the ambient light (:meth:`Scene.set_ambient`).
+The mesh geometry and the background are shared by the whole batch. Every per-batch quantity must
+have the same B (:meth:`Scene.batch_size`).
+
 Units: metres and the world frame of docs/ARCHITECTURE.md (+z up). Radiance is linear, in arbitrary but
 consistent units: a point light of ``intensity`` I and ``color`` c gives irradiance I c / d^2 at
 distance d.
@@ -75,6 +83,35 @@ class SceneObject:
     transform: np.ndarray  # [1, 4, 4] or [B, 4, 4] world-from-object, rigid
     static: bool = False
     visible: np.ndarray = field(default_factory=lambda: np.ones(1, dtype=bool))  # [1] or [B]
+    # One Material per batch element (set by Scene.set_material), overriding ``material``'s shading
+    # values; None when the whole batch shares ``material``. Packed as numpy arrays in batch_material_arrays.
+    batch_materials: tuple[Material, ...] | None = None
+    batch_material_arrays: dict[str, np.ndarray] | None = field(default=None, repr=False)
+
+    def material_for(self, batch: int) -> Material:
+        """The material batch element ``batch`` sees (the shared one when there is no per-batch list)."""
+        if self.batch_materials is None:
+            return self.material
+        return self.batch_materials[batch if len(self.batch_materials) > 1 else 0]
+
+
+#: The shading values of a Material that may vary per batch element (the kernels' material arrays).
+MATERIAL_FIELDS = ("diffuse", "specular", "shininess", "reflectivity", "emission")
+
+
+def material_arrays(materials) -> dict[str, np.ndarray]:
+    """Materials [M] packed as float64 arrays: diffuse and emission [M, 3], specular, shininess and
+    reflectivity [M]."""
+    return {f: np.array([getattr(m, f) for m in materials], dtype=np.float64) for f in MATERIAL_FIELDS}
+
+
+def _as_ambient(ambient) -> np.ndarray:
+    a = np.array(ambient, dtype=np.float64)
+    if a.ndim not in (1, 2) or a.shape[-1] != 3 or a.size == 0:
+        raise ValueError(f"ambient: expected RGB [3] or one per batch element [B, 3], got shape {a.shape}")
+    if not np.all(np.isfinite(a)) or a.min() < 0:
+        raise ValueError("ambient: expected finite values >= 0")
+    return a
 
 
 def _as_transforms(name: str, T) -> np.ndarray:
@@ -98,17 +135,28 @@ def _as_transforms(name: str, T) -> np.ndarray:
 class Scene:
     """Meshes, materials, point lights and ambient light, rendered by :mod:`warp_vision.kernels.render`.
 
-    ambient: RGB ambient irradiance (multiplies each surface's albedo).
+    ambient: RGB ambient irradiance (multiplies each surface's albedo): [3], or [B, 3] for one per batch
+        element. Assigning ``scene.ambient`` validates like :meth:`set_ambient`.
     background: RGB radiance of rays that escape the scene.
     """
 
     def __init__(self, ambient=(0.05, 0.05, 0.05), background=(0.0, 0.0, 0.0)):
         self.objects: list[SceneObject] = []
         self.lights: list[PointLight] = []
-        self.ambient = np.asarray(ambient, dtype=np.float64)
+        self.ambient = ambient
         self.background = np.asarray(background, dtype=np.float64)
         self._version = 0  # bumps when geometry changes (forces a BVH rebuild)
+        self._materials_version = 0  # bumps when set_material changes a shared material (re-upload)
         self._gpu: dict = {}
+
+    @property
+    def ambient(self) -> np.ndarray:
+        """RGB ambient irradiance, [3] (shared) or [B, 3] (float64)."""
+        return self._ambient
+
+    @ambient.setter
+    def ambient(self, value) -> None:
+        self._ambient = _as_ambient(value)
 
     # --- building -----------------------------------------------------------------------------
     def add(
@@ -183,19 +231,71 @@ class Scene:
             raise ValueError(f"{name!r} is static: static objects cannot be hidden; add it with static=False")
         self.objects[i].visible = v
 
+    def set_material(self, name: str, material) -> None:
+        """Give an object a material: one :class:`Material` for the whole batch, or a sequence of B
+        Materials, one per batch element.
+
+        A single Material replaces ``obj.material`` and drops any per-batch list. Per-batch materials
+        vary diffuse, specular, shininess, reflectivity and emission; they must agree with the object's
+        own ``material`` on ``smooth`` and ``vertex_colors`` (how its mesh is shaded; change those with a
+        single Material). Materials are uploaded per render: this never rebuilds a BVH or the scene's
+        geometry, except that a single Material changing ``smooth`` or ``vertex_colors`` repacks the
+        geometry's normals and colours (dynamic objects' BVHs stay cached). Takes effect on the next
+        render. (Mutating a Material in place after a render is not seen: call set_material.)
+        """
+        i = self.index(name)
+        o = self.objects[i]
+        if isinstance(material, Material):
+            if (material.smooth, material.vertex_colors) != (o.material.smooth, o.material.vertex_colors):
+                self._version += 1  # the packed normals / vertex colours depend on these flags
+            o.material = material
+            o.batch_materials = o.batch_material_arrays = None
+            self._materials_version += 1
+            return
+        if isinstance(material, (str, bytes)) or not hasattr(material, "__len__"):
+            raise ValueError(f"material of {name!r}: expected a Material or a sequence of B Materials, got "
+                             f"{type(material).__name__}")
+        mats = tuple(material)
+        if len(mats) == 0:
+            raise ValueError(f"material of {name!r}: expected a Material or a non-empty sequence of Materials, got an "
+                             "empty one")
+        bad = [k for k, m in enumerate(mats) if not isinstance(m, Material)]
+        if bad:
+            raise ValueError(f"material of {name!r}: entry {bad[0]} is a {type(mats[bad[0]]).__name__}, not a Material")
+        for k, m in enumerate(mats):
+            if m.smooth != o.material.smooth or m.vertex_colors != o.material.vertex_colors:
+                raise ValueError(
+                    f"material of {name!r}: per-batch material {k} has smooth={m.smooth}, vertex_colors="
+                    f"{m.vertex_colors} but the object has smooth={o.material.smooth}, vertex_colors="
+                    f"{o.material.vertex_colors}; these flags are per object (set them with one Material first)"
+                )
+        o.batch_materials = mats
+        o.batch_material_arrays = material_arrays(mats)
+
+    def set_ambient(self, ambient) -> None:
+        """Set the RGB ambient irradiance: [3] for the whole batch or [B, 3], one per batch element
+        (finite, >= 0). Same as assigning ``scene.ambient``; uploaded per render."""
+        self.ambient = ambient
+
     # --- queries --------------------------------------------------------------------------------
     @property
     def num_triangles(self) -> int:
         return sum(len(o.mesh.faces) for o in self.objects)
 
     def batch_size(self) -> int:
-        """The batch implied by per-batch transforms and lights (1 when everything is shared)."""
+        """The batch implied by per-batch transforms, visibility, lights, materials and ambient light (1
+        when everything is shared)."""
         sizes = {o.transform.shape[0] for o in self.objects} | {len(o.visible) for o in self.objects}
+        sizes |= {len(o.batch_materials) for o in self.objects if o.batch_materials is not None}
         for li in self.lights:
             sizes |= {np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0], np.atleast_1d(li.intensity).shape[0]}
+        sizes.add(np.atleast_2d(self.ambient).shape[0])
         sizes.discard(1)
         if len(sizes) > 1:
-            raise ValueError(f"scene: per-batch transforms and lights disagree on the batch size: {sorted(sizes)}")
+            raise ValueError(
+                "scene: per-batch transforms, visibility, lights, materials and ambient light disagree on the "
+                f"batch size: {sorted(sizes)}"
+            )
         return sizes.pop() if sizes else 1
 
     def world_mesh(self, batch: int = 0) -> trimesh.Trimesh:

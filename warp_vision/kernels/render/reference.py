@@ -3,7 +3,8 @@ float64, written for clarity.
 
 The eye part reuses :class:`warp_vision.eye.optics.NavarroEye` (exact float64 tracing); the scene part
 tests every ray against every triangle (Moller-Trumbore) and shades with the same Phong model, shadow
-rays and mirror recursion as the kernels. Use it on small scenes and few photoreceptors only.
+rays and mirror recursion as the kernels, with each batch element's transforms, visibility, lights,
+materials and ambient light. Use it on small scenes and few photoreceptors only.
 
 Barycentrics follow Warp's convention: a hit at ``u * v0 + v * v1 + (1 - u - v) * v2``.
 """
@@ -154,7 +155,7 @@ def radiance_ref(scene, origins, directions, batch: int = 0, max_depth: int = 2)
             F = np.asarray(ob.mesh.faces)[face[m]]
             V = np.asarray(ob.mesh.vertices, dtype=np.float64)
             w = np.stack([u[m], v[m], 1.0 - u[m] - v[m]], axis=1)
-            mat = ob.material
+            mat = ob.material_for(batch)  # smooth / vertex_colors agree with ob.material's
             if mat.smooth:
                 VN = np.asarray(ob.mesh.vertex_normals, dtype=np.float64)
                 nl = np.einsum("nk,nkj->nj", w, VN[F])
@@ -172,7 +173,8 @@ def radiance_ref(scene, origins, directions, batch: int = 0, max_depth: int = 2)
             emit[m] = mat.emission
         flip = np.sum(n * dd, axis=1) > 0
         n[flip] *= -1
-        local = scene.ambient[None] * base + emit
+        amb = np.atleast_2d(scene.ambient)
+        local = amb[batch if len(amb) > 1 else 0][None] * base + emit
         p_off = p + RAY_EPSILON_M * n
         for lpos, lrad in lights:
             lv = lpos[None] - p_off

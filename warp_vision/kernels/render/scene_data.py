@@ -3,10 +3,14 @@
 A scene's geometry becomes *instances*: instance 0 is every static object merged in the world frame
 (when there are any), then one instance per dynamic object in its object frame. Each instance gets a
 BVH (:mod:`warp_vision.kernels.render.bvh`, cached per mesh for dynamic objects) and its faces,
-normals, vertex colours and materials; that device-side, transform-independent part is built once per
-scene version and device (:class:`_SceneGeometry`). :func:`scene_data` adds what changes from call to
-call (per-batch instance transforms and visibility, lights, ambient light, background) and returns the
-:class:`~warp_vision.kernels.render.shade.SceneData` the kernels take.
+normals, vertex colours and per-object shading flags; that device-side, transform-independent part is
+built once per scene version and device (:class:`_SceneGeometry`). :func:`scene_data` adds what may
+change from call to call, and what may differ per batch element, and returns the
+:class:`~warp_vision.kernels.render.shade.SceneData` the kernels take: per-batch instance transforms
+and visibility, lights, materials (``[1, n_obj]`` arrays cached with the geometry while every object
+shares one material across the batch, re-uploaded after :meth:`~warp_vision.scene.Scene.set_material`;
+``[B, n_obj]``, built per call, once some object has per-batch materials), ambient light (``[1]`` or
+``[B]``) and background.
 
 Units: metres and the world frame of docs/ARCHITECTURE.md.
 """
@@ -20,6 +24,7 @@ from warp_vision.kernels import launch as _launch
 from warp_vision.kernels.render.bvh import build_bvh_cached
 from warp_vision.kernels.render.packet import BvhData, concat_bvhs
 from warp_vision.kernels.render.shade import FLAG_SMOOTH, FLAG_VERTEX_COLORS, SceneData
+from warp_vision.scene.scene import MATERIAL_FIELDS, material_arrays
 
 
 def to_warp_transforms(T: np.ndarray) -> np.ndarray:
@@ -65,12 +70,21 @@ def _object_arrays(o):
         T = o.transform[0]
         V = V @ T[:3, :3].T + T[:3, 3]
         N = N @ T[:3, :3].T
-    vc = getattr(m.visual, "vertex_colors", None) if o.material.vertex_colors else None
-    if vc is not None and len(vc) == len(V):
+    vc = _vertex_colors(o)
+    if vc is not None:
         C = np.asarray(vc[:, :3], dtype=np.float64) / 255.0
-    else:
+    else:  # unused: the object's albedo is its (possibly per-batch) material's diffuse
         C = np.tile(np.asarray(o.material.diffuse, np.float64), (len(V), 1))
     return V, N, C, np.asarray(m.faces, dtype=np.int64)
+
+
+def _vertex_colors(o):
+    """The object's per-vertex colours [V, 4] uint8 when its material asks for them and its mesh has
+    one per vertex, else None (then its albedo is the material's diffuse, as in the reference)."""
+    if not o.material.vertex_colors:
+        return None
+    vc = getattr(o.mesh.visual, "vertex_colors", None)
+    return vc if vc is not None and len(vc) == len(o.mesh.vertices) else None
 
 
 def _merge_group(scene, group):
@@ -130,19 +144,44 @@ class _SceneGeometry:
         self.normals = arr(np.concatenate(normals).astype(np.float32), wp.vec3)
         self.colors = arr(np.concatenate(colors).astype(np.float32), wp.vec3)
         self.vert_offset = arr(np.array(v_off, np.int32), wp.int32)
-        self._upload_materials(scene, arr)
+        flags = [(FLAG_VERTEX_COLORS if _vertex_colors(o) is not None else 0) | (FLAG_SMOOTH if o.material.smooth else 0)
+                 for o in scene.objects]
+        self.flags = arr(np.array(flags, np.int32), wp.int32)
+        self.device = device
+        self.materials_version = None  # the scene._materials_version of the shared materials below
+        self.materials = None
 
-    def _upload_materials(self, scene, arr) -> None:
-        mats = [o.material for o in scene.objects]
-        self.diffuse = arr(np.array([m.diffuse for m in mats], np.float32), wp.vec3)
-        self.specular = arr(np.array([m.specular for m in mats], np.float32), wp.float32)
-        self.shininess = arr(np.array([m.shininess for m in mats], np.float32), wp.float32)
-        self.reflectivity = arr(np.array([m.reflectivity for m in mats], np.float32), wp.float32)
-        self.emission = arr(np.array([m.emission for m in mats], np.float32), wp.vec3)
-        self.flags = arr(
-            np.array([(FLAG_VERTEX_COLORS if m.vertex_colors else 0) | (FLAG_SMOOTH if m.smooth else 0) for m in mats], np.int32),
-            wp.int32,
-        )
+    def shared_materials(self, scene) -> dict:
+        """The objects' own materials as [1, n_obj] device arrays, uploaded again only after a
+        :meth:`~warp_vision.scene.Scene.set_material`."""
+        if self.materials is None or self.materials_version != scene._materials_version:
+            packed = material_arrays([o.material for o in scene.objects])
+            self.materials = _upload_materials({k: v[None] for k, v in packed.items()}, self.device)
+            self.materials_version = scene._materials_version
+        return self.materials
+
+
+def _upload_materials(packed: dict, device: str) -> dict:
+    """[Bm, n_obj] (and [Bm, n_obj, 3]) float64 material arrays -> float32 Warp 2-D arrays."""
+    out = {}
+    for k, v in packed.items():
+        dt = wp.vec3 if v.ndim == 3 else wp.float32
+        out[k] = wp.array(np.ascontiguousarray(v, dtype=np.float32), dtype=dt, device=device)
+    return out
+
+
+def _batch_materials(scene, B: int) -> dict:
+    """Every object's material per batch element, [B, n_obj] (diffuse and emission [B, n_obj, 3]),
+    float64: the object's per-batch list where it has one, else its own material broadcast."""
+    n = len(scene.objects)
+    out = {f: np.empty((B, n, 3) if f in ("diffuse", "emission") else (B, n)) for f in MATERIAL_FIELDS}
+    for i, o in enumerate(scene.objects):
+        per = o.batch_material_arrays
+        if per is None:
+            per = {f: np.asarray(getattr(o.material, f), dtype=np.float64)[None] for f in MATERIAL_FIELDS}
+        for f in MATERIAL_FIELDS:
+            out[f][:, i] = per[f]  # [1 or B(, 3)] broadcast over the batch
+    return out
 
 
 def _world_bounds(geo: _SceneGeometry, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -217,16 +256,23 @@ def scene_data(scene, device: str = "cpu", max_depth: int = 2) -> SceneData:
     if geo is None:
         scene._gpu.clear()
         geo = scene._gpu[key] = _SceneGeometry(scene, device)
+    B = scene.batch_size()  # also checks that the per-batch quantities agree
     sc = SceneData()
     sc.bv = _instance_bvh_data(scene, geo, device)
-    for name in (
-        "faces face_offset face_object face_local normals colors vert_offset diffuse specular shininess reflectivity emission flags"
-    ).split():
+    for name in "faces face_offset face_object face_local normals colors vert_offset flags".split():
         setattr(sc, name, getattr(geo, name))
+    Bm = max((len(o.batch_materials) for o in scene.objects if o.batch_materials is not None), default=0)
+    if Bm == 0:  # every object shares its own material across the batch: cached
+        mats = geo.shared_materials(scene)
+    else:  # [B, n_obj] (a per-batch list of one material is shared: [1, n_obj])
+        mats = _upload_materials(_batch_materials(scene, B if Bm > 1 else 1), device)
+    for name, a in mats.items():
+        setattr(sc, name, a)
     pos, rad = _light_arrays(scene)
     sc.light_pos = wp.array(np.ascontiguousarray(pos, dtype=np.float32), dtype=wp.vec3, device=device)
     sc.light_rad = wp.array(np.ascontiguousarray(rad, dtype=np.float32), dtype=wp.vec3, device=device)
-    sc.ambient = wp.vec3(*[float(x) for x in scene.ambient])
+    amb = np.atleast_2d(scene.ambient)  # [1 or B, 3]
+    sc.ambient = wp.array(np.ascontiguousarray(amb, dtype=np.float32), dtype=wp.vec3, device=device)
     sc.background = wp.vec3(*[float(x) for x in scene.background])
     sc.max_depth = int(max_depth)
     return sc

@@ -6,6 +6,11 @@ shadow packet per point light plus ambient light and emission, and mirror reflec
 ``max_depth`` bounces. Its steps are the ``_hit_surfaces``, ``_direct_light``, ``_add_surface_light`` and
 ``_mirror`` functions below, each a loop over the 8 lanes.
 
+What may differ per batch element b has one row per element, or a single row shared by the batch, and
+``packet_radiance`` picks the row (0 for a shared one): instance transforms and visibility (``bt``),
+lights (``bl``), materials (``bm``: diffuse, specular, shininess, reflectivity, emission, ``[1 or B,
+n_obj]``; the smooth / vertex-colour flags are per object) and ambient light (``ba``, ``[1 or B]``).
+
 The kernels launch one thread per group of G photoreceptors (``render_onv_kernel``: their rays, 8 at a
 time in full packets, summed by their weights into the ONV; G = 2 at S = 4), per 4 x 2 pixel tile (``camera_kernel``) or per 8 rays
 (``radiance_kernel``, ``closest_hit_kernel``). Every thread writes only its own outputs, so there are
@@ -56,15 +61,15 @@ class SceneData:
     normals: wp.array(dtype=wp.vec3)  # per-vertex normals (instance frame), all instances
     colors: wp.array(dtype=wp.vec3)  # per-vertex albedo, all instances
     vert_offset: wp.array(dtype=int)  # [n_inst]
-    diffuse: wp.array(dtype=wp.vec3)  # [n_obj] materials
-    specular: wp.array(dtype=float)
-    shininess: wp.array(dtype=float)
-    reflectivity: wp.array(dtype=float)
-    emission: wp.array(dtype=wp.vec3)  # [n_obj] emitted radiance
-    flags: wp.array(dtype=int)
+    diffuse: wp.array2d(dtype=wp.vec3)  # [B or 1, n_obj] materials (a row per batch element, or shared)
+    specular: wp.array2d(dtype=float)
+    shininess: wp.array2d(dtype=float)
+    reflectivity: wp.array2d(dtype=float)
+    emission: wp.array2d(dtype=wp.vec3)  # [B or 1, n_obj] emitted radiance
+    flags: wp.array(dtype=int)  # [n_obj] FLAG_SMOOTH | FLAG_VERTEX_COLORS (per object, whatever the batch)
     light_pos: wp.array2d(dtype=wp.vec3)  # [B or 1, n_lights], m
     light_rad: wp.array2d(dtype=wp.vec3)  # colour * intensity
-    ambient: wp.vec3
+    ambient: wp.array(dtype=wp.vec3)  # [B or 1] RGB ambient irradiance
     background: wp.vec3
     max_depth: int
 
@@ -93,7 +98,7 @@ def _interpolated(sc: SceneData, bt: int, inst: int, k: int, f: int, flags: int,
 
 
 @wp.func
-def _lane_surface(sc: SceneData, bt: int, k: int, o: wp.vec3, d: wp.vec3, t: float):
+def _lane_surface(sc: SceneData, bt: int, bm: int, k: int, o: wp.vec3, d: wp.vec3, t: float):
     """The surface that ray o + t d hits on global triangle k: (point offset off the surface, world
     normal facing the ray, albedo, object)."""
     inst = sc.bv.tri_inst[k]
@@ -102,7 +107,7 @@ def _lane_surface(sc: SceneData, bt: int, k: int, o: wp.vec3, d: wp.vec3, t: flo
     obj = sc.face_object[f]
     flags = sc.flags[obj]
     n_i = wp.normalize(wp.cross(sc.bv.tri_e1[k], sc.bv.tri_e2[k]))
-    base = sc.diffuse[obj]
+    base = sc.diffuse[bm, obj]
     if flags != 0:
         n_i, base = _interpolated(sc, bt, inst, k, f, flags, o, d, n_i, base)
     n = wp.transform_vector(X, n_i)
@@ -127,8 +132,8 @@ def _add_background(sc: SceneData, lim: vec8, tri: ivec8, thr: vec8, thg: vec8, 
 
 
 @wp.func
-def _hit_surfaces(sc: SceneData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, lim: vec8,
-                  t: vec8, tri: ivec8):
+def _hit_surfaces(sc: SceneData, bt: int, bm: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8,
+                  lim: vec8, t: vec8, tri: ivec8):
     """Per lane, the surface the closest hit (t, tri) lies on: offset point (px, py, pz), facing normal
     (nx, ny, nz), albedo (cr, cg, cb) and object (``obj``: -1 for a lane that is dead or hit nothing)."""
     px = vec8()
@@ -145,7 +150,7 @@ def _hit_surfaces(sc: SceneData, bt: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8
         obj[l] = -1
         if lim[l] < 0.0 or tri[l] < 0:
             continue
-        p, n, base, ob = _lane_surface(sc, bt, tri[l], wp.vec3(ox[l], oy[l], oz[l]), wp.vec3(dx[l], dy[l], dz[l]), t[l])
+        p, n, base, ob = _lane_surface(sc, bt, bm, tri[l], wp.vec3(ox[l], oy[l], oz[l]), wp.vec3(dx[l], dy[l], dz[l]), t[l])
         px[l] = p[0]
         py[l] = p[1]
         pz[l] = p[2]
@@ -196,20 +201,21 @@ def _phong(n: wp.vec3, ld: wp.vec3, d: wp.vec3, dist: float, E0: wp.vec3, base: 
 
 
 @wp.func
-def _direct_light(sc: SceneData, b: int, bl: int, px: vec8, py: vec8, pz: vec8, nx: vec8, ny: vec8, nz: vec8,
-                  cr: vec8, cg: vec8, cb: vec8, obj: ivec8, dx: vec8, dy: vec8, dz: vec8):
+def _direct_light(sc: SceneData, b: int, bl: int, bm: int, ba: int, px: vec8, py: vec8, pz: vec8, nx: vec8, ny: vec8,
+                  nz: vec8, cr: vec8, cg: vec8, cb: vec8, obj: ivec8, dx: vec8, dy: vec8, dz: vec8):
     """Radiance (lr, lg, lb) leaving each lane's surface toward its ray: ambient light and emission,
     plus every point light that a shadow packet finds unoccluded."""
     lr = vec8()
     lg = vec8()
     lb = vec8()
+    amb = sc.ambient[ba]
     for l in range(8):
         if obj[l] < 0:
             continue
-        em = sc.emission[obj[l]]
-        lr[l] = sc.ambient[0] * cr[l] + em[0]
-        lg[l] = sc.ambient[1] * cg[l] + em[1]
-        lb[l] = sc.ambient[2] * cb[l] + em[2]
+        em = sc.emission[bm, obj[l]]
+        lr[l] = amb[0] * cr[l] + em[0]
+        lg[l] = amb[1] * cg[l] + em[1]
+        lb[l] = amb[2] * cb[l] + em[2]
     for li in range(sc.light_pos.shape[1]):
         sx, sy, sz, slim = _shadow_packet(sc.light_pos[bl, li], px, py, pz, nx, ny, nz, obj)
         if all_negative(slim):
@@ -220,7 +226,7 @@ def _direct_light(sc: SceneData, b: int, bl: int, px: vec8, py: vec8, pz: vec8, 
             if slim[l] < 0.0 or vis[l] < 0.0:
                 continue
             c = _phong(wp.vec3(nx[l], ny[l], nz[l]), wp.vec3(sx[l], sy[l], sz[l]), wp.vec3(dx[l], dy[l], dz[l]), slim[l],
-                       E0, wp.vec3(cr[l], cg[l], cb[l]), sc.specular[obj[l]], sc.shininess[obj[l]])
+                       E0, wp.vec3(cr[l], cg[l], cb[l]), sc.specular[bm, obj[l]], sc.shininess[bm, obj[l]])
             lr[l] = lr[l] + c[0]
             lg[l] = lg[l] + c[1]
             lb[l] = lb[l] + c[2]
@@ -228,13 +234,13 @@ def _direct_light(sc: SceneData, b: int, bl: int, px: vec8, py: vec8, pz: vec8, 
 
 
 @wp.func
-def _add_surface_light(sc: SceneData, obj: ivec8, lr: vec8, lg: vec8, lb: vec8, thr: vec8, thg: vec8, thb: vec8,
-                       R: vec8, G: vec8, Bc: vec8):
+def _add_surface_light(sc: SceneData, bm: int, obj: ivec8, lr: vec8, lg: vec8, lb: vec8, thr: vec8, thg: vec8,
+                       thb: vec8, R: vec8, G: vec8, Bc: vec8):
     """Adds each lane's surface radiance, less the share its mirror reflects, weighted by its throughput."""
     for l in range(8):
         if obj[l] < 0:
             continue
-        keep = 1.0 - sc.reflectivity[obj[l]]
+        keep = 1.0 - sc.reflectivity[bm, obj[l]]
         R[l] = R[l] + thr[l] * lr[l] * keep
         G[l] = G[l] + thg[l] * lg[l] * keep
         Bc[l] = Bc[l] + thb[l] * lb[l] * keep
@@ -242,7 +248,7 @@ def _add_surface_light(sc: SceneData, obj: ivec8, lr: vec8, lg: vec8, lb: vec8, 
 
 
 @wp.func
-def _mirror(sc: SceneData, obj: ivec8, px: vec8, py: vec8, pz: vec8, nx: vec8, ny: vec8, nz: vec8,
+def _mirror(sc: SceneData, bm: int, obj: ivec8, px: vec8, py: vec8, pz: vec8, nx: vec8, ny: vec8, nz: vec8,
             ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, thr: vec8, thg: vec8, thb: vec8):
     """The next bounce: lanes on a reflective surface continue as the mirrored ray from their surface
     point, their throughput scaled by the reflectivity; the others keep their rays and die
@@ -251,7 +257,7 @@ def _mirror(sc: SceneData, obj: ivec8, px: vec8, py: vec8, pz: vec8, nx: vec8, n
     for l in range(8):
         if obj[l] < 0:
             continue
-        refl = sc.reflectivity[obj[l]]
+        refl = sc.reflectivity[bm, obj[l]]
         if refl > 0.0:
             thr[l] = thr[l] * refl
             thg[l] = thg[l] * refl
@@ -279,12 +285,18 @@ def packet_radiance(
     closest hits, the background for lanes that miss, the surfaces' direct light, then the mirrored
     rays of reflective lanes (until ``sc.max_depth`` bounces or no lane continues).
     """
-    bt = b  # batch row of the instance transforms and of the lights (either may be shared: 1 row)
+    bt = b  # batch rows of the transforms, lights, materials and ambient light (each may be shared: 1 row)
     if sc.bv.world_from_inst.shape[0] == 1:
         bt = 0
     bl = b
     if sc.light_pos.shape[0] == 1:
         bl = 0
+    bm = b
+    if sc.diffuse.shape[0] == 1:
+        bm = 0
+    ba = b
+    if sc.ambient.shape[0] == 1:
+        ba = 0
     R = vec8()
     G = vec8()
     Bc = vec8()
@@ -295,10 +307,10 @@ def packet_radiance(
     for depth in range(sc.max_depth + 1):
         t, tri = packet_closest(sc.bv, b, ox, oy, oz, dx, dy, dz, lim)
         R, G, Bc = _add_background(sc, lim, tri, thr, thg, thb, R, G, Bc)
-        px, py, pz, nx, ny, nz, cr, cg, cb, obj = _hit_surfaces(sc, bt, ox, oy, oz, dx, dy, dz, lim, t, tri)
-        lr, lg, lb = _direct_light(sc, b, bl, px, py, pz, nx, ny, nz, cr, cg, cb, obj, dx, dy, dz)
-        R, G, Bc = _add_surface_light(sc, obj, lr, lg, lb, thr, thg, thb, R, G, Bc)
-        ox, oy, oz, dx, dy, dz, thr, thg, thb, nxt = _mirror(sc, obj, px, py, pz, nx, ny, nz, ox, oy, oz, dx, dy, dz,
+        px, py, pz, nx, ny, nz, cr, cg, cb, obj = _hit_surfaces(sc, bt, bm, ox, oy, oz, dx, dy, dz, lim, t, tri)
+        lr, lg, lb = _direct_light(sc, b, bl, bm, ba, px, py, pz, nx, ny, nz, cr, cg, cb, obj, dx, dy, dz)
+        R, G, Bc = _add_surface_light(sc, bm, obj, lr, lg, lb, thr, thg, thb, R, G, Bc)
+        ox, oy, oz, dx, dy, dz, thr, thg, thb, nxt = _mirror(sc, bm, obj, px, py, pz, nx, ny, nz, ox, oy, oz, dx, dy, dz,
                                                              thr, thg, thb)
         if all_negative(nxt):
             break

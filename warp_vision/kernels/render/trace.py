@@ -85,7 +85,8 @@ def render_onv(
 ) -> torch.Tensor:
     """Render the Optic Nerve Vector of B eye poses: a float32 tensor [B, 3P] (linear irradiance).
 
-    scene: :class:`warp_vision.scene.Scene` (per-batch transforms/lights must have batch B or 1).
+    scene: :class:`warp_vision.scene.Scene` (its per-batch transforms, visibility, lights, materials and
+        ambient light must have batch B or 1).
     retina: a :class:`warp_vision.eye.retina.Retina` (or its positions_optical_mm [P, 3]).
     eye: the eye's optical state (accommodation, pupil).
     eye_poses: [B, 4, 4] world-from-eye rigid transforms (m).
@@ -96,7 +97,7 @@ def render_onv(
     B = T.shape[0]
     Bs = scene.batch_size()
     if Bs not in (1, B):
-        raise ValueError(f"scene: its per-batch transforms/lights have batch {Bs}, but eye_poses has {B}")
+        raise ValueError(f"scene: its per-batch transforms/lights/materials/ambient have batch {Bs}, but eye_poses has {B}")
     P, S = len(_retina_positions(retina)), _check_samples(samples_per_receptor)
     require_memory(eye_rays_bytes(P, S) + B * 3 * P * 4,
                    f"render_onv (B={B}, P={P:,}, S={S:,})", "samples_per_receptor, the batch or P")
