@@ -462,7 +462,7 @@ def test_navarro_eye_names_a_bad_argument(kw):
 
 @pytest.mark.parametrize("kw", [dict(pupil_mm=float("nan")), dict(accommodation_D=float("inf"))])
 def test_set_intraocular_refuses_non_finite_commands(kw):
-    from warp_vision.sim.body import Body, BodyConfig
+    from warp_vision.body import Body, BodyConfig
 
     body = Body(BodyConfig(arms=False))
     with pytest.raises(ValueError, match=next(iter(kw))):

@@ -23,10 +23,11 @@ ALLOWED = {
     "kernels": {"foundation", "eye"},
     "scene": {"foundation", "eye", "viz", "kernels"},
     "nn": {"foundation", "eye", "kernels"},
-    "data": {"foundation", "eye", "viz", "kernels", "scene", "nn"},
-    "sim": {"foundation", "eye", "viz", "kernels", "scene", "nn", "data"},
-    "train": {"foundation", "eye", "viz", "kernels", "scene", "nn", "data", "sim"},
-    "bench": {"foundation", "eye", "viz", "kernels", "scene", "nn", "data", "sim"},
+    "body": {"foundation"},
+    "data": {"foundation", "eye", "viz", "kernels", "scene", "nn", "body"},
+    "sim": {"foundation", "eye", "viz", "kernels", "scene", "nn", "body", "data"},
+    "train": {"foundation", "eye", "viz", "kernels", "scene", "nn", "body", "data", "sim"},
+    "bench": {"foundation", "eye", "viz", "kernels", "scene", "nn", "body", "data", "sim"},
     "package": {"foundation"},
 }
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from warp_vision.sim.body import SIDES, Body, BodyConfig
+from warp_vision.body import SIDES, Body, BodyConfig
 
 
 # --- provisioning ------------------------------------------------------------------------------------

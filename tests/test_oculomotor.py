@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from warp_vision.nn.trained import build_net, load_net
-from warp_vision.sim.body import Body, BodyConfig
+from warp_vision.body import Body, BodyConfig
 from warp_vision.sim.oculomotor import HoldingDataConfig, evaluate_on_body, load_oculomotor, transition_pairs
 from warp_vision.train import oculomotor
 from warp_vision.train.rundir import run_config

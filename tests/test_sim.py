@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from warp_vision.frames import fick_rotation, gaze_angles, torsion_angle
-from warp_vision.sim.body import EYE_MUSCLE_NAMES, NECK_MUSCLE_NAMES, SIDES, Body, BodyConfig, SimulationError
+from warp_vision.body import EYE_MUSCLE_NAMES, NECK_MUSCLE_NAMES, SIDES, Body, BodyConfig, SimulationError
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from warp_vision.sim.body import SIDES
+from warp_vision.body import SIDES
 
 
 def _accuracy(res: dict) -> dict:
@@ -33,7 +33,7 @@ def _accuracy(res: dict) -> dict:
 
 def run(frame_every=(1, None), quick: bool = False, progress: bool = True, log=print) -> dict:
     """Measure the loop at each of ``frame_every`` (None: the loop's default, ``FRAME_EVERY``)."""
-    from warp_vision.sim.body import Body, BodyConfig
+    from warp_vision.body import Body, BodyConfig
     from warp_vision.sim.loop import FRAME_EVERY, Foveator, VisuomotorLoop
     from warp_vision.sim.oculomotor import load_oculomotor
     from warp_vision.sim.provision import default_runs, manifest, plan, provide

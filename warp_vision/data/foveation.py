@@ -30,8 +30,12 @@ import numpy as np
 from warp_vision.data.store import ChunkedStore
 from warp_vision.frames import gaze_angles, gaze_directions, look_rotation
 
-#: Bump when the scene generator changes what a config renders (datasets are cached by config + version).
-GENERATOR_VERSION = 7
+#: The generator new configs use (bump it when the scene generator changes what a config renders: datasets
+#: are cached by config + version). Older versions stay reproducible by ``FoveationDataConfig.generator``:
+#: 7 is the glowing white ball in one dim room; 8 (:mod:`warp_vision.data.foveation_scenes`) ordinary balls
+#: in a family of everyday rooms, among distractors, with the body's arms in view.
+GENERATOR_VERSION = 8
+GENERATORS = (7, 8)
 #: Seeds of the two eyes' retinas: each eye has its own photoreceptor layout, hence its own net.
 RETINA_SEEDS = {"left": 1, "right": 2}
 ROOM_SIZE = (10.0, 10.0, 4.0)
@@ -63,8 +67,13 @@ class FoveationDataConfig:
     pupil_diameter_mm: float = 4.0
     seed: int = 0
     chunk_size: int = 256
+    generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room) or 8 (see the module docstring)
+    rooms: str = "train"  # v8: the room family, "train" or "heldout" (disjoint seeds)
+    condition: str = "mixed"  # v8: "mixed" (training) or a test condition of foveation_scenes.CONDITIONS
 
     def validate(self) -> None:
+        from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
+
         if self.samples < 1 or self.photoreceptors < 1 or self.samples_per_receptor < 1 or self.chunk_size < 1:
             raise ValueError("samples, photoreceptors, samples_per_receptor and chunk_size must be positive")
         if self.eye not in RETINA_SEEDS:
@@ -73,14 +82,27 @@ class FoveationDataConfig:
             raise ValueError(f"max_field_deg: expected 0 to 80 degrees, got {self.max_field_deg}")
         if not 0 <= self.occluded_fraction <= 1:
             raise ValueError(f"occluded_fraction: expected 0 to 1, got {self.occluded_fraction}")
+        if self.generator not in GENERATORS:
+            raise ValueError(f"generator: expected one of {GENERATORS}, got {self.generator!r}")
+        if self.rooms not in ROOM_FAMILIES:
+            raise ValueError(f"rooms: expected one of {sorted(ROOM_FAMILIES)}, got {self.rooms!r}")
+        if self.condition not in CONDITIONS:
+            raise ValueError(f"condition: expected one of {list(CONDITIONS)}, got {self.condition!r}")
+        if self.generator == 7 and (self.rooms, self.condition) != ("train", "mixed"):
+            raise ValueError("rooms and condition belong to generator 8; generator 7 has one room and one condition")
 
     def key(self) -> str:
         """A short hash of the config (dataset cache directory names)."""
         return hashlib.sha256(json.dumps(self.manifest(), sort_keys=True).encode()).hexdigest()[:12]
 
     def manifest(self) -> dict:
-        """The config as the dataset store records it (with the generator's version)."""
-        return {"generator_version": GENERATOR_VERSION, **dataclasses.asdict(self)}
+        """The config as the dataset store records it (with the generator's version). A v7 config's
+        manifest is what v7 wrote (without v8's fields), so its cached datasets are found again."""
+        d = dataclasses.asdict(self)
+        version = d.pop("generator")
+        if version == 7:
+            del d["rooms"], d["condition"]
+        return {"generator_version": version, **d}
 
 
 def make_eye(cfg: FoveationDataConfig):
@@ -268,6 +290,14 @@ def ball_visible(scene, p: dict, batch: int, device: str = "cpu") -> bool:
 
 
 def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device: str = "cpu") -> dict:
+    """Render samples ``indices`` of ``cfg`` (v7 in one batch of ``scene``; v8 per room, building each
+    room's scene, ``scene`` unused): {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3 (v7) or 7 (v8)]}."""
+    if cfg.generator == 8:
+        return _render_v8(cfg, indices, retina, eye, device)
+    return _render_v7(cfg, indices, scene, retina, eye, device)
+
+
+def _render_v7(cfg: FoveationDataConfig, indices, scene, retina, eye, device: str = "cpu") -> dict:
     """Render samples ``indices`` in one batch: {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3]}.
 
     A sample whose ball no line of sight reaches (behind a piece of furniture, or the panel) is redrawn
@@ -294,8 +324,50 @@ def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device
     }
 
 
+#: v8's meta columns (v7 has the first three)
+META_V8 = ("distance_m", "radius_m", "occluded", "glow", "distractor", "arm", "brightness")
+
+
+def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cpu") -> dict:
+    """v8: the samples grouped by room; each room's scene built once (the last one is kept for the next call)."""
+    from warp_vision.data import foveation_scenes as V
+    from warp_vision.kernels.render import render_onv
+
+    indices = [int(i) for i in indices]
+    out = {"onv": [], "target": [], "meta": []}
+    for block in sorted({i // V.ROOM_BLOCK for i in indices}):
+        idx = [i for i in indices if i // V.ROOM_BLOCK == block]
+        key = (V.ROOM_FAMILIES[cfg.rooms], cfg.seed, block)
+        with_arms = cfg.condition in ("mixed", "arm")
+        if _SCENE_V8.get("key") != (key, with_arms):
+            _SCENE_V8.update(key=(key, with_arms), scene=V.make_scene(*key, BALL_RADII, with_arms=with_arms))
+        scene = _SCENE_V8["scene"]
+        attempts = [0] * len(idx)
+        limits = lambda ecc: (min_apparent_diameter(cfg, ecc), np.radians(MAX_APPARENT_DIAMETER_DEG))  # noqa: E731
+        ps = [V.sample_params(cfg, i, 0, BALL_RADII, limits) for i in idx]
+        todo = list(range(len(ps)))
+        while todo:
+            V.place(scene, ps)
+            todo = [k for k in todo if not ball_visible(scene, ps[k], k, device)]
+            for k in todo:
+                attempts[k] += 1
+                if attempts[k] > 50:  # pragma: no cover - never seen
+                    raise RuntimeError(f"sample {idx[k]}: no visible ball in 50 draws")
+                ps[k] = V.sample_params(cfg, idx[k], attempts[k], BALL_RADII, limits)
+        onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed,
+                         device=device)
+        out["onv"].append(onv.cpu().numpy().astype(np.float16))
+        out["target"].append(np.stack([p["target"] for p in ps]))
+        out["meta"].append(np.stack([p["meta"] for p in ps]))
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+_SCENE_V8: dict = {}
+
+
 def dataset_fields(cfg: FoveationDataConfig) -> dict:
-    return {"onv": ((3 * cfg.photoreceptors,), "float16"), "target": ((2,), "float32"), "meta": ((3,), "float32")}
+    meta = len(META_V8) if cfg.generator == 8 else 3
+    return {"onv": ((3 * cfg.photoreceptors,), "float16"), "target": ((2,), "float32"), "meta": ((meta,), "float32")}
 
 
 def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16, device: str = "cpu", progress: bool = True,
@@ -314,6 +386,7 @@ def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16,
     if not todo:
         return store
     log(f"synthesising {todo:,} of {mine:,} ONVs (P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into {out_dir}")
-    eye, scene = make_eye(cfg), make_scene(cfg.seed)
+    eye = make_eye(cfg)
+    scene = make_scene(cfg.seed) if cfg.generator == 7 else None
     render_missing(store, lambda r: render_samples(cfg, r, scene, retina, eye, device), batch, progress, log)
     return store

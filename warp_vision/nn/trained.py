@@ -164,10 +164,20 @@ def load_net(path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
     return model.eval(), ck
 
 
+def _scale(onv: torch.Tensor, norm: dict):
+    """The irradiance each ONV's responses are relative to: the training set's mean (a float), or with
+    ``norm["per_sample"]`` each ONV's own mean ([B, 1], float32, accumulated without a float32 copy)."""
+    if norm.get("per_sample", False):
+        return onv.mean(dim=-1, keepdim=True, dtype=torch.float32).clamp_min(1e-12)
+    return norm["input_scale"]
+
+
 def net_input(onv: torch.Tensor, norm: dict, device, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """What a net trained on ONVs sees: a compressive (log) photoreceptor response,
-    log(1 + irradiance / scale) with the scale the training set's mean irradiance (it keeps dim scenes and
-    a lamp's hot spot in one range), standardised with the training set's mean and std over all inputs.
+    log(1 + irradiance / scale), standardised with the training set's mean and std over all inputs. The
+    scale is the training set's mean irradiance, or, where ``norm["per_sample"]`` (v8 nets), each ONV's own
+    mean irradiance: the photoreceptors adapt to the scene, so a room ten times brighter (or a wider
+    pupil) gives the same responses. The log keeps dim surfaces and a lamp's hot spot in one range.
     One mean and std for every input keeps "brighter" meaning the same everywhere on the retina;
     standardising each input on its own turns a rarely lit peripheral photoreceptor's noise into large
     values.
@@ -176,17 +186,21 @@ def net_input(onv: torch.Tensor, norm: dict, device, dtype: torch.dtype = torch.
     bfloat16: the response in that dtype, computed in one copy of the batch, and not standardised: the
     net's first layer does that (:meth:`warp_vision.nn.linet.LocallyConnected.fold_input_standardisation`),
     so no float32 copy of the batch is made."""
+    scale = _scale(onv, norm)
+    if torch.is_tensor(scale):
+        scale = scale.to(device)
     if dtype != torch.float32:
         x = onv.to(device=device, dtype=dtype, copy=True)
-        return x.div_(norm["input_scale"]).log1p_()
-    x = torch.log1p(onv.to(device=device, dtype=torch.float32) / norm["input_scale"])
+        return x.div_(scale.to(dtype) if torch.is_tensor(scale) else scale).log1p_()
+    x = torch.log1p(onv.to(device=device, dtype=torch.float32) / scale)
     return (x - norm["input_mean"].to(device)) / norm["input_std"].to(device)
 
 
-def fit_input_norm(onv16: torch.Tensor, train: np.ndarray, limit: int = 2000) -> dict:
+def fit_input_norm(onv16: torch.Tensor, train: np.ndarray, limit: int = 2000, per_sample: bool = False) -> dict:
     """The input normalisation of :func:`net_input` from (at most ``limit`` of) the training ONVs ``train``:
-    {"input_scale": float, "input_mean": 0-d tensor, "input_std": 0-d tensor}."""
-    sub = onv16[torch.as_tensor(train[: min(len(train), limit)])]
-    scale = float(sub.float().mean().clamp_min(1e-12))
-    x = torch.log1p(sub.float() / scale)
-    return {"input_scale": scale, "input_mean": x.mean(), "input_std": x.std().clamp_min(1e-6)}
+    {"input_scale": float, "per_sample": bool, "input_mean": 0-d tensor, "input_std": 0-d tensor}."""
+    sub = onv16[torch.as_tensor(train[: min(len(train), limit)])].float()
+    scale = float(sub.mean().clamp_min(1e-12))
+    norm = {"input_scale": scale, "per_sample": bool(per_sample)}
+    x = torch.log1p(sub / _scale(sub, norm))
+    return {**norm, "input_mean": x.mean(), "input_std": x.std().clamp_min(1e-6)}

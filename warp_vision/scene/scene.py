@@ -95,16 +95,6 @@ class SceneObject:
         return self.batch_materials[batch if len(self.batch_materials) > 1 else 0]
 
 
-#: The shading values of a Material that may vary per batch element (the kernels' material arrays).
-MATERIAL_FIELDS = ("diffuse", "specular", "shininess", "reflectivity", "emission")
-
-
-def material_arrays(materials) -> dict[str, np.ndarray]:
-    """Materials [M] packed as float64 arrays: diffuse and emission [M, 3], specular, shininess and
-    reflectivity [M]."""
-    return {f: np.array([getattr(m, f) for m in materials], dtype=np.float64) for f in MATERIAL_FIELDS}
-
-
 def _as_ambient(ambient) -> np.ndarray:
     a = np.array(ambient, dtype=np.float64)
     if a.ndim not in (1, 2) or a.shape[-1] != 3 or a.size == 0:
@@ -270,6 +260,8 @@ class Scene:
                     f"{o.material.vertex_colors}; these flags are per object (set them with one Material first)"
                 )
         o.batch_materials = mats
+        from warp_vision.kernels.render.scene_data import material_arrays
+
         o.batch_material_arrays = material_arrays(mats)
 
     def set_ambient(self, ambient) -> None:

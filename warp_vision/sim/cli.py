@@ -26,7 +26,7 @@ import numpy as np
 
 from warp_vision.errors import add_debug_flag, guarded
 from warp_vision.fileio import write_json
-from warp_vision.sim.body import SIDES, Body, BodyConfig
+from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.sim.scenarios import SETTLE_S, experiments, run_scenario
 
 
@@ -53,7 +53,8 @@ def _setup(args):
     body.step(int(SETTLE_S / body.model.opt.timestep))
     fov = {s: Foveator(spec.run) for s, spec in zip(SIDES, specs[:2])}
     ocu_root = os.path.dirname(specs[2].run)
-    return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every)
+    return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
+                                ball=args.ball)
 
 
 class _Viewer:
@@ -187,7 +188,7 @@ def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov
 
 
 def main(argv=None) -> int:
-    from warp_vision.sim.loop import FRAME_EVERY
+    from warp_vision.sim.loop import BALLS, FRAME_EVERY
 
     ap = argparse.ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -208,6 +209,9 @@ def main(argv=None) -> int:
         p.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
         p.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
         p.add_argument("--seed", type=int, default=0, help="the room's seed")
+        p.add_argument("--ball", choices=BALLS, default="ordinary",
+                       help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
+                            "albedos; glowing: v7's white ball that glows, in the room dimmed (what v7 nets were trained on)")
         p.add_argument("--frame-every", type=int, default=FRAME_EVERY,
                        help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
                             f"(default {FRAME_EVERY}: 25 frames a second; 1 renders every period)")

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from warp_vision.frames import gaze_direction
-from warp_vision.sim.body import SIDES, Body
+from warp_vision.body import ARM_PARTS, SIDES, Body, visible_parts
 from warp_vision.sim.oculomotor import holding_activations
 
 CONTROL_DT = 0.01  # s
@@ -101,72 +101,58 @@ class Foveator:
 #: scapulae, stool, cannon) is baked into the static BVH at the pose it has when the scene is built. The
 #: passive arms' small joints barely move, and one BVH per MuJoCo body (about 100 objects) makes each
 #: eye's render an order of magnitude slower.
-SCENE_ANCHORS = ("humerus_r", "ulna_r", "radius_r", "lunate_r", "humerus_l", "ulna_l", "radius_l", "lunate_l") + HIDDEN_FROM_EYES
+SCENE_ANCHORS = ARM_PARTS["right"] + ARM_PARTS["left"] + HIDDEN_FROM_EYES
 
 
-def body_scene(body: Body, seed: int = 0):
-    """The foveation task's dim room with the body's visible parts (group-0 geoms, grouped as in
-    :data:`SCENE_ANCHORS`) and the glowing ball, at the body's current pose."""
+#: The balls the loop can show: "ordinary" (a grey-white glossy ball, lit by the room's lamps, in a room
+#: at its everyday albedos: what the v8 nets are trained for) or "glowing" (v7's set-up: a white ball that
+#: glows, in the room dimmed to ROOM_ALBEDO, the body dimmed alike).
+BALLS = ("ordinary", "glowing")
+#: The ordinary ball's material and the second lamp of its room (the first is the room's hanging lamp).
+ORDINARY_BALL = dict(diffuse=(0.7, 0.7, 0.7), specular=0.3, shininess=32)
+SECOND_LAMP = ((2.5, -2.0, 3.4), (1.0, 0.95, 0.85), 5.0)
+
+
+def body_scene(body: Body, seed: int = 0, ball: str = "ordinary"):
+    """The room with the body's visible parts (group-0 geoms, grouped as in :data:`SCENE_ANCHORS`) and
+    the ball (:data:`BALLS`), at the body's current pose."""
     import trimesh
 
-    from warp_vision.data.foveation import BALL_EMISSION, ROOM_ALBEDO, make_scene
+    from warp_vision.data.foveation import BALL_EMISSION, ROOM_ALBEDO, ROOM_SIZE, make_scene
     from warp_vision.scene import Material
+    from warp_vision.scene.room import make_room
 
-    sc = make_scene(seed)
-    for o in sc.objects:  # the dataset's balls and panel
-        if o.name.startswith("ball") or o.name == "occluder":
-            sc.set_visible(o.name, False)
-    m, d = body.model, body.data
-    anchors = {m.body(n).id for n in SCENE_ANCHORS if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) >= 0}
-    ball = m.body("ball").id
-    parts: dict[int, list] = {}
-    for g in range(m.ngeom):
-        b = int(m.geom_bodyid[g])
-        if m.geom_group[g] != 0 or m.geom_rgba[g, 3] == 0 or b == ball:
-            continue
-        mesh = _geom_mesh(m, g)
-        if mesh is None:
-            continue
-        anchor = b
-        while anchor not in anchors and anchor != 0:
-            anchor = int(m.body_parentid[anchor])
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = d.geom_xmat[g].reshape(3, 3), d.geom_xpos[g]
-        mesh.apply_transform(np.linalg.inv(body.pose(anchor)) @ T)
-        # dimmed like the room (x ROOM_ALBEDO / 0.4), so the glowing ball stays the brightest thing in view
-        rgb = np.clip(m.geom_rgba[g, :3], 0, 1) * min(1.0, ROOM_ALBEDO / 0.4)
-        mesh.visual.vertex_colors = np.tile(np.r_[rgb * 255, 255].astype(np.uint8), (len(mesh.vertices), 1))
-        parts.setdefault(anchor, []).append(mesh)
+    if ball not in BALLS:
+        raise ValueError(f"ball: expected one of {BALLS}, got {ball!r}")
+    glowing = ball == "glowing"
+    if glowing:
+        sc = make_scene(seed)
+        for o in sc.objects:  # the dataset's balls and panel
+            if o.name.startswith("ball") or o.name == "occluder":
+                sc.set_visible(o.name, False)
+    else:
+        sc = make_room(size=ROOM_SIZE, n_objects=6, seed=seed, ball_centre=(0.0, 0.0, -10.0))
+        sc.set_visible("ball", False)
+        sc.lights[0].position = np.array([0.0, 0.0, ROOM_SIZE[2] - 0.6])
+        sc.add_light(*SECOND_LAMP)
+    m = body.model
+    parts = visible_parts(body, SCENE_ANCHORS, exclude=("ball",))
+    if glowing:
+        for meshes in parts.values():
+            for mesh in meshes:  # dimmed like the room (x ROOM_ALBEDO / 0.4), so the glowing ball stays the brightest thing in view
+                c = np.array(mesh.visual.vertex_colors)
+                c[:, :3] = (c[:, :3] * min(1.0, ROOM_ALBEDO / 0.4)).astype(np.uint8)
+                mesh.visual.vertex_colors = c
     sc._mj_bodies = []
     for b, meshes in parts.items():
         name = f"mj_{m.body(b).name}" if b else "mj_fixed"
         sc.add(name, trimesh.util.concatenate(meshes), Material(vertex_colors=True), body.pose(b), static=(b == 0))
         if b:
             sc._mj_bodies.append((name, b))
-    sc.add_sphere("mj_ball", m.geom_size[m.geom("ball").id, 0],
-                  material=Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True, emission=(BALL_EMISSION,) * 3))
+    mat = (Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True, emission=(BALL_EMISSION,) * 3) if glowing
+           else Material(**ORDINARY_BALL, smooth=True))
+    sc.add_sphere("mj_ball", m.geom_size[m.geom("ball").id, 0], material=mat)
     return sc
-
-
-def _geom_mesh(m, g):
-    import trimesh
-
-    t, s = int(m.geom_type[g]), m.geom_size[g]
-    G = mujoco.mjtGeom
-    if t == G.mjGEOM_MESH:
-        i = m.geom_dataid[g]
-        v = m.mesh_vert[m.mesh_vertadr[i]:m.mesh_vertadr[i] + m.mesh_vertnum[i]]
-        f = m.mesh_face[m.mesh_faceadr[i]:m.mesh_faceadr[i] + m.mesh_facenum[i]]
-        return trimesh.Trimesh(v.astype(np.float64), f, process=False)
-    if t == G.mjGEOM_SPHERE:
-        return trimesh.creation.icosphere(2, radius=s[0])
-    if t == G.mjGEOM_CYLINDER:
-        return trimesh.creation.cylinder(radius=s[0], height=2 * s[1], sections=24)
-    if t == G.mjGEOM_BOX:
-        return trimesh.creation.box(2 * s[:3])
-    if t == G.mjGEOM_CAPSULE:
-        return trimesh.creation.capsule(2 * s[1], s[0])
-    return None
 
 
 def sync_scene(scene, body: Body) -> None:
@@ -214,13 +200,15 @@ class VisuomotorLoop:
     """Both eyes, their foveation and oculomotor nets, the neck controller; :meth:`step` advances one
     control period. ``timing`` accumulates wall seconds per stage (render, nets, mujoco, control)."""
 
-    def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, frame_every: int = FRAME_EVERY):
+    def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, frame_every: int = FRAME_EVERY,
+                 ball: str = "ordinary"):
         if not isinstance(frame_every, (int, np.integer)) or frame_every < 1:
             raise ValueError(f"frame_every: expected a whole number of control periods >= 1, got {frame_every!r}")
         self.body, self.fov, self.ocu = body, foveators, oculomotor
         self.frame_every = int(frame_every)
         self.period = 0
-        self.scene = body_scene(body, seed)
+        self.ball = ball
+        self.scene = body_scene(body, seed, ball)
         self.eyes = {s: EyeState() for s in SIDES}
         self.neck_target = np.zeros(3)
         self.last_neck = body.neck_angles()

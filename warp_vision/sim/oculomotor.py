@@ -32,7 +32,7 @@ from scipy.optimize import lsq_linear
 
 from warp_vision.frames import fick_rotation
 from warp_vision.nn.heads import OculomotorNet
-from warp_vision.sim.body import EYE_MUSCLE_NAMES, SIDES, Body, BodyConfig, quat_from_matrix
+from warp_vision.body import EYE_MUSCLE_NAMES, SIDES, Body, BodyConfig, quat_from_matrix
 
 #: Effort weight: small next to the torque residual (N m), so the pose is held exactly where it can be.
 EFFORT = 1e-8

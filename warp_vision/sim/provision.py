@@ -23,7 +23,7 @@ import sys
 import time
 from dataclasses import dataclass
 
-from warp_vision.sim.body import SIDES
+from warp_vision.body import SIDES
 
 #: Wall minutes of each training on the 2-core reference CPU (measured; README has the runs): the
 #: foveation net's dataset synthesis plus its training, and the oculomotor net's holding-activation

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from warp_vision.sim.body import SIDES
+from warp_vision.body import SIDES
 
 SETTLE_S = 0.2  # s of simulation before a scenario starts: the passive arms settle under gravity
 
@@ -136,6 +136,7 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
     wall = st["wall"]
     share = {k: v / wall for k, v in loop.timing.items()}
     share["other"] = max(0.0, 1.0 - sum(share.values()))  # traces, progress bars, Python between the stages
+    out["ball"] = loop.ball
     out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall, "frame_every": loop.frame_every,
                      "frames_per_s": 1.0 / (loop.frame_every * control_dt), "share": share}
     return out

@@ -6,6 +6,7 @@
     python -m warp_vision.train faces --resume RUN_DIR [--epochs N]                    continue a stopped AFR run
     python -m warp_vision.train oculomotor --eye left|right [--preset smoke|quick|default]   an eye's oculomotor net
     python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
+    python -m warp_vision.train evaluate RUN_DIR [RUN_DIR ...] --conditions            foveation nets on held-out conditions
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """
 
@@ -71,8 +72,16 @@ def _eval_parser() -> argparse.ArgumentParser:
                                 description="Re-evaluate a run's best checkpoint: for a foveation run the angular error "
                                             "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
                                             "the pose error.")
-    p.add_argument("run_dir", help="a training run directory (with best.pt)")
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="training run directories (with best.pt)")
     p.add_argument("--split", choices=["test", "val", "train"], default="test", help="which split (default test)")
+    p.add_argument("--conditions", action="store_true",
+                   help="foveation runs: render (or reuse) one held-out set per test condition (v8 scenes in rooms "
+                        "training never saw: glowing ball in a dim room, lit white ball, coloured matte ball, a lamp or "
+                        "brighter object in view, the body's arm in view) and print one table with every run side by "
+                        "side (median / 90th percentile, degrees); writes RUN_DIR/conditions.json and "
+                        "RUN_DIR/figures/conditions.png")
+    p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return _debug_flag(p)
 
 
@@ -118,9 +127,15 @@ def _evaluate(argv: list[str]) -> int:
     a = _eval_parser().parse_args(argv)
 
     def job():
-        cfg_path = Path(a.run_dir) / "config.json"
-        task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
-        _module(task).evaluate_run(a.run_dir, a.split)
+        if a.conditions:
+            from warp_vision.train.conditions import evaluate_conditions
+
+            evaluate_conditions(a.run_dirs, a.samples, progress=not a.no_progress)
+            return
+        for run_dir in a.run_dirs:
+            cfg_path = Path(run_dir) / "config.json"
+            task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
+            _module(task).evaluate_run(run_dir, a.split)
 
     return _guarded(job, a.debug)
 

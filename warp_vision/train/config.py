@@ -13,7 +13,8 @@ from warp_vision.data.foveation import FoveationDataConfig
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
 CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc"], "eye": ["left", "right"],
            "onv_dtype": ["auto", "float16", "bfloat16", "float32"],
-           "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"]}
+           "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"],
+           "input_norm": ["sample", "dataset"], "generator": [8, 7]}
 
 
 def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
@@ -74,7 +75,9 @@ class TrainConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
     data_seed: int = 0  # seed of the dataset (scenes) and of the train/val/test split
+    generator: int = 8  # the scene generator: 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms) or 7 (a glowing ball in one dim room)
     # the model
+    input_norm: str = "sample"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset: v7 nets)
     model: str = "linet"  # linet, or fc: the fully-connected baseline with the same hidden sizes
     head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig. 5), or auto (softargmax for a liNet, linear for fc)
     layers: int = 4  # liNet hidden layers H
@@ -92,6 +95,9 @@ class TrainConfig:
     test_fraction: float = 0.1
     seed: int = 0  # initialisation and shuffling
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
+
+    #: Fields added after runs were saved without them: a saved config that lacks one had this value.
+    LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset"}
 
     def head_kind(self) -> str:
         """The read-out this config builds ("auto" resolved)."""
@@ -111,6 +117,7 @@ class TrainConfig:
             samples_per_receptor=self.samples_per_receptor,
             max_field_deg=self.max_field_deg,
             seed=self.data_seed,
+            generator=self.generator,
         )
 
     def validate(self) -> None:

@@ -60,7 +60,7 @@ class FoveationTask(harness.OnvTask):
 
     def fit_norm(self, train):
         t = self.target[torch.as_tensor(train)]
-        return {**fit_input_norm(self.onv16, train), "target_mean": t.mean(0), "target_std": t.std(0).clamp_min(1e-6)}
+        return {**fit_input_norm(self.onv16, train, per_sample=self.cfg.input_norm == "sample"), "target_mean": t.mean(0), "target_std": t.std(0).clamp_min(1e-6)}
 
     def net_spec(self):
         from warp_vision.data.foveation import make_eye

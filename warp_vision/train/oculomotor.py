@@ -92,7 +92,7 @@ class OculomotorTask(harness.Task):
                 f"activation RMSE {row['val_activation_rmse']:.4f}")
 
     def summary(self, test, history, model):
-        from warp_vision.sim.body import Body, BodyConfig
+        from warp_vision.body import Body, BodyConfig
         from warp_vision.sim.oculomotor import evaluate_on_body
 
         self.log("checking the net on the body (held-out gazes)")

@@ -82,7 +82,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         out = Path(resume).resolve()
         if not (out / "config.json").exists():
             raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
-        cfg = task_cls.config_cls(**json.loads((out / "config.json").read_text()))
+        cfg = task_cls.config_cls(**{**getattr(task_cls.config_cls, "LEGACY_DEFAULTS", {}), **json.loads((out / "config.json").read_text())})
         if epochs is not None:
             cfg.epochs = epochs
         cfg.validate()
@@ -232,4 +232,5 @@ def run_config(task_cls, run_dir, ck: dict):
     carries no paths) with the paths of ``run_dir/config.json``."""
     path = Path(run_dir) / "config.json"
     saved = json.loads(path.read_text()) if path.exists() else {}
-    return task_cls.config_cls(**{**ck["config"], **{k: v for k, v in saved.items() if k in PATH_FIELDS}})
+    return task_cls.config_cls(**{**getattr(task_cls.config_cls, "LEGACY_DEFAULTS", {}), **ck["config"],
+                                 **{k: v for k, v in saved.items() if k in PATH_FIELDS}})

@@ -24,7 +24,16 @@ from warp_vision.kernels import launch as _launch
 from warp_vision.kernels.render.bvh import build_bvh_cached
 from warp_vision.kernels.render.packet import BvhData, concat_bvhs
 from warp_vision.kernels.render.shade import FLAG_SMOOTH, FLAG_VERTEX_COLORS, SceneData
-from warp_vision.scene.scene import MATERIAL_FIELDS, material_arrays
+
+
+#: The shading values of a Material that may vary per batch element (the kernels' material arrays).
+MATERIAL_FIELDS = ("diffuse", "specular", "shininess", "reflectivity", "emission")
+
+
+def material_arrays(materials) -> dict[str, np.ndarray]:
+    """Materials [M] packed as float64 arrays: diffuse and emission [M, 3], specular, shininess and
+    reflectivity [M]."""
+    return {f: np.array([getattr(m, f) for m in materials], dtype=np.float64) for f in MATERIAL_FIELDS}
 
 
 def to_warp_transforms(T: np.ndarray) -> np.ndarray:

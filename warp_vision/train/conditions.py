@@ -1,0 +1,142 @@
+"""Foveation nets on held-out test conditions: rooms, lighting and targets their training never saw.
+
+``python -m warp_vision.train evaluate RUN [RUN ...] --conditions`` renders (or reuses) one held-out set
+per condition of :data:`warp_vision.data.foveation_scenes.CONDITIONS` (generator v8, rooms from the
+held-out family, sample seeds offset by :data:`HELD_OUT_SEED`), runs each run's best net on it, and
+prints one table with every run side by side: median and 90th-percentile angular error per condition,
+beside the run's own test split. Each run gets ``conditions.json`` and ``figures/conditions.png`` (an
+example retina image per condition with the true and the predicted target).
+
+The held-out sets depend only on the eye's data config (retina, rays per photoreceptor, optics, field),
+so a v7 and a v8 net of the same eye are measured on the very same ONVs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+#: Held-out sets use sample seeds this far from the training set's (their rooms are from the held-out family).
+HELD_OUT_SEED = 1000
+#: The test conditions and their goals (median deg), from issue 17.
+GOALS = {"own test split": None, "glow_dim": 0.6, "white": 1.0, "matte": 1.0, "distractor": 1.5, "arm": 1.5}
+LABELS = {"own test split": "its own test split (in-sample generator)", "glow_dim": "glowing ball, dim room (v7's)",
+          "white": "lit white ball, no glow", "matte": "coloured matte ball", "distractor": "a lamp or brighter object in view",
+          "arm": "the body's arm in view"}
+
+
+def condition_config(data, condition: str, samples: int):
+    """The held-out data config of ``condition`` for a net trained on ``data`` (a FoveationDataConfig)."""
+    return dataclasses.replace(data, samples=samples, generator=8, rooms="heldout", condition=condition,
+                               seed=data.seed + HELD_OUT_SEED, chunk_size=min(data.chunk_size, 128))
+
+
+def _predict(model, onv16, norm, device, dtype, batch: int = 128) -> torch.Tensor:
+    from warp_vision.nn.trained import net_input
+
+    out = []
+    with torch.no_grad():
+        for s in range(0, len(onv16), batch):
+            z = model(net_input(onv16[s:s + batch], norm, device, dtype)).cpu()
+            out.append(z * norm["target_std"] + norm["target_mean"])
+    return torch.cat(out)
+
+
+def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress: bool = True, log=print) -> dict:
+    """Every run's best net on every held-out condition: {run_dir: {condition: {"median_deg", "p90_deg",
+    "n"}}}, printed as one table; writes each run's ``conditions.json`` and ``figures/conditions.png``."""
+    from warp_vision.data.foveation import synthesize
+    from warp_vision.data.foveation_scenes import CONDITIONS
+    from warp_vision.data.store import ChunkedStore
+    from warp_vision.fileio import atomic_write
+    from warp_vision.nn.trained import build_net, onv_dtype, read_checkpoint
+    from warp_vision.train.foveation import FoveationTask, angular_error_deg
+    from warp_vision.train.harness import pick_device
+    from warp_vision.train.rundir import dataset_dir, run_config
+
+    conditions = list(conditions or CONDITIONS[1:])
+    bad = [c for c in conditions if c not in CONDITIONS[1:]]
+    if bad:
+        raise ValueError(f"conditions: expected some of {list(CONDITIONS[1:])}, got {bad}")
+    if samples < 10:
+        raise ValueError(f"samples: expected at least 10 per condition, got {samples}")
+    results, examples = {}, {}
+    for run in run_dirs:
+        out = Path(run)
+        if not (out / "best.pt").exists():
+            raise FileNotFoundError(f"{out / 'best.pt'}: no best.pt (is this a foveation run directory?)")
+        ck = read_checkpoint(out / "best.pt")
+        cfg = run_config(FoveationTask, out, ck)
+        device = pick_device(cfg.device)
+        model = build_net(ck["net"], device).eval()
+        model.load_state_dict(ck["model"])
+        dtype = onv_dtype(ck["net"])
+        task = FoveationTask(cfg, lambda *a, **k: None)
+        task.load((0, 1), progress=False, synthesize=False)
+        _, va, te = task.splits()
+        te = te if len(te) else va
+        row = {}
+        pred = _predict(model, task.onv16[torch.as_tensor(te)], ck["norm"], device, dtype)
+        err = angular_error_deg(pred, task.target[torch.as_tensor(te)])
+        row["own test split"] = _stats(err)
+        examples[run] = {}
+        for c in conditions:
+            dcfg = condition_config(cfg.data_config(), c, samples)
+            ddir = dataset_dir(dataclasses.replace(cfg, data_dir=""), "foveation", dcfg)
+            synthesize(ddir, dcfg, progress=progress, log=log)
+            data = ChunkedStore.open(ddir).load(["onv", "target"])
+            onv, target = torch.from_numpy(data["onv"]), torch.from_numpy(data["target"])
+            pred = _predict(model, onv, ck["norm"], device, dtype)
+            err = angular_error_deg(pred, target)
+            row[c] = {**_stats(err), "dataset": str(ddir)}
+            k = int(torch.argsort(err)[len(err) // 2])  # the median sample
+            examples[run][c] = (ddir, onv[k].float(), target[k].numpy(), pred[k].numpy(), float(err[k]))
+        results[str(run)] = row
+        atomic_write(out / "conditions.json", json.dumps({"samples_per_condition": samples, "results": row}, indent=2))
+        _figure(out, cfg, examples[run])
+    log(table(results))
+    return results
+
+
+def _stats(err: torch.Tensor) -> dict:
+    return {"median_deg": float(err.median()), "p90_deg": float(torch.quantile(err, 0.9)), "n": int(len(err))}
+
+
+def table(results: dict) -> str:
+    """The results as a Markdown table: a row per condition, a column per run (median / p90, degrees)."""
+    runs = list(results)
+    head = "| condition | goal (median) | " + " | ".join(f"{r}: median / p90 (deg)" for r in runs) + " |"
+    lines = [head, "|" + "---|" * (2 + len(runs))]
+    for c in GOALS:
+        if not any(c in results[r] for r in runs):
+            continue
+        goal = f"< {GOALS[c]}" if GOALS[c] is not None else ""
+        cells = [f"{results[r][c]['median_deg']:.2f} / {results[r][c]['p90_deg']:.2f}" if c in results[r] else "" for r in runs]
+        lines.append(f"| {LABELS[c]} | {goal} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _figure(out: Path, cfg, examples: dict) -> None:
+    """One retina image per condition (the sample with the median error) with the true (+) and predicted (x) target."""
+    from matplotlib.figure import Figure
+
+    from warp_vision import viz
+    from warp_vision.data.foveation import make_eye
+    from warp_vision.eye.retina import Retina
+    from warp_vision.train.figures import retinal_image_point_deg
+
+    eye = make_eye(cfg.data_config())
+    n = len(examples)
+    fig = Figure(figsize=(4.0 * n, 4.4))
+    for i, (c, (ddir, onv, true, pred, err)) in enumerate(examples.items()):
+        retina = Retina.load(Path(ddir) / "retina.npz")
+        tp, pp = retinal_image_point_deg(np.stack([true, pred]), eye)
+        viz.plot_onv(retina, onv, ax=fig.add_subplot(1, n, i + 1), mark=[tuple(tp), tuple(pp)],
+                     title=f"{LABELS[c]}\n{err:.2f} deg (median sample)")
+    fig.suptitle(f"{out}: held-out conditions (+ true, x predicted)")
+    (out / "figures").mkdir(exist_ok=True)
+    fig.savefig(out / "figures" / "conditions.png", dpi=100, bbox_inches="tight")
