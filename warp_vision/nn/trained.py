@@ -32,6 +32,12 @@ def _foveation(spec: dict):
     from warp_vision.nn.heads import foveation_net
 
     angles = _array(spec.get("photoreceptor_angles"))
+    if spec["model"] == "conv":
+        from warp_vision.nn.retina_conv import RetinaConv, RetinaConvFoveationNet
+
+        torch.manual_seed(spec["seed"])
+        backbone = RetinaConv(_array(spec["photoreceptor_xy"]), spec["layers"], spec["reduction"], spec["channels"], spec["seed"])
+        return RetinaConvFoveationNet(backbone, angles)
     return foveation_net(spec["model"], onv_positions(_array(spec["photoreceptor_xy"])), spec["layers"],
                          spec["receptive_field"], spec["reduction"], spec["seed"], head=spec["head"],
                          input_angles=None if angles is None else np.repeat(angles, 3, axis=0))

@@ -67,7 +67,7 @@ class FoveationTask(harness.OnvTask):
 
         c = self.cfg
         angles = self.retina.visual_angles(make_eye(c.data_config())) if c.head_kind() == "softargmax" else None
-        return {"kind": "foveation", "model": c.model, "head": c.head_kind(), "layers": c.layers,
+        return {"kind": "foveation", "model": c.model, "head": c.head_kind(), "layers": c.layers, "channels": c.channels,
                 "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
                 "photoreceptor_angles": None if angles is None else torch.from_numpy(np.asarray(angles, np.float64))}
@@ -77,8 +77,9 @@ class FoveationTask(harness.OnvTask):
         set_input_standardisation(model, norm)
 
     def describe(self, model):
-        return (f"{self.cfg.model} ({self.cfg.head_kind()} head): {sum(p.numel() for p in model.parameters()):,} "
-                f"parameters, layers {getattr(model.backbone, 'layer_sizes', '?')}")
+        b = model.backbone
+        layers = getattr(b, "layer_sizes", None) or [f"{n}x{c}" for n, c in zip(getattr(b, "layer_sites", [])[1:], getattr(b, "channels", []))]
+        return f"{self.cfg.model} ({self.cfg.head_kind()} head): {sum(p.numel() for p in model.parameters()):,} parameters, layers {layers}"
 
     def batch_loss(self, net, idx, norm, device):
         y = ((self.target[idx] - norm["target_mean"]) / norm["target_std"]).to(device)
