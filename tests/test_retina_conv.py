@@ -48,12 +48,14 @@ def test_weights_are_shared_and_the_read_out_votes_for_a_direction(retina):
     # parameters do not grow with the retina: one 3 x 3 x C kernel per output channel and layer
     assert sum(c.weight.numel() for c in b.convs) == 9 * (3 * 4 + 4 * 8 + 8 * 16)
     x = torch.randn(5, 3 * retina.P)
+    net.eval()  # batch norm from its running statistics: a unit depends on its own stencil only
     maps = b(x)
     assert [tuple(m.shape) for m in maps] == [(5, n, c) for n, c in zip(b.layer_sites[1:], b.channels)]
     # a unit's response is its stencil's inputs through the shared kernel: recompute one by hand
     st = b.stencil_1[7]
     g = x.reshape(5, retina.P, 3)[:, st].reshape(5, -1)
-    assert torch.allclose(maps[0][:, 7], torch.relu(g @ b.convs[0].weight.T + b.convs[0].bias), atol=1e-5)
+    assert torch.allclose(maps[0][:, 7], torch.relu(b.norms[0](g @ b.convs[0].weight.T + b.convs[0].bias)), atol=1e-5)
+    net.train()
     out = net(x)
     assert out.shape == (5, 2) and torch.isfinite(out).all()
     out.sum().backward()
@@ -61,6 +63,13 @@ def test_weights_are_shared_and_the_read_out_votes_for_a_direction(retina):
     # every vote is a convex combination of its sites' directions
     for v in net.votes(x):
         assert (v.abs().max(0).values <= torch.as_tensor(np.abs(xy).max(0), dtype=torch.float32) + 1e-5).all()
+    # the heat-map loss falls when each layer's saliency peaks on the site of the true direction
+    target = net.directions_0[5:6].clone()
+    flat = [torch.zeros(1, len(getattr(net, f"directions_{k}"))) for k in range(len(net.voting))]
+    peaked = [f.clone() for f in flat]
+    for k, f in enumerate(peaked):
+        f[0, torch.cdist(target, getattr(net, f"directions_{k}")).argmin()] = 8.0
+    assert net.heatmap_loss(peaked, target) < 0.1 * net.heatmap_loss(flat, target)
     with pytest.raises(ValueError, match="onv"):
         net(torch.randn(2, 3 * retina.P + 1))
     with pytest.raises(ValueError, match="photoreceptor_angles"):

@@ -90,6 +90,8 @@ class RetinaConv(nn.Module):
             self.register_buffer(f"photoreceptor_{h}", torch.from_numpy(p["photoreceptor"].astype(np.int64)))
         c_in = [self.in_channels] + self.channels[:-1]
         self.convs = nn.ModuleList(nn.Linear(STENCIL * a, b) for a, b in zip(c_in, self.channels))
+        # batch normalisation of each channel over the batch and the sites, before the ReLU
+        self.norms = nn.ModuleList(nn.BatchNorm1d(c) for c in self.channels)
         for conv in self.convs:  # He initialisation for ReLU
             nn.init.normal_(conv.weight, 0.0, math.sqrt(2.0 / conv.in_features))
             nn.init.zeros_(conv.bias)
@@ -104,10 +106,11 @@ class RetinaConv(nn.Module):
             raise ValueError(f"onv: expected shape [B, {self.in_channels * self.sites}], got {tuple(onv.shape)}")
         x = onv.reshape(B, self.sites, self.in_channels)
         maps = []
-        for h, conv in enumerate(self.convs, start=1):
+        for h, (conv, norm) in enumerate(zip(self.convs, self.norms), start=1):
             st = getattr(self, f"stencil_{h}")
             g = x.index_select(1, st.reshape(-1)).reshape(B, st.shape[0], -1)  # [B, N_h, 9 C_{h-1}]
-            x = torch.relu(conv(g))
+            y = conv(g)
+            x = torch.relu(norm(y.reshape(-1, y.shape[-1])).reshape(y.shape))
             maps.append(x)
         return maps
 
@@ -143,15 +146,31 @@ class RetinaConvFoveationNet(nn.Module):
             self.target_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
             self.target_std.copy_(torch.as_tensor(std, dtype=torch.float32))
 
-    def votes(self, onv: Tensor) -> list[Tensor]:
-        """Each voting layer's gaze vote [B, 2] (radians)."""
+    def saliency_logits(self, onv: Tensor) -> list[Tensor]:
+        """Each voting layer's saliency over its sites [B, N_h] (the soft-argmax's logits)."""
         maps = self.backbone(onv)
-        out = []
-        for k, h in enumerate(self.voting):
-            s = self.saliency[k](maps[h - 1]).squeeze(-1) * self.log_temperature[k].exp()  # [B, N_h]
-            out.append(torch.softmax(s, dim=1) @ getattr(self, f"directions_{k}"))
-        return out
+        return [self.saliency[k](maps[h - 1]).squeeze(-1) * self.log_temperature[k].exp() for k, h in enumerate(self.voting)]
 
-    def forward(self, onv: Tensor) -> Tensor:
-        z = [(v - self.target_mean) / self.target_std for v in self.votes(onv)]
-        return self.head(torch.cat(z, dim=1))
+    def votes(self, onv: Tensor, logits: list[Tensor] | None = None) -> list[Tensor]:
+        """Each voting layer's gaze vote [B, 2] (radians)."""
+        logits = self.saliency_logits(onv) if logits is None else logits
+        return [torch.softmax(s, dim=1) @ getattr(self, f"directions_{k}") for k, s in enumerate(logits)]
+
+    def forward(self, onv: Tensor, with_logits: bool = False):
+        """Standardised (yaw, pitch) [B, 2]; with ``with_logits``, also the saliency logits (for
+        :meth:`heatmap_loss`)."""
+        logits = self.saliency_logits(onv)
+        z = [(v - self.target_mean) / self.target_std for v in self.votes(onv, logits)]
+        out = self.head(torch.cat(z, dim=1))
+        return (out, logits) if with_logits else out
+
+    def heatmap_loss(self, logits: list[Tensor], target: Tensor) -> Tensor:
+        """Cross-entropy of each voting layer's saliency against the site nearest the true direction
+        ``target`` [B, 2] (radians), averaged over the layers: dense supervision of where the ball is, as
+        keypoint detectors train their heat maps, beside the soft-argmax's regression."""
+        loss = 0.0
+        for k, s in enumerate(logits):
+            d = getattr(self, f"directions_{k}")
+            nearest = torch.cdist(target.to(d), d).argmin(dim=1)
+            loss = loss + torch.nn.functional.cross_entropy(s, nearest)
+        return loss / len(logits)

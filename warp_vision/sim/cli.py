@@ -52,6 +52,10 @@ def _setup(args):
     body = Body(BodyConfig(arms=not args.no_arms))
     body.step(int(SETTLE_S / body.model.opt.timestep))
     fov = {s: Foveator(spec.run) for s, spec in zip(SIDES, specs[:2])}
+    old = [spec.run for s, spec in zip(SIDES, specs[:2]) if fov[s].generator < 8]
+    if old and args.ball == "ordinary":
+        print(f"note: {', '.join(old)} learnt on generator v7 (a glowing ball in a dim room); with --ball ordinary "
+              "it will not find the ball. Retrain it (python -m warp_vision.train --eye EYE --overwrite) or use --ball glowing.")
     ocu_root = os.path.dirname(specs[2].run)
     return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
                                 ball=args.ball)
@@ -209,9 +213,11 @@ def main(argv=None) -> int:
         p.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
         p.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
         p.add_argument("--seed", type=int, default=0, help="the room's seed")
-        p.add_argument("--ball", choices=BALLS, default="ordinary",
-                       help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
-                            "albedos; glowing: v7's white ball that glows, in the room dimmed (what v7 nets were trained on)")
+        p.add_argument("--ball", choices=BALLS, default="glowing",
+                       help="glowing (default): a white ball that glows, in the room dimmed (generator v7's scene, what the "
+                            "default foveation nets learn); ordinary: a grey-white ball lit by the room's lamps, in a room at "
+                            "its everyday albedos (generator v8's kind of scene; no net trained so far finds it reliably: "
+                            "README)")
         p.add_argument("--frame-every", type=int, default=FRAME_EVERY,
                        help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
                             f"(default {FRAME_EVERY}: 25 frames a second; 1 renders every period)")

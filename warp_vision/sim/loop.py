@@ -80,7 +80,8 @@ class Foveator:
         from warp_vision.nn.trained import load_net, onv_dtype
 
         self.model, ck = load_net(run_dir, device)
-        data = FoveationDataConfig(**ck["data"])
+        data = FoveationDataConfig.saved(ck["data"])
+        self.generator = data.generator
         self.retina = make_retina(data)
         self.trained_eye = make_eye(data)  # the optical state its training ONVs were rendered with
         self.samples_per_receptor = data.samples_per_receptor
@@ -113,7 +114,7 @@ ORDINARY_BALL = dict(diffuse=(0.7, 0.7, 0.7), specular=0.3, shininess=32)
 SECOND_LAMP = ((2.5, -2.0, 3.4), (1.0, 0.95, 0.85), 5.0)
 
 
-def body_scene(body: Body, seed: int = 0, ball: str = "ordinary"):
+def body_scene(body: Body, seed: int = 0, ball: str = "glowing"):
     """The room with the body's visible parts (group-0 geoms, grouped as in :data:`SCENE_ANCHORS`) and
     the ball (:data:`BALLS`), at the body's current pose."""
     import trimesh
@@ -201,7 +202,7 @@ class VisuomotorLoop:
     control period. ``timing`` accumulates wall seconds per stage (render, nets, mujoco, control)."""
 
     def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, frame_every: int = FRAME_EVERY,
-                 ball: str = "ordinary"):
+                 ball: str = "glowing"):
         if not isinstance(frame_every, (int, np.integer)) or frame_every < 1:
             raise ValueError(f"frame_every: expected a whole number of control periods >= 1, got {frame_every!r}")
         self.body, self.fov, self.ocu = body, foveators, oculomotor

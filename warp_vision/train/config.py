@@ -14,7 +14,7 @@ from warp_vision.data.foveation import FoveationDataConfig
 CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv"], "eye": ["left", "right"],
            "onv_dtype": ["auto", "float16", "bfloat16", "float32"],
            "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"],
-           "input_norm": ["sample", "dataset"], "generator": [8, 7]}
+           "input_norm": ["auto", "sample", "dataset"], "generator": [7, 8]}
 
 
 def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
@@ -75,9 +75,9 @@ class TrainConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
     data_seed: int = 0  # seed of the dataset (scenes) and of the train/val/test split
-    generator: int = 8  # the scene generator: 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms) or 7 (a glowing ball in one dim room)
+    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room) or 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms; README has why 7 is still the default)
     # the model
-    input_norm: str = "sample"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset: v7 nets)
+    input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset); auto: sample for generator 8, dataset for 7
     model: str = "linet"  # linet; fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel)
     head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig. 5), or auto (softargmax for a liNet, linear for fc)
     layers: int = 4  # liNet hidden layers H
@@ -99,6 +99,10 @@ class TrainConfig:
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.
     LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset"}
+
+    def per_sample_input(self) -> bool:
+        """Whether the net's input is scaled by each ONV's own mean irradiance (``input_norm``, "auto" resolved)."""
+        return self.input_norm == "sample" or (self.input_norm == "auto" and self.generator == 8)
 
     def head_kind(self) -> str:
         """The read-out this config builds ("auto" resolved)."""
