@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 __all__ = [
+    "luminance_for_diameter",
     "MONOCULAR_EFFECT",
     "REFERENCE_AGE_YEARS",
     "corneal_flux_density",
@@ -148,3 +149,16 @@ def pupil_diameter_mm(
     d_sd = np.asarray(stanley_davies_diameter_mm(flux))
     d = d_sd + (age - REFERENCE_AGE_YEARS) * (0.02132 - 0.009562 * d_sd)
     return float(d) if d.ndim == 0 else d
+
+
+def luminance_for_diameter(diameter_mm, field_deg=60.0, eyes: int = 1):
+    """The luminance (cd/m^2) whose light-adapted pupil (:func:`pupil_diameter_mm` at the reference age)
+    is ``diameter_mm``: Stanley & Davies inverted in closed form. Diameters are clipped into the formula's
+    open range (2, 7.75) mm, so 2 mm and below give a very bright, 7.75 mm and above a very dim luminance."""
+    d = _check_real("diameter_mm", diameter_mm, allow_zero=False)
+    k = np.clip((7.75 - d) / 5.75, 1e-9, 1 - 1e-9)  # s / (s + 2)
+    s = 2.0 * k / (1.0 - k)
+    flux = _SD_FLUX_SCALE * s ** (1.0 / _SD_EXPONENT)
+    field = _check_real("field_deg", field_deg, allow_zero=False, upper=360.0)
+    lum = flux / (np.pi * field**2 / 4.0 * MONOCULAR_EFFECT[_check_eyes(eyes)])
+    return float(lum) if lum.ndim == 0 else lum
