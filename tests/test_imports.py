@@ -23,7 +23,7 @@ ALLOWED = {
     "kernels": {"foundation", "eye"},
     "scene": {"foundation", "eye", "viz", "kernels"},
     "nn": {"foundation", "eye", "kernels"},
-    "body": {"foundation"},
+    "body": {"foundation", "eye"},
     "data": {"foundation", "eye", "viz", "kernels", "scene", "nn", "body"},
     "sim": {"foundation", "eye", "viz", "kernels", "scene", "nn", "body", "data"},
     "train": {"foundation", "eye", "viz", "kernels", "scene", "nn", "body", "data", "sim"},

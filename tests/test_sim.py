@@ -82,9 +82,13 @@ def test_eye_geometry_and_intraocular_state(body):
     assert np.allclose(l[:3, 2], [0, -1, 0], atol=1e-9)  # the body faces -y; eye +z is the optical axis
     assert body.model.body_mass[body.eye_body["left"]] == pytest.approx(0.0075, rel=0.01)
     body.set_intraocular("left", pupil_mm=6.0, accommodation_D=3.0)
-    body.step(1000)  # 1 s: the filters (0.3 s and 0.2 s) have all but converged
+    body.step(200)  # 0.2 s: neither plant has moved yet (latencies 0.22-0.3 s)
+    assert body.intraocular("left") == pytest.approx((4.0, 1.0), abs=1e-9)
+    body.step(2800)  # 3 s: both have all but converged (dilation's time constant is 0.45 s)
     pupil, acc = body.intraocular("left")
-    assert pupil == pytest.approx(6.0, abs=0.1) and acc == pytest.approx(3.0, abs=0.05)
+    assert pupil == pytest.approx(6.0, abs=0.05) and acc == pytest.approx(3.0, abs=0.01)
+    mirrored = body.data.act[body.model.actuator_actadr[[body.pupil["left"], body.accommodation["left"]]]]
+    assert mirrored == pytest.approx([pupil, acc])
     assert body.intraocular("right") == pytest.approx((4.0, 1.0), abs=1e-6)  # the other eye is untouched
 
 

@@ -10,8 +10,10 @@
   tissue stiffness and damping, each turned by six Hill-type muscles on spatial tendons that wrap the
   globe: the four recti from the annulus of Zinn behind the eye, the superior oblique through a
   trochlea at the upper nasal orbital rim, the inferior oblique from the nasal orbital floor (see
-  :data:`EYE_MUSCLES`). Each eye also has two intraocular actuators, pupil diameter (mm) and lens
-  accommodation (dioptres): first-order filters whose state (``data.act``) is the eye's optical state.
+  :data:`EYE_MUSCLES`). Each eye also has an iris and a lens, plants with human dynamics
+  (:mod:`warp_vision.eye.plants`: a latency, then a first-order movement): their states, the pupil
+  diameter (mm) and the accommodation (dioptres), are the eye's optical state. Two force-free MuJoCo
+  actuators per eye mirror them (``ctrl`` = ``act`` = the plant's state), for viewers and state dumps.
 - A cannon (a static barrel) and a ball on a free joint that it launches.
 
 Frames: world +z up (docs/ARCHITECTURE.md); the body faces -y; its left is +x. At rest each eye's body
@@ -30,6 +32,7 @@ from functools import lru_cache
 import mujoco
 import numpy as np
 
+from warp_vision.eye.plants import LENS_RANGE_D, PUPIL_RANGE_MM, LensPlant, PupilPlant
 from warp_vision.frames import fick_rotation, gaze_angles, gaze_direction, torsion_angle
 
 EYE_RADIUS = 0.012  # m
@@ -58,10 +61,7 @@ NECK_DAMPING = 0.4  # N m s / rad
 NECK_MOMENT_ARM = 0.03  # m
 NECK_MUSCLE_FORCE = 150.0  # N
 NECK_MUSCLE_TIMECONST = (0.01, 0.04)
-PUPIL_RANGE_MM = (2.0, 8.0)
-PUPIL_TIMECONST = 0.3  # s
-ACCOMMODATION_RANGE_D = (0.0, 10.0)
-ACCOMMODATION_TIMECONST = 0.2  # s
+ACCOMMODATION_RANGE_D = LENS_RANGE_D
 BALL_RADIUS = 0.04
 BALL_MASS = 0.06
 TIMESTEP = 0.001  # s
@@ -198,11 +198,12 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
         a = spec.add_actuator(name=tag, target=tag, trntype=mujoco.mjtTrn.mjTRN_TENDON, group=1)
         a.set_to_muscle(timeconst=list(EYE_MUSCLE_TIMECONST), tausmooth=0.0, range=[0.75, 1.05], force=EYE_MUSCLE_FORCE,
                         vmax=EYE_MUSCLE_VMAX)
-    # intraocular state: first-order filters with no force, whose activation state is the optical state
-    for quantity, rng, tc in (("pupil", PUPIL_RANGE_MM, PUPIL_TIMECONST), ("accommodation", ACCOMMODATION_RANGE_D, ACCOMMODATION_TIMECONST)):
+    # intraocular state: force-free filters that mirror the plants (ctrl = act = the plant's state, so
+    # MuJoCo's filter holds it; the plants in eye/plants.py move it)
+    for quantity, rng in (("pupil", PUPIL_RANGE_MM), ("accommodation", ACCOMMODATION_RANGE_D)):
         a = spec.add_actuator(name=f"{quantity}_{side}", target=f"eye_{side}", trntype=mujoco.mjtTrn.mjTRN_JOINT, group=2)
         a.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
-        a.dynprm[0] = tc
+        a.dynprm[0] = 0.1
         a.gaintype = mujoco.mjtGain.mjGAIN_FIXED
         a.gainprm[0] = 0.0
         a.biastype = mujoco.mjtBias.mjBIAS_NONE
@@ -353,11 +354,8 @@ class Body:
     def reset(self) -> None:
         """Rest pose, zero activations, pupils 4 mm, accommodation 1 D, ball resting on the floor behind the body."""
         mujoco.mj_resetData(self.model, self.data)
-        for s in SIDES:
-            self.data.ctrl[self.pupil[s]] = 4.0
-            self.data.act[self._act(self.pupil[s])] = 4.0
-            self.data.ctrl[self.accommodation[s]] = 1.0
-            self.data.act[self._act(self.accommodation[s])] = 1.0
+        self.plants = {s: {"pupil": PupilPlant(4.0), "lens": LensPlant(1.0)} for s in SIDES}
+        self._mirror_plants()
         mujoco.mj_forward(self.model, self.data)
         self._warnings[:] = [w.number for w in self.data.warning]
 
@@ -369,10 +367,22 @@ class Body:
         return float(self.data.time)
 
     def step(self, n: int = 1) -> None:
-        """Advance ``n`` timesteps with the current controls; raise :class:`SimulationError` on trouble."""
+        """Advance ``n`` timesteps with the current controls; raise :class:`SimulationError` on trouble.
+        The iris and lens plants advance by the same time, after MuJoCo (they exert no force)."""
         for _ in range(int(n)):
             mujoco.mj_step(self.model, self.data)
             self.check()
+        dt = int(n) * self.model.opt.timestep
+        for eye in self.plants.values():
+            for plant in eye.values():
+                plant.advance(dt)
+        self._mirror_plants()
+
+    def _mirror_plants(self) -> None:
+        for s in SIDES:
+            for act, plant in ((self.pupil[s], self.plants[s]["pupil"]), (self.accommodation[s], self.plants[s]["lens"])):
+                self.data.ctrl[act] = plant.state
+                self.data.act[self._act(act)] = plant.state
 
     def check(self) -> None:
         d = self.data
@@ -400,8 +410,8 @@ class Body:
         self.data.ctrl[self.neck_muscles] = _check_activations("neck activations", a, len(NECK_MUSCLE_NAMES))
 
     def set_intraocular(self, side: str, pupil_mm: float | None = None, accommodation_D: float | None = None) -> None:
-        """Command the pupil diameter (mm) and lens accommodation (D), clipped to their ranges; the state
-        follows with time constants ``PUPIL_TIMECONST`` and ``ACCOMMODATION_TIMECONST``. NaN or inf is a
+        """Command the pupil diameter (mm) and lens accommodation (D), clipped to their ranges; the plants
+        (:mod:`warp_vision.eye.plants`) follow after their latencies. NaN or inf is a
         ValueError (MuJoCo would only complain a step later)."""
         if side not in self.pupil:
             raise ValueError(f"side: expected one of {sorted(self.pupil)}, got {side!r}")
@@ -409,13 +419,13 @@ class Body:
             if v is not None and (isinstance(v, bool) or not np.isfinite(np.asarray(v, dtype=np.float64)).all()):
                 raise ValueError(f"{name}: expected a finite number, got {v!r}")
         if pupil_mm is not None:
-            self.data.ctrl[self.pupil[side]] = np.clip(pupil_mm, *PUPIL_RANGE_MM)
+            self.plants[side]["pupil"].command(float(pupil_mm))
         if accommodation_D is not None:
-            self.data.ctrl[self.accommodation[side]] = np.clip(accommodation_D, *ACCOMMODATION_RANGE_D)
+            self.plants[side]["lens"].command(float(accommodation_D))
 
     def intraocular(self, side: str) -> tuple[float, float]:
         """(pupil diameter mm, accommodation D): the eye's current optical state."""
-        return (float(self.data.act[self._act(self.pupil[side])]), float(self.data.act[self._act(self.accommodation[side])]))
+        return (self.plants[side]["pupil"].state, self.plants[side]["lens"].state)
 
     # --- kinematics -------------------------------------------------------------------------------
     def pose(self, body: int) -> np.ndarray:
