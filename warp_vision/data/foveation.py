@@ -27,6 +27,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from warp_vision.data.foveation_scenes import occluder_pose
 from warp_vision.data.store import ChunkedStore
 from warp_vision.frames import gaze_angles, gaze_directions, look_rotation
 
@@ -225,21 +226,7 @@ def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dic
     else:  # pragma: no cover - the room is large; never seen
         raise RuntimeError("could not place the ball inside the room")
     occluded = bool(rng.uniform() < cfg.occluded_fraction)
-    # the panel: between the eye and the ball, its near edge crossing the ball's disc from 0.2 of its
-    # apparent radius beyond the centre to 0.8 short of it (so it hides about 5% to 60% of the ball)
-    side = R @ np.array([np.cos(phi + np.pi / 2), np.sin(phi + np.pi / 2), 0.0])
-    frac = rng.uniform(0.4, 0.7)
-    panel = eye + frac * (ball - eye) + side * frac * radius * rng.uniform(-0.2, 0.8) + side * 0.125
-    if not occluded:
-        panel = _HIDDEN
-    # face-on to the eye (the panel's thin local z along the line of sight; generator v4 had it edge-on,
-    # hiding at most a 2 cm strip), its local x along ``side`` so its near edge runs straight past the ball
-    Tp = np.eye(4)
-    z = (ball - eye) / np.linalg.norm(ball - eye)
-    x = side - (side @ z) * z
-    x /= np.linalg.norm(x)
-    Tp[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    Tp[:3, 3] = panel
+    Tp = occluder_pose(rng, eye, ball, R, phi, radius, occluded)
     light_colour = rng.uniform(0.6, 1.0, 3)
     light_intensity = float(rng.uniform(3.0, 15.0))
     yaw, pitch = (float(a) for a in gaze_angles(u_eye))

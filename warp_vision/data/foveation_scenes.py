@@ -278,6 +278,25 @@ def _distractors(kind, R, eye, u_ball, ball_angle, size, light, mat, ball, rng) 
     return out
 
 
+def occluder_pose(rng, eye, ball, R, phi: float, radius: float, occluded: bool) -> np.ndarray:
+    """The occluding panel's [4, 4] pose (v7's rule, shared by v8): between the eye and the ball, its near
+    edge crossing the ball's disc from 0.2 of its apparent radius beyond the centre to 0.8 short of it (so
+    it hides about 5% to 60% of the ball); face-on to the eye (its thin local z along the line of sight;
+    generator v4 had it edge-on, hiding at most a 2 cm strip), its local x along the side direction so its
+    near edge runs straight past the ball. Parked out of sight when not ``occluded`` (the same two draws
+    from ``rng`` either way)."""
+    side = R @ np.array([np.cos(phi + np.pi / 2), np.sin(phi + np.pi / 2), 0.0])
+    frac = rng.uniform(0.4, 0.7)
+    panel = eye + frac * (ball - eye) + side * frac * radius * rng.uniform(-0.2, 0.8) + side * 0.125
+    Tp = np.eye(4)
+    z = (ball - eye) / np.linalg.norm(ball - eye)
+    x = side - (side @ z) * z
+    x /= np.linalg.norm(x)
+    Tp[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    Tp[:3, 3] = panel if occluded else _HIDDEN
+    return Tp
+
+
 def _yaw(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -337,15 +356,7 @@ def sample_params(cfg, index: int, attempt: int, radii, diameter_limits) -> dict
     else:  # pragma: no cover - the rooms are large; never seen
         raise RuntimeError("could not place the ball inside the room")
     occluded = bool(rng.uniform() < cfg.occluded_fraction)
-    side = R @ np.array([np.cos(phi + np.pi / 2), np.sin(phi + np.pi / 2), 0.0])
-    frac = rng.uniform(0.4, 0.7)
-    panel = eye + frac * (ball - eye) + side * frac * radius * rng.uniform(-0.2, 0.8) + side * 0.125
-    Tp = np.eye(4)
-    z = (ball - eye) / np.linalg.norm(ball - eye)
-    x = side - (side @ z) * z
-    x /= np.linalg.norm(x)
-    Tp[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    Tp[:3, 3] = panel if occluded else _HIDDEN
+    Tp = occluder_pose(rng, eye, ball, R, phi, radius, occluded)
     light = _lighting(kind, size, rng)
     mat = _ball_material(kind, rng)
     ball_angle = np.arcsin(min(1.0, radius / dist))
