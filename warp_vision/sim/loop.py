@@ -24,9 +24,10 @@ turns the latest estimate into a change of the commanded gaze:
 The oculomotor net maps (change of commanded gaze, current activations) to the next activations. The
 neck controller moves the head's target a fraction ``NECK_GAIN`` per period toward the eyes' mean gaze
 (the eye-head synergy: the eyes return toward centre as the head takes over), held by least-effort neck
-activations (:func:`warp_vision.sim.oculomotor.holding_activations`). Accommodation follows the
-distance where the two gaze lines converge; the pupil follows the retinal irradiance by the Watson &
-Yellott formula.
+activations (:func:`warp_vision.sim.oculomotor.holding_activations`). Accommodation is commanded to
+the distance where the two gaze lines converge; the pupil to the Watson & Yellott diameter of the
+retinal irradiance; the iris and lens plants (:mod:`warp_vision.eye.plants`) answer after their
+latencies.
 """
 
 from __future__ import annotations
