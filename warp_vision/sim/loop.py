@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import mujoco
 import numpy as np
@@ -354,7 +353,7 @@ class VisuomotorLoop:
     def _intraocular(self, seen: bool) -> None:
         """Accommodate to where the gaze lines converge; the pupil follows the retinal irradiance of the
         last frame (``seen``: a new one this period)."""
-        from warp_vision.eye.pupil import pupil_diameter_mm
+        from warp_vision.eye.pupil import luminance_for_diameter, pupil_diameter_mm
 
         dist = vergence_distance(self.body)
         for s in SIDES:
@@ -363,19 +362,9 @@ class VisuomotorLoop:
                 trained = self.fov[s].trained_eye.pupil_diameter_mm
                 mean = float(self.onv[s].mean()) * (trained / pupil) ** 2  # as bright as through the training pupil
                 # a retina as bright as the training set's mean sees the luminance that gives the training pupil
-                lum = _luminance_for(trained) * mean / float(self.fov[s].norm["input_scale"])
+                lum = luminance_for_diameter(trained) * mean / float(self.fov[s].norm["input_scale"])
                 self._pupil_command[s] = pupil_diameter_mm(lum)
             self.body.set_intraocular(s, pupil_mm=self._pupil_command[s], accommodation_D=1.0 / max(dist, 0.1))
-
-
-@lru_cache(maxsize=8)
-def _luminance_for(diameter_mm: float) -> float:
-    """The luminance (cd/m^2) at which the Watson & Yellott pupil has ``diameter_mm``."""
-    from scipy.optimize import brentq
-
-    from warp_vision.eye.pupil import pupil_diameter_mm
-
-    return float(np.exp(brentq(lambda x: pupil_diameter_mm(np.exp(x)) - diameter_mm, -10, 15)))
 
 
 def gaze_line(body: Body, side: str) -> tuple[np.ndarray, np.ndarray]:
