@@ -1,7 +1,11 @@
-"""Foveation data the virtual human synthesises itself: ONVs of a white ball in a room, and the eye
-rotation that would bring the ball onto the fovea.
+"""Foveation data the virtual human synthesises itself: ONVs of a ball in a room, and the eye rotation
+that would bring the ball onto the fovea.
 
-Each sample: the eye stands somewhere in a dim room looking in a random direction; a glowing white ball
+Two generators, chosen by ``FoveationDataConfig.generator``: 8 is
+:mod:`warp_vision.data.foveation_scenes` (ordinary balls in a family of everyday rooms, distractors, the
+body's arms); 7, described here and still the default, is a glowing white ball in one dim room.
+
+Each v7 sample: the eye stands somewhere in a dim room looking in a random direction; a glowing white ball
 of random size lies at 0.3 to 5 m, at a distance where it looks between :func:`min_apparent_diameter`
 (1.5 deg, or 3 photoreceptor spacings where it lies) and ``MAX_APPARENT_DIAMETER_DEG`` (30 deg) across,
 within ``max_field_deg`` of the optical axis, sometimes half hidden
