@@ -178,7 +178,8 @@ def test_vergence_distance(body):
 
 
 def test_scene_follows_the_body_and_eyes_do_not_see_the_head(body):
-    from warp_vision.sim.loop import HIDDEN_FROM_EYES, body_scene, set_eye_view, sync_scene
+    from warp_vision.body import HIDDEN_FROM_EYES
+    from warp_vision.sim.loop import body_scene, set_eye_view, sync_scene
 
     body.reset()
     sc = body_scene(body)

@@ -500,6 +500,9 @@ def _check_activations(name: str, a, n: int) -> np.ndarray:
     return a
 
 
+#: Bodies the eyes do not see: the skull and cervical spine around them (its inside would shadow every
+#: ray) and the eyes themselves; a third-person camera sees them.
+HIDDEN_FROM_EYES = ("head", "neck", "eye_left", "eye_right", "orbit_left", "orbit_right")
 #: Each arm's parts that move as one in a rendered scene: humerus, ulna, radius and hand (the carpals
 #: with the fingers, as posed when the meshes are taken).
 ARM_PARTS = {"right": ("humerus_r", "ulna_r", "radius_r", "lunate_r"), "left": ("humerus_l", "ulna_l", "radius_l", "lunate_l")}

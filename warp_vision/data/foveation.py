@@ -31,7 +31,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from warp_vision.data.foveation_scenes import occluder_pose
+from warp_vision.data.foveation_scenes import field_direction, occluder_pose
 from warp_vision.data.store import ChunkedStore
 from warp_vision.frames import gaze_angles, gaze_directions, look_rotation
 
@@ -209,12 +209,7 @@ def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dic
         pitch0 = rng.uniform(-0.35, 0.35)
         fwd = np.array([np.cos(pitch0) * np.cos(yaw0), np.cos(pitch0) * np.sin(yaw0), np.sin(pitch0)])
         R = look_rotation(fwd)
-        # ball direction: uniform over the solid angle within max_field_deg of the axis
-        cmax = np.cos(np.radians(cfg.max_field_deg))
-        ct = rng.uniform(cmax, 1.0)
-        st = np.sqrt(1 - ct * ct)
-        phi = rng.uniform(0, 2 * np.pi)
-        u_eye = np.array([st * np.cos(phi), st * np.sin(phi), ct])
+        u_eye, ct, phi = field_direction(rng, cfg.max_field_deg)  # uniform over the solid angle of the field
         size = int(rng.integers(len(BALL_RADII)))
         radius = BALL_RADII[size]
         far = min(5.0, radius / np.sin(min_apparent_diameter(cfg, np.arccos(ct)) / 2))

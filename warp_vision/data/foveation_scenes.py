@@ -37,7 +37,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from warp_vision.frames import gaze_angles, look_rotation
+from warp_vision.frames import gaze_angles, look_rotation, translation
 
 #: Consecutive samples that share a room (one scene build each).
 ROOM_BLOCK = 16
@@ -68,15 +68,11 @@ def room_layout(family: int, seed: int, block: int) -> dict:
     return {"size": size, "objects": int(rng.integers(3, 9)), "surfaces": surfaces, "furniture_seed": int(rng.integers(2**31))}
 
 
-def _sphere(radius: float):
-    import trimesh
-
-    return trimesh.creation.icosphere(subdivisions=3, radius=radius)
-
-
 @lru_cache(maxsize=1)
 def _ball_meshes(radii: tuple) -> tuple:
-    return tuple(_sphere(r) for r in radii)
+    import trimesh
+
+    return tuple(trimesh.creation.icosphere(subdivisions=3, radius=r) for r in radii)
 
 
 @lru_cache(maxsize=1)
@@ -100,16 +96,15 @@ class ArmKit:
     def load() -> "ArmKit":
         import trimesh
 
-        from warp_vision.body import ARM_PARTS, Body, visible_parts
+        from warp_vision.body import ARM_PARTS, HIDDEN_FROM_EYES, Body, visible_parts
 
         body = Body()
         m = body.model
-        hidden = ("head", "neck", "eye_left", "eye_right", "orbit_left", "orbit_right")
-        parts = visible_parts(body, ARM_PARTS["right"] + ARM_PARTS["left"] + hidden, exclude=("ball",))
+        parts = visible_parts(body, ARM_PARTS["right"] + ARM_PARTS["left"] + HIDDEN_FROM_EYES, exclude=("ball",))
         meshes, anchors = {}, {}
         for b, ms in parts.items():
             name = m.body(b).name if b else "torso"
-            if name in hidden:
+            if name in HIDDEN_FROM_EYES:
                 continue
             meshes[f"arm_{name}"] = trimesh.util.concatenate(ms)
             anchors[f"arm_{name}"] = b
@@ -224,22 +219,26 @@ def ball_radiance(light: dict, mat: dict, ball) -> float:
     return float(np.max(mat["diffuse"]) * E / np.pi * (1 + mat["specular"]) + np.max(mat["emission"]))
 
 
+def _room_bounds(size, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """The room's box (floor at z = 0, centred in x and y), shrunk by ``margin`` m: (lo, hi)."""
+    half = np.array([size[0] / 2, size[1] / 2, 0.0])
+    return -half + margin, half + [0.0, 0.0, size[2]] - margin
+
+
 def _in_room(p, size, margin: float) -> bool:
-    lo = np.array([-size[0] / 2, -size[1] / 2, 0.0]) + margin
-    hi = np.array([size[0] / 2, size[1] / 2, size[2]]) - margin
+    lo, hi = _room_bounds(size, margin)
     return bool(np.all(p > lo) and np.all(p < hi))
 
 
 def _room_exit(p, d, size, margin: float) -> float:
     """How far (m) from ``p`` along unit ``d`` the room, shrunk by ``margin``, reaches."""
-    lo = np.array([-size[0] / 2, -size[1] / 2, 0.0]) + margin
-    hi = np.array([size[0] / 2, size[1] / 2, size[2]]) - margin
+    lo, hi = _room_bounds(size, margin)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(d > 0, (hi - p) / d, np.where(d < 0, (lo - p) / d, np.inf))
     return float(max(0.0, t.min()))
 
 
-def _field_direction(rng, max_field_deg: float) -> tuple[np.ndarray, float, float]:
+def field_direction(rng, max_field_deg: float) -> tuple[np.ndarray, float, float]:
     """A direction uniform over the solid angle within ``max_field_deg`` of the eye's axis (eye frame),
     with its cos(eccentricity) and azimuth."""
     ct = rng.uniform(np.cos(np.radians(max_field_deg)), 1.0)
@@ -250,7 +249,7 @@ def _field_direction(rng, max_field_deg: float) -> tuple[np.ndarray, float, floa
 
 def _distractors(kind, R, eye, u_ball, ball_angle, size, light, mat, ball, rng) -> dict:
     """Poses, visibility and emission of the distractors: one or two, in view, away from the ball."""
-    out = {n: {"pose": _translate(_HIDDEN), "visible": False, "emission": np.zeros(3), "diffuse": np.full(3, 0.5)} for n in DISTRACTORS}
+    out = {n: {"pose": translation(_HIDDEN), "visible": False, "emission": np.zeros(3), "diffuse": np.full(3, 0.5)} for n in DISTRACTORS}
     if not kind["distractor"]:
         return out
     L = ball_radiance(light, mat, ball)
@@ -259,7 +258,7 @@ def _distractors(kind, R, eye, u_ball, ball_angle, size, light, mat, ball, rng) 
         chosen.append(DISTRACTORS[1 + int(rng.integers(2))])
     for name in chosen:
         for _ in range(100):
-            u, _, _ = _field_direction(rng, 40.0)
+            u, _, _ = field_direction(rng, 40.0)
             room_left = _room_exit(eye, R @ u, size, 0.3)  # how far the room reaches that way
             if room_left < 0.5:
                 continue
@@ -302,12 +301,6 @@ def _yaw(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _translate(p) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = p
-    return T
-
-
 def sample_params(cfg, index: int, attempt: int, radii, diameter_limits) -> dict:
     """The random scene of v8 sample ``index`` of ``cfg`` (a FoveationDataConfig; ``attempt`` > 0: a redraw
     after attempt - 1 hid the ball). ``radii``: the balls' radii (m); ``diameter_limits(eccentricity)``:
@@ -341,7 +334,7 @@ def sample_params(cfg, index: int, attempt: int, radii, diameter_limits) -> dict
             yaw0, pitch0 = rng.uniform(-np.pi, np.pi), rng.uniform(-0.35, 0.35)
             fwd = np.array([np.cos(pitch0) * np.cos(yaw0), np.cos(pitch0) * np.sin(yaw0), np.sin(pitch0)])
         R = look_rotation(fwd)
-        u_eye, ct, phi = _field_direction(rng, cfg.max_field_deg)
+        u_eye, ct, phi = field_direction(rng, cfg.max_field_deg)
         size_k = int(rng.integers(len(radii)))
         radius = radii[size_k]
         lo, hi = diameter_limits(np.arccos(ct))
@@ -384,11 +377,6 @@ def _unit_perp(v, rng) -> np.ndarray:
     return a / np.linalg.norm(a)
 
 
-#: Rooms' BVHs are rebuilt per room; the balls', distractors' and body's are kept across scenes here
-#: (keyed by mesh identity, as :mod:`warp_vision.kernels.render.scene_data` does within one scene).
-_SHARED_BVHS: dict = {}
-
-
 def make_scene(family: int, seed: int, block: int, radii, with_arms: bool = True):
     """The scene of one room: the room (static), a ball of each of ``radii``, the occluding panel, the
     distractors and the body's arms and torso (dynamic, hidden until placed), and LAMPS lamps."""
@@ -397,27 +385,25 @@ def make_scene(family: int, seed: int, block: int, radii, with_arms: bool = True
 
     room = room_layout(family, seed, block)
     sc = make_room(size=room["size"], n_objects=room["objects"], seed=room["furniture_seed"], ball_centre=_HIDDEN)
-    sc.__dict__["_bvh_cache"] = _SHARED_BVHS
     for o in sc.objects:
         if o.name in room["surfaces"]:
             o.material.diffuse = tuple(float(v) for v in room["surfaces"][o.name])
     sc.set_visible("ball", False)
     for k, mesh in enumerate(_ball_meshes(tuple(radii))):
-        sc.add(f"ball_{k}", mesh, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True), _translate(_HIDDEN))
-    sc.add("occluder", _occluder_mesh(), Material((0.5, 0.5, 0.5)), _translate(_HIDDEN))
+        sc.add(f"ball_{k}", mesh, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True), translation(_HIDDEN))
+    sc.add("occluder", _occluder_mesh(), Material((0.5, 0.5, 0.5)), translation(_HIDDEN))
     for name, mesh in _distractor_meshes().items():
-        sc.add(name, mesh, Material((0.8, 0.8, 0.8)), _translate(_HIDDEN))
+        sc.add(name, mesh, Material((0.8, 0.8, 0.8)), translation(_HIDDEN))
     sc.set_visible("occluder", False)
     for name in DISTRACTORS:
         sc.set_visible(name, False)
     if with_arms:
         for name, mesh in ArmKit.load().meshes.items():
-            sc.add(name, mesh, Material(vertex_colors=True), _translate(_HIDDEN))
+            sc.add(name, mesh, Material(vertex_colors=True), translation(_HIDDEN))
             sc.set_visible(name, False)
     sc.lights = []
     for _ in range(LAMPS):
         sc.add_light(_HIDDEN, intensity=0.0)
-    sc._room_materials = {o.name: o.material for o in sc.objects if o.static}
     return sc
 
 
@@ -427,16 +413,19 @@ def place(scene, ps: list) -> None:
     visibility and materials, the lamps and the ambient light."""
     from warp_vision.scene import Material
 
-    for name, m in scene._room_materials.items():
+    for o in scene.objects:  # the room: its own materials (a per-batch list never replaces them), dimmed in dim samples
+        if not o.static:
+            continue
+        m = o.material
         if any(p["kind"]["dim"] for p in ps):
             dim = Material(tuple(DIM_ALBEDO * np.asarray(m.diffuse)), m.specular, m.shininess, 0.0)
-            scene.set_material(name, [dim if p["kind"]["dim"] else m for p in ps])
+            scene.set_material(o.name, [dim if p["kind"]["dim"] else m for p in ps])
         else:
-            scene.set_material(name, m)
+            scene.set_material(o.name, m)
     balls = [Material(tuple(p["ball_material"]["diffuse"]), p["ball_material"]["specular"], p["ball_material"]["shininess"],
                       emission=tuple(p["ball_material"]["emission"]), smooth=True) for p in ps]
     for k in range(sum(o.name.startswith("ball_") for o in scene.objects)):
-        scene.set_transform(f"ball_{k}", np.stack([_translate(p["ball"] if p["size"] == k else _HIDDEN) for p in ps]))
+        scene.set_transform(f"ball_{k}", np.stack([translation(p["ball"] if p["size"] == k else _HIDDEN) for p in ps]))
         scene.set_visible(f"ball_{k}", [p["size"] == k for p in ps])
         scene.set_material(f"ball_{k}", balls)
     scene.set_transform("occluder", np.stack([p["panel_pose"] for p in ps]))
@@ -449,7 +438,7 @@ def place(scene, ps: list) -> None:
         scene.set_material(name, [Material(tuple(d["diffuse"]), emission=tuple(d["emission"])) for d in ds])
     arm_names = [o.name for o in scene.objects if o.name.startswith("arm_")]
     for name in arm_names:
-        scene.set_transform(name, np.stack([p["arm"][name] if p["arm"] else _translate(_HIDDEN) for p in ps]))
+        scene.set_transform(name, np.stack([p["arm"][name] if p["arm"] else translation(_HIDDEN) for p in ps]))
         scene.set_visible(name, [p["arm"] is not None for p in ps])
     for i, lamp in enumerate(scene.lights):
         lamp.position = np.stack([p["light"]["pos"][i] for p in ps])

@@ -202,6 +202,19 @@ def net_input(onv: torch.Tensor, norm: dict, device, dtype: torch.dtype = torch.
     return (x - norm["input_mean"].to(device)) / norm["input_std"].to(device)
 
 
+@torch.no_grad()
+def predict_targets(model: torch.nn.Module, onv: torch.Tensor, norm: dict, device, dtype: torch.dtype = torch.float32,
+                    batch: int = 256) -> torch.Tensor:
+    """A foveation-style net's predictions in the targets' units (e.g. yaw, pitch in radians) for ONVs
+    [N, 3P], ``batch`` at a time: :func:`net_input`, the net, then its standardisation undone with
+    ``norm["target_mean"]`` and ``norm["target_std"]``. [N, outputs] float32 on the CPU."""
+    out = []
+    for s in range(0, len(onv), batch):
+        z = model(net_input(onv[s:s + batch], norm, device, dtype)).cpu()
+        out.append(z * norm["target_std"] + norm["target_mean"])
+    return torch.cat(out) if out else torch.zeros(0, len(norm["target_mean"]))
+
+
 def fit_input_norm(onv16: torch.Tensor, train: np.ndarray, limit: int = 2000, per_sample: bool = False) -> dict:
     """The input normalisation of :func:`net_input` from (at most ``limit`` of) the training ONVs ``train``:
     {"input_scale": float, "per_sample": bool, "input_mean": 0-d tensor, "input_std": 0-d tensor}."""

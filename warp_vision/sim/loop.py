@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from warp_vision.frames import gaze_direction
-from warp_vision.body import ARM_PARTS, SIDES, Body, visible_parts
+from warp_vision.body import ARM_PARTS, HIDDEN_FROM_EYES, SIDES, Body, visible_parts
 from warp_vision.sim.oculomotor import holding_activations
 
 CONTROL_DT = 0.01  # s
@@ -67,9 +67,6 @@ ACTIVATION_SLACK = 0.005
 OPTICS_STEP_D = 0.5
 PUPIL_STEP_MM = 0.5
 OPTICS_HYSTERESIS = 0.75  # of a step: how far from its rendered state the eye must be to change it
-#: Bodies the eyes do not see: the skull and cervical spine around them (its inside would shadow every
-#: ray) and the eyes themselves; the third-person camera sees them.
-HIDDEN_FROM_EYES = ("head", "neck", "eye_left", "eye_right", "orbit_left", "orbit_right")
 
 
 class Foveator:
@@ -89,12 +86,10 @@ class Foveator:
         self.device = device
         self.onv_dtype = onv_dtype(ck["net"])
 
-    @torch.no_grad()
     def __call__(self, onv: torch.Tensor) -> np.ndarray:
-        from warp_vision.nn.trained import net_input
+        from warp_vision.nn.trained import predict_targets
 
-        z = self.model(net_input(onv, self.norm, self.device, self.onv_dtype)).cpu()
-        return (z * self.norm["target_std"] + self.norm["target_mean"]).numpy()
+        return predict_targets(self.model, onv, self.norm, self.device, self.onv_dtype).numpy()
 
 
 #: Bodies whose parts move together in the scene: each arm's humerus, ulna, radius and hand (the carpals

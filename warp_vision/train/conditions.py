@@ -35,17 +35,6 @@ def condition_config(data, condition: str, samples: int):
                                seed=data.seed + HELD_OUT_SEED, chunk_size=min(data.chunk_size, 128))
 
 
-def _predict(model, onv16, norm, device, dtype, batch: int = 128) -> torch.Tensor:
-    from warp_vision.nn.trained import net_input
-
-    out = []
-    with torch.no_grad():
-        for s in range(0, len(onv16), batch):
-            z = model(net_input(onv16[s:s + batch], norm, device, dtype)).cpu()
-            out.append(z * norm["target_std"] + norm["target_mean"])
-    return torch.cat(out)
-
-
 def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress: bool = True, log=print) -> dict:
     """Every run's best net on every held-out condition: {run_dir: {condition: {"median_deg", "p90_deg",
     "n"}}}, printed as one table; writes each run's ``conditions.json`` and ``figures/conditions.png``."""
@@ -53,7 +42,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
     from warp_vision.data.foveation_scenes import CONDITIONS
     from warp_vision.data.store import ChunkedStore
     from warp_vision.fileio import atomic_write
-    from warp_vision.nn.trained import build_net, onv_dtype, read_checkpoint
+    from warp_vision.nn.trained import build_net, onv_dtype, predict_targets, read_checkpoint
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
     from warp_vision.train.harness import pick_device
     from warp_vision.train.rundir import dataset_dir, run_config
@@ -69,6 +58,9 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         out = Path(run)
         if not (out / "best.pt").exists():
             raise FileNotFoundError(f"{out / 'best.pt'}: no best.pt (is this a foveation run directory?)")
+        saved = json.loads((out / "config.json").read_text()) if (out / "config.json").exists() else {}
+        if saved.get("task", "foveation") != "foveation":
+            raise ValueError(f"{out}: a {saved['task']} run; --conditions measures foveation runs")
         ck = read_checkpoint(out / "best.pt")
         cfg = run_config(FoveationTask, out, ck)
         device = pick_device(cfg.device)
@@ -80,7 +72,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         _, va, te = task.splits()
         te = te if len(te) else va
         row = {}
-        pred = _predict(model, task.onv16[torch.as_tensor(te)], ck["norm"], device, dtype)
+        pred = predict_targets(model, task.onv16[torch.as_tensor(te)], ck["norm"], device, dtype)
         err = angular_error_deg(pred, task.target[torch.as_tensor(te)])
         row["own test split"] = _stats(err)
         examples[run] = {}
@@ -90,7 +82,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
             synthesize(ddir, dcfg, progress=progress, log=log)
             data = ChunkedStore.open(ddir).load(["onv", "target"])
             onv, target = torch.from_numpy(data["onv"]), torch.from_numpy(data["target"])
-            pred = _predict(model, onv, ck["norm"], device, dtype)
+            pred = predict_targets(model, onv, ck["norm"], device, dtype)
             err = angular_error_deg(pred, target)
             row[c] = {**_stats(err), "dataset": str(ddir)}
             k = int(torch.argsort(err)[len(err) // 2])  # the median sample

@@ -220,16 +220,18 @@ def _packet_in_instance(X: wp.transform, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
 
 
 @wp.func
+def batch_row(b: int, rows: int):
+    """The row of a per-batch table that batch element b reads: b, or 0 for a table of one row shared by
+    the whole batch (transforms, visibility, lights, materials, ambient light)."""
+    if rows == 1:
+        return 0
+    return b
+
+
+@wp.func
 def _batch_rows(bv: BvhData, b: int):
-    """The rows of the instance transforms and of the visibility that batch element b reads (either
-    table may hold one row, shared by the whole batch)."""
-    bt = b
-    if bv.world_from_inst.shape[0] == 1:
-        bt = 0
-    bv_ = b
-    if bv.inst_visible.shape[0] == 1:
-        bv_ = 0
-    return bt, bv_
+    """The rows of the instance transforms and of the visibility that batch element b reads."""
+    return batch_row(b, bv.world_from_inst.shape[0]), batch_row(b, bv.inst_visible.shape[0])
 
 
 @wp.func

@@ -17,6 +17,8 @@ Units: metres and the world frame of docs/ARCHITECTURE.md.
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import warp as wp
 
@@ -56,17 +58,24 @@ def _inverse_rigid(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+#: Dynamic objects' BVHs by mesh identity, shared by every scene that holds the same mesh object (a
+#: generator that builds a scene per room reuses its balls' and body's BVHs): id(mesh) -> (weak reference
+#: to the mesh, (vertices, faces) counts, BVH); an entry goes when its mesh does.
+_MESH_BVHS: dict = {}
+
+
 def _cached_bvh(scene, group, V, F):
-    """Dynamic objects' BVHs outlive geometry changes elsewhere in the scene (keyed by mesh identity)."""
-    cache = scene.__dict__.setdefault("_bvh_cache", {})
+    """An instance's BVH: the static objects' merged mesh through the disk cache; a dynamic object's by
+    its mesh's identity, so it outlives geometry changes elsewhere in the scene and the scene itself."""
     obj = scene.objects[group[0]]
     if obj.static:
         return build_bvh_cached(V, F)
-    key = (id(obj.mesh), len(V), len(F))
-    hit = cache.get(key)
-    if hit is None or hit[0] is not obj.mesh:
-        cache[key] = hit = (obj.mesh, build_bvh_cached(V, F))
-    return hit[1]
+    key, counts = id(obj.mesh), (len(V), len(F))
+    hit = _MESH_BVHS.get(key)
+    if hit is None or hit[0]() is not obj.mesh or hit[1] != counts:
+        ref = weakref.ref(obj.mesh, lambda _, k=key: _MESH_BVHS.pop(k, None))
+        _MESH_BVHS[key] = hit = (ref, counts, build_bvh_cached(V, F))
+    return hit[2]
 
 
 def _object_arrays(o):

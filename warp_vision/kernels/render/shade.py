@@ -31,6 +31,7 @@ from warp_vision.kernels.render.packet import (
     BvhData,
     all_negative,
     barycentric,
+    batch_row,
     ivec8,
     packet_closest,
     packet_occluded,
@@ -285,18 +286,11 @@ def packet_radiance(
     closest hits, the background for lanes that miss, the surfaces' direct light, then the mirrored
     rays of reflective lanes (until ``sc.max_depth`` bounces or no lane continues).
     """
-    bt = b  # batch rows of the transforms, lights, materials and ambient light (each may be shared: 1 row)
-    if sc.bv.world_from_inst.shape[0] == 1:
-        bt = 0
-    bl = b
-    if sc.light_pos.shape[0] == 1:
-        bl = 0
-    bm = b
-    if sc.diffuse.shape[0] == 1:
-        bm = 0
-    ba = b
-    if sc.ambient.shape[0] == 1:
-        ba = 0
+    # batch rows of the transforms, lights, materials and ambient light (each may be shared: 1 row)
+    bt = batch_row(b, sc.bv.world_from_inst.shape[0])
+    bl = batch_row(b, sc.light_pos.shape[0])
+    bm = batch_row(b, sc.diffuse.shape[0])
+    ba = batch_row(b, sc.ambient.shape[0])
     R = vec8()
     G = vec8()
     Bc = vec8()
