@@ -27,6 +27,8 @@ import math
 import numpy as np
 
 __all__ = [
+    "LUMINANCE_CALIBRATION",
+    "adapting_luminance",
     "luminance_for_diameter",
     "MONOCULAR_EFFECT",
     "REFERENCE_AGE_YEARS",
@@ -161,4 +163,23 @@ def luminance_for_diameter(diameter_mm, field_deg=60.0, eyes: int = 1):
     flux = _SD_FLUX_SCALE * s ** (1.0 / _SD_EXPONENT)
     field = _check_real("field_deg", field_deg, allow_zero=False, upper=360.0)
     lum = flux / (np.pi * field**2 / 4.0 * MONOCULAR_EFFECT[_check_eyes(eyes)])
+    return float(lum) if lum.ndim == 0 else lum
+
+
+#: The renderer's radiance in photometric units: the adapting luminance (cd/m^2) of a scene whose ONV,
+#: seen through a pupil of D mm, has a mean irradiance (over every photoreceptor and channel) of m is
+#: ``LUMINANCE_CALIBRATION * m / D**2`` (the irradiance grows with the pupil's area). The constant is set
+#: once so that the foveation training room (data generator v7, seen through its 4 mm pupil; mean
+#: irradiance 0.00279 over the default left dataset) is the luminance whose Watson & Yellott pupil is
+#: those 4 mm: 75.2 cd/m^2 * 16 mm^2 / 0.00279 = 4.31e5. A loop whose pupil follows this law keeps the
+#: foveation nets' ONVs as bright as the ones they were trained on.
+LUMINANCE_CALIBRATION = 4.31e5
+
+
+def adapting_luminance(onv_mean, pupil_mm):
+    """The adapting luminance (cd/m^2) of a scene whose ONV, seen through a ``pupil_mm`` pupil, has mean
+    irradiance ``onv_mean`` (:data:`LUMINANCE_CALIBRATION`). Vectorised; both must be > 0."""
+    m = _check_real("onv_mean", onv_mean, allow_zero=False)
+    d = _check_real("pupil_mm", pupil_mm, allow_zero=False)
+    lum = LUMINANCE_CALIBRATION * m / d**2
     return float(lum) if lum.ndim == 0 else lum

@@ -58,8 +58,22 @@ def _oculomotor(spec: dict):
     return OculomotorNet(hidden=spec["hidden"])
 
 
+def _pupil(spec: dict):
+    from warp_vision.nn.intraocular import PupilNet
+
+    torch.manual_seed(spec["seed"])
+    return PupilNet(_array(spec["photoreceptor_xy"]), spec["hidden"], spec["rings"], spec["sectors"])
+
+
+def _lens(spec: dict):
+    from warp_vision.nn.intraocular import LensNet
+
+    torch.manual_seed(spec["seed"])
+    return LensNet(_array(spec["photoreceptor_xy"]), _array(spec["central"]), spec["photoreceptors"], spec["hidden"])
+
+
 #: spec["kind"] -> the function that builds the untrained net from the spec
-BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor}
+BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor, "pupil": _pupil, "lens": _lens}
 
 #: the ONV dtypes a net can read (spec["onv_dtype"]; checkpoints without one read float32)
 ONV_DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}

@@ -5,13 +5,16 @@
                both eyes' retina images, simulated time on every frame; --gif for a GIF too), the left
                retina at four moments (Fig. 7) and the gaze error over time.
   experiments  saccades to a ball appearing at 20 deg in eight directions, vergence at 1 m, tracking a
-               ball moving at 15 and 30 deg/s, the loop's time shares. Writes experiments.json.
+               ball moving at 15 and 30 deg/s both ways round, the loop's time shares. Writes experiments.json.
+  intraocular  light steps of +2 and -2 log units while fixating: the pupils under their nets and, in the
+               same run, under the analytic law (the nets' teacher). Writes intraocular.json and
+               figures/light_steps.png.
   oculomotor   both eyes' oculomotor nets only: trains the missing ones.
 
-Both demo and experiments work from a fresh clone: each net the loop needs (both eyes' foveation liNets
-and oculomotor nets) that is missing is trained first, after a plan with time estimates, and cached
-(``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``; with --quick, smaller
-nets in ``runs/quick/``). Each output directory gets ``nets.json``: the nets used, with their training
+Demo, experiments and intraocular work from a fresh clone: each net the loop needs (both eyes' foveation
+liNets, oculomotor nets and, unless --intraocular analytic, pupil nets) that is missing is trained first,
+after a plan with time estimates, and cached (``runs/foveation_left``, ``runs/foveation_right``,
+``runs/oculomotor/<eye>``, ``runs/pupil/<eye>``; with --quick, smaller nets in ``runs/quick/``). Each output directory gets ``nets.json``: the nets used, with their training
 configs and checksums.
 """
 
@@ -36,12 +39,13 @@ def _specs(args):
     runs = default_runs(args.quick)
     left = getattr(args, "left", None) or runs["left"]
     right = getattr(args, "right", None) or runs["right"]
-    return plan(left, right, args.oculomotor or runs["oculomotor"], quick=args.quick)
+    pupil = (getattr(args, "pupil", None) or runs["pupil"]) if getattr(args, "intraocular", "analytic") == "nets" else None
+    return plan(left, right, args.oculomotor or runs["oculomotor"], quick=args.quick, pupil=pupil)
 
 
 def _setup(args):
     """Provide the nets (training missing ones), build the body and the loop; writes nets.json to --out."""
-    from warp_vision.sim.loop import Foveator, VisuomotorLoop
+    from warp_vision.sim.loop import Foveator, VisuomotorLoop, load_pupil
     from warp_vision.sim.oculomotor import load_oculomotor
     from warp_vision.sim.provision import manifest, provide
 
@@ -57,8 +61,9 @@ def _setup(args):
         print(f"note: {', '.join(old)} learnt on generator v7 (a glowing ball in a dim room); with --ball ordinary "
               "it will not find the ball. Retrain it (python -m warp_vision.train --eye EYE --overwrite) or use --ball glowing.")
     ocu_root = os.path.dirname(specs[2].run)
+    pupil = {s: load_pupil(spec.run) for s, spec in zip(SIDES, specs[4:6])} if len(specs) > 4 else None
     return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
-                                ball=args.ball)
+                                ball=args.ball, pupil_nets=pupil)
 
 
 class _Viewer:
@@ -170,6 +175,50 @@ def demo(args) -> dict:
             "timing_s": dict(loop.timing)}
 
 
+def intraocular(args) -> dict:
+    """Light steps of +2 and -2 log units with the pupil nets and, in the same run, with their teacher (the
+    analytic law): the measures of :func:`warp_vision.sim.scenarios.light_steps` and a figure of both
+    responses against the teacher's steady state over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from warp_vision.sim.loop import VisuomotorLoop
+    from warp_vision.sim.scenarios import LIGHT_PHASES, light_steps
+
+    args.intraocular = "nets"
+    _body, nets_loop = _setup(args)
+    body = Body(BodyConfig(arms=not args.no_arms))
+    body.step(int(SETTLE_S / body.model.opt.timestep))
+    analytic_loop = VisuomotorLoop(body, nets_loop.fov, nets_loop.ocu, seed=args.seed, frame_every=args.frame_every,
+                                   ball=args.ball)
+    runs = {"nets": light_steps(nets_loop, progress=not args.no_progress),
+            "analytic": light_steps(analytic_loop, progress=not args.no_progress)}
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
+    for ax, s in zip(axes, SIDES):
+        for mode, style in (("nets", "C0-"), ("analytic", "C1--")):
+            tr = runs[mode]["traces"]
+            ax.plot(tr["t"], tr[f"pupil_{s}"], style, label=f"pupil, {mode} ({'pupil net' if mode == 'nets' else 'teacher'} in the loop)")
+        tr = runs["nets"]["traces"]
+        ax.plot(tr["t"], tr[f"teacher_{s}"], "k:", lw=1, label="teacher's command (Watson & Yellott)")
+        for st in runs["nets"]["steps"]:
+            if st["eye"] == s:
+                ax.axvline(st["at_s"], color="0.7", lw=0.8)
+        ax.set(xlabel="simulated time (s)", title=f"{s} eye: light steps of +2 and -2 log units")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("pupil diameter (mm)")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    os.makedirs(os.path.join(args.out, "figures"), exist_ok=True)
+    fig.savefig(os.path.join(args.out, "figures", "light_steps.png"), dpi=110)
+    plt.close(fig)
+    out = {"phases_s_scale": [list(p) for p in LIGHT_PHASES]}
+    for mode, r in runs.items():
+        out[mode] = {"steps": r["steps"], "traces": {k: v.tolist() for k, v in r["traces"].items()}}
+    return out
+
+
 def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov_deg: float) -> np.ndarray:
     """Draw each eye's gaze line (1.5 m, red) onto a tone-mapped image [h, w, 3] (uint8 out)."""
     from PIL import Image, ImageDraw
@@ -192,12 +241,12 @@ def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov
 
 
 def main(argv=None) -> int:
-    from warp_vision.sim.loop import BALLS, FRAME_EVERY
+    from warp_vision.sim.loop import BALLS, FRAME_EVERY, INTRAOCULAR
 
     ap = argparse.ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
-    for name in ("demo", "experiments", "oculomotor"):
+    for name in ("demo", "experiments", "intraocular", "oculomotor"):
         p = sub.add_parser(name)
         p.add_argument("--quick", action="store_true",
                        help="smaller nets (runs/quick/..., trained in a few minutes when missing) for a first look")
@@ -213,6 +262,12 @@ def main(argv=None) -> int:
         p.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
         p.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
         p.add_argument("--seed", type=int, default=0, help="the room's seed")
+        p.add_argument("--intraocular", choices=INTRAOCULAR, default="nets",
+                       help="nets (default): each eye's pupil net commands its iris from the ONV (trained into "
+                            "runs/pupil/<eye> if missing); analytic: the nets' teacher, Watson & Yellott's pupil for the "
+                            "adapting luminance. Accommodation follows the gaze lines' vergence in both (no lens net yet)")
+        p.add_argument("--pupil", default=None, help="the pupil runs' directory: <dir>/left, <dir>/right (default "
+                                                     "runs/pupil, or runs/quick/pupil with --quick)")
         p.add_argument("--ball", choices=BALLS, default="glowing",
                        help="glowing (default): a white ball that glows, in the room dimmed (generator v7's scene, what the "
                             "default foveation nets learn); ordinary: a grey-white ball lit by the room's lamps, in a room at "
@@ -257,6 +312,17 @@ def _run(args) -> None:
         return
     if args.command == "demo":
         result = demo(args)
+    elif args.command == "intraocular":
+        result = intraocular(args)
+        for mode in ("nets", "analytic"):
+            for st in result[mode]["steps"]:
+                print(f"{mode:8s} {st['eye']:5s} eye, {st['log_units']:+.0f} log units at {st['at_s']:.1f} s ({st['direction']}): "
+                      f"{st['from_mm']:.2f} -> {st['end_mm']:.2f} mm (steady state {st['steady_state_mm']:.2f}, off by "
+                      f"{100 * st['end_relative_error']:.1f}%), latency {st['latency_s']} s, 10-90% {st['rise_10_90_s']} s, "
+                      f"settled within 5% after {st['settle_s']} s")
+        write_json(os.path.join(args.out, "intraocular.json"), result)
+        print(f"wrote {os.path.join(args.out, 'intraocular.json')} and {os.path.join(args.out, 'figures', 'light_steps.png')}")
+        return
     else:
         _body, loop = _setup(args)
         result = experiments(loop, progress=not args.no_progress)

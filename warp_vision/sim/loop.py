@@ -25,9 +25,9 @@ The oculomotor net maps (change of commanded gaze, current activations) to the n
 neck controller moves the head's target a fraction ``NECK_GAIN`` per period toward the eyes' mean gaze
 (the eye-head synergy: the eyes return toward centre as the head takes over), held by least-effort neck
 activations (:func:`warp_vision.sim.oculomotor.holding_activations`). Accommodation is commanded to
-the distance where the two gaze lines converge; the pupil to the Watson & Yellott diameter of the
-retinal irradiance; the iris and lens plants (:mod:`warp_vision.eye.plants`) answer after their
-latencies.
+the distance where the two gaze lines converge; the pupil by each eye's pupil net from its ONV (or, with
+no nets, by their teacher: Watson & Yellott's diameter for the adapting luminance); the iris and lens
+plants (:mod:`warp_vision.eye.plants`) answer after their latencies.
 """
 
 from __future__ import annotations
@@ -67,6 +67,21 @@ ACTIVATION_SLACK = 0.005
 OPTICS_STEP_D = 0.5
 PUPIL_STEP_MM = 0.5
 OPTICS_HYSTERESIS = 0.75  # of a step: how far from its rendered state the eye must be to change it
+
+
+#: Who commands the iris: "nets" (each eye's pupil net) or "analytic" (their teacher, Watson & Yellott).
+INTRAOCULAR = ("nets", "analytic")
+
+
+def load_pupil(run_dir: str, device: str = "cpu"):
+    """An eye's trained pupil net (:class:`warp_vision.nn.intraocular.PupilNet`), in eval mode."""
+    from warp_vision.nn.trained import load_net
+
+    model, ck = load_net(run_dir, device)
+    if ck.get("net", {}).get("kind") != "pupil":
+        raise ValueError(f"{run_dir}: expected a pupil run (python -m warp_vision.train pupil), got a "
+                         f"{ck.get('net', {}).get('kind')!r} net")
+    return model
 
 
 class Foveator:
@@ -197,9 +212,18 @@ class VisuomotorLoop:
     control period. ``timing`` accumulates wall seconds per stage (render, nets, mujoco, control)."""
 
     def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, frame_every: int = FRAME_EVERY,
-                 ball: str = "glowing"):
+                 ball: str = "glowing", pupil_nets: dict | None = None):
         if not isinstance(frame_every, (int, np.integer)) or frame_every < 1:
             raise ValueError(f"frame_every: expected a whole number of control periods >= 1, got {frame_every!r}")
+        if pupil_nets is not None and set(pupil_nets) != set(SIDES):
+            raise ValueError(f"pupil_nets: expected one net per eye {SIDES}, got {sorted(pupil_nets)}")
+        #: each eye's pupil net (:class:`warp_vision.nn.intraocular.PupilNet`), or None: the analytic law
+        self.pupil_nets = pupil_nets
+        #: the room's light level: every lamp, the ambient light and every emission times this (the renderer
+        #: is linear in them, so the ONVs are the rendered ones times it); the light-step scenario changes it
+        self.light_scale = 1.0
+        #: per eye, the analytic law's pupil command (Watson & Yellott) of the last frame: the nets' teacher
+        self.pupil_teacher: dict = {}
         self.body, self.fov, self.ocu = body, foveators, oculomotor
         self.frame_every = int(frame_every)
         self.period = 0
@@ -257,6 +281,8 @@ class VisuomotorLoop:
             eye = NavarroEye(*q)
             out[s] = render_onv(self.scene, self.fov[s].retina, eye, self.body.eye_pose(s)[None],
                                 self.fov[s].samples_per_receptor, seed=0)
+            if self.light_scale != 1.0:
+                out[s] = out[s] * self.light_scale
         self.timing["render"] += time.perf_counter() - t0
         self.onv = out
         return out
@@ -346,19 +372,22 @@ class VisuomotorLoop:
         self.timing["mujoco"] += time.perf_counter() - t0
 
     def _intraocular(self, seen: bool) -> None:
-        """Accommodate to where the gaze lines converge; the pupil follows the retinal irradiance of the
-        last frame (``seen``: a new one this period)."""
-        from warp_vision.eye.pupil import luminance_for_diameter, pupil_diameter_mm
+        """Accommodate to where the gaze lines converge; on a new frame (``seen``) the pupil is commanded
+        from its ONV: by the eye's pupil net, or by the analytic law (Watson & Yellott's pupil for the
+        adapting luminance, :func:`warp_vision.eye.pupil.adapting_luminance`), which is always computed as
+        the nets' teacher. Both read the ONV with the pupil it was rendered through."""
+        from warp_vision.eye.pupil import adapting_luminance, pupil_diameter_mm
 
         dist = vergence_distance(self.body)
         for s in SIDES:
-            pupil, _ = self.body.intraocular(s)
             if seen or s not in self._pupil_command:
-                trained = self.fov[s].trained_eye.pupil_diameter_mm
-                mean = float(self.onv[s].mean()) * (trained / pupil) ** 2  # as bright as through the training pupil
-                # a retina as bright as the training set's mean sees the luminance that gives the training pupil
-                lum = luminance_for_diameter(trained) * mean / float(self.fov[s].norm["input_scale"])
-                self._pupil_command[s] = pupil_diameter_mm(lum)
+                looked = self._optics[s][1]  # the (quantised) pupil the frame was rendered through
+                self.pupil_teacher[s] = float(pupil_diameter_mm(adapting_luminance(max(float(self.onv[s].mean()), 1e-12), looked)))
+                if self.pupil_nets is None:
+                    self._pupil_command[s] = self.pupil_teacher[s]
+                else:
+                    with torch.no_grad():
+                        self._pupil_command[s] = float(self.pupil_nets[s](self.onv[s].float(), torch.tensor([looked]))[0])
             self.body.set_intraocular(s, pupil_mm=self._pupil_command[s], accommodation_D=1.0 / max(dist, 0.1))
 
 

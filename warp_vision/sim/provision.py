@@ -29,12 +29,13 @@ from warp_vision.body import SIDES
 #: foveation net's dataset synthesis plus its training, and the oculomotor net's holding-activation
 #: dataset plus its training.
 MINUTES = {("foveation", "default"): 4.5, ("foveation", "quick"): 1.2,
-           ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5}
+           ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
+           ("pupil", "default"): 3.0, ("pupil", "quick"): 1.0}
 
 
 @dataclass
 class NetSpec:
-    """One net the loop needs: its kind (foveation | oculomotor), eye, run directory and training preset."""
+    """One net the loop needs: its kind (foveation | oculomotor | pupil), eye, run directory and training preset."""
 
     kind: str
     eye: str
@@ -60,19 +61,21 @@ class NetSpec:
 
 
 def default_runs(quick: bool) -> dict:
-    """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor"}."""
+    """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor", "pupil"}."""
     root = os.path.join("runs", "quick") if quick else "runs"
     return {"left": os.path.join(root, "foveation_left"), "right": os.path.join(root, "foveation_right"),
-            "oculomotor": os.path.join(root, "oculomotor")}
+            "oculomotor": os.path.join(root, "oculomotor"), "pupil": os.path.join(root, "pupil")}
 
 
-def plan(left: str, right: str, oculomotor: str, quick: bool = False) -> list[NetSpec]:
-    """The four nets of the loop: both eyes' foveation nets in ``left`` and ``right``, their oculomotor
-    nets in ``oculomotor/<eye>``; ``quick`` trains missing ones with the ``quick`` presets."""
+def plan(left: str, right: str, oculomotor: str, quick: bool = False, pupil: str | None = None) -> list[NetSpec]:
+    """The nets of the loop: both eyes' foveation nets in ``left`` and ``right``, their oculomotor nets in
+    ``oculomotor/<eye>``, and (with ``pupil``) their pupil nets in ``pupil/<eye>``, in that order;
+    ``quick`` trains missing ones with the ``quick`` presets."""
     preset = "quick" if quick else "default"
     fov = {"left": left, "right": right}
     return ([NetSpec("foveation", s, fov[s], preset) for s in SIDES]
-            + [NetSpec("oculomotor", s, os.path.join(oculomotor, s), preset) for s in SIDES])
+            + [NetSpec("oculomotor", s, os.path.join(oculomotor, s), preset) for s in SIDES]
+            + ([NetSpec("pupil", s, os.path.join(pupil, s), preset) for s in SIDES] if pupil else []))
 
 
 def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None) -> list[NetSpec]:

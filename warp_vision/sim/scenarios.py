@@ -56,7 +56,8 @@ def _scenarios():
         out.append((f"saccade_{45 * k}", 0.8,
                     lambda body, ang=ang: _fixed(point_at(body, 20.0 * np.cos(ang), 20.0 * np.sin(ang), 1.0))))
     for omega in (15.0, 30.0):
-        out.append((f"tracking_{omega:g}", 1.2, lambda body, omega=omega: _orbit(body, omega)))
+        for way in TRACKING_WAYS:
+            out.append((f"tracking_{omega:g}_{way}", 1.2, lambda body, omega=omega, way=way: _orbit(body, omega, way)))
     return out
 
 
@@ -64,13 +65,20 @@ def _fixed(p):
     return lambda _t: p
 
 
-def _orbit(body, omega: float):
+#: The pursuits run both ways round: leftward from 18 deg right, and rightward from 18 deg left.
+TRACKING_WAYS = ("leftward", "rightward")
+
+
+def _orbit(body, omega: float, way: str = "leftward"):
     """A circle of 1 m around the eyes' midpoint in the horizontal plane at ``omega`` deg/s, fixed in the
-    world as the head turns (starting 18 deg to the right)."""
+    world as the head turns, starting 18 deg to one side and moving ``way`` (:data:`TRACKING_WAYS`)."""
+    if way not in TRACKING_WAYS:
+        raise ValueError(f"way: expected one of {TRACKING_WAYS}, got {way!r}")
     mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
+    sign = 1.0 if way == "leftward" else -1.0
 
     def orbit(tt):
-        yaw = np.radians(-18.0 + omega * tt)
+        yaw = sign * np.radians(-18.0 + omega * tt)
         return mid + np.array([np.sin(yaw), -np.cos(yaw), 0.0])
 
     return orbit
@@ -78,7 +86,7 @@ def _orbit(body, omega: float):
 
 def experiments(loops, progress: bool = True):
     """Saccades to a ball appearing at 20 deg in eight directions (1 m away), vergence at the end of each,
-    and tracking a ball circling the eyes at 15 and 30 deg/s; the loop's time shares (over these runs
+    and tracking a ball circling the eyes at 15 and 30 deg/s, both ways round; the loop's time shares (over these runs
     alone). The bodies' gravity is switched off: the ball is placed kinematically.
 
     ``loops``: one loop, or a list of them (each with its own body); a list runs each scenario on every
@@ -129,10 +137,11 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
            "vergence_1m": {"gaze_line_distance_cm_max": max(tt["gaze_line_distance_cm"] for tt in trials),
                            "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials]))}}
     for omega in (15.0, 30.0):
-        tr = st["traces"][f"tracking_{omega:g}"]
-        late = tr["t"] > 0.3  # after the first saccade onto it
-        out[f"tracking_{omega:g}deg_s"] = {"median_error_deg": {s: float(np.median(tr[f"error_{s}"][late])) for s in SIDES},
-                                           "p90_error_deg": {s: float(np.percentile(tr[f"error_{s}"][late], 90)) for s in SIDES}}
+        trs = [st["traces"][f"tracking_{omega:g}_{way}"] for way in TRACKING_WAYS]
+        # after the first saccade onto it, both ways round pooled
+        err = {s: np.concatenate([tr[f"error_{s}"][tr["t"] > 0.3] for tr in trs]) for s in SIDES}
+        out[f"tracking_{omega:g}deg_s"] = {"median_error_deg": {s: float(np.median(err[s])) for s in SIDES},
+                                           "p90_error_deg": {s: float(np.percentile(err[s], 90)) for s in SIDES}}
     wall = st["wall"]
     share = {k: v / wall for k, v in loop.timing.items()}
     share["other"] = max(0.0, 1.0 - sum(share.values()))  # traces, progress bars, Python between the stages
@@ -140,3 +149,68 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
     out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall, "frame_every": loop.frame_every,
                      "frames_per_s": 1.0 / (loop.frame_every * control_dt), "share": share}
     return out
+
+
+#: The light-step scenario: the room's light level (``loop.light_scale``) in phases of (duration s,
+#: scale): settle, +2 log units, back (-2 log units).
+LIGHT_PHASES = ((2.0, 1.0), (2.5, 100.0), (3.0, 1.0))
+#: A pupil has settled when it stays within this fraction of the teacher's steady state.
+SETTLE_TOLERANCE = 0.05
+
+
+def light_steps(loop, phases=LIGHT_PHASES, progress: bool = True) -> dict:
+    """Fixate a ball straight ahead at 1 m while the room's light level steps through ``phases``; per
+    period the pupils (state and command) and the teacher's command (Watson & Yellott for the adapting
+    luminance of the last frame). Per step and eye: the steady state (the teacher's command over the last
+    0.5 s of the phase), the pupil's distance from it at the phase's end, the settle time (after which it
+    stays within ``SETTLE_TOLERANCE`` of it), the latency (until it has moved 5% of the way) and the
+    10-90% time."""
+    from tqdm import tqdm
+
+    from warp_vision.sim.loop import CONTROL_DT, point_at
+
+    body = loop.body
+    body.model.opt.gravity[:] = 0
+    loop.light_scale = phases[0][1]
+    loop.reset(SETTLE_S)
+    ball = point_at(body, 0.0, 0.0, 1.0)
+    tr = {"t": [], "light": [], **{f"{k}_{s}": [] for k in ("pupil", "command", "teacher") for s in SIDES}}
+    starts = np.cumsum([0.0] + [d for d, _ in phases])
+    n = int(round(starts[-1] / CONTROL_DT))
+    t0 = body.time
+    for k in tqdm(range(n), desc="light steps", disable=not progress, leave=False):
+        t = k * CONTROL_DT
+        loop.light_scale = phases[int(np.searchsorted(starts, t, side="right")) - 1][1]
+        body.set_ball(ball)
+        loop.step()
+        tr["t"].append(body.time - t0)
+        tr["light"].append(loop.light_scale)
+        for s in SIDES:
+            tr[f"pupil_{s}"].append(body.intraocular(s)[0])
+            tr[f"command_{s}"].append(loop._pupil_command[s])
+            tr[f"teacher_{s}"].append(loop.pupil_teacher[s])
+    tr = {k: np.asarray(v) for k, v in tr.items()}
+    steps = []
+    for i in range(1, len(phases)):
+        a, b = starts[i], starts[i + 1]
+        for s in SIDES:
+            steps.append({"eye": s, "at_s": float(a), "log_units": float(np.log10(phases[i][1] / phases[i - 1][1])),
+                          **pupil_step_metrics(tr["t"], tr[f"pupil_{s}"], tr[f"teacher_{s}"], a, b)})
+    return {"traces": tr, "steps": steps}
+
+
+def pupil_step_metrics(t: np.ndarray, pupil: np.ndarray, teacher: np.ndarray, start: float, end: float) -> dict:
+    """A pupil's response to a light step at ``start`` (the phase ending at ``end``): see :func:`light_steps`."""
+    before = pupil[(t > start - 0.2) & (t <= start)].mean()
+    phase = (t > start) & (t <= end)
+    tt, p = t[phase] - start, pupil[phase]
+    ss = float(teacher[(t > end - 0.5) & (t <= end)].mean())
+    off = np.abs(p - ss) / ss > SETTLE_TOLERANCE
+    settle = float(tt[np.nonzero(off)[0][-1] + 1]) if off.any() and not off[-1] else (0.0 if not off.any() else None)
+    frac = (p - before) / (ss - before)
+    moved = lambda f: float(tt[np.argmax(frac >= f)]) if (frac >= f).any() else None  # noqa: E731
+    t10, t90 = moved(0.1), moved(0.9)
+    return {"from_mm": float(before), "steady_state_mm": ss, "end_mm": float(p[-1]),
+            "end_relative_error": float(abs(p[-1] - ss) / ss), "settle_s": settle, "latency_s": moved(0.05),
+            "rise_10_90_s": None if t10 is None or t90 is None else t90 - t10,
+            "direction": "constrict" if ss < before else "dilate"}

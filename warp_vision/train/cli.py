@@ -57,6 +57,17 @@ TASKS = {
                    "on the MuJoCo body, train the net from (change of gaze, current activations) to the next "
                    "activations on transitions between them, check it on the body, and write config, checkpoints, "
                    "metrics and summary to --out (default runs/oculomotor/<eye>)."),
+    "pupil": ("pupil", "PupilTrainConfig", "PUPIL_PRESETS",
+              "An eye's pupil net (the paper's SNNs for the iris): synthesise (or reuse) ONVs of everyday scenes seen "
+              "through random pupils at light levels over five decades, train the net from (ONV, current pupil) to "
+              "Watson & Yellott's pupil for the scene's adapting luminance, measure it on rooms training never saw, "
+              "and write config, checkpoints, metrics, summary and figures to --out (default runs/pupil/<eye>)."),
+    "lens": ("lens", "LensTrainConfig", "LENS_PRESETS",
+             "An eye's lens net (the paper's SNNs for accommodation): synthesise (or reuse) central-field ONVs of "
+             "textured cards at 0.2-5 m with the lens at random states near them, train the net from (ONV, current "
+             "pupil) to the signed defocus (read from the colour channels' unequal blur), measure it on new "
+             "textures, lamps and distances, and write config, checkpoints, metrics, summary and figures to --out "
+             "(default runs/lens/<eye>)."),
 }
 
 

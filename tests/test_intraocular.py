@@ -1,0 +1,138 @@
+"""The pupil nets: their data, their interface, their training run, and the pupil in the closed loop."""
+
+import numpy as np
+import pytest
+import torch
+
+from warp_vision.body import SIDES, Body, BodyConfig
+
+
+def _retina_xy(P=300, seed=0):
+    rng = np.random.default_rng(seed)
+    r = np.sqrt(rng.uniform(0, 1, P)) * 0.8
+    a = rng.uniform(0, 2 * np.pi, P)
+    return np.stack([r * np.cos(a), r * np.sin(a)], 1)
+
+
+def test_region_log_means_match_a_plain_reference():
+    from warp_vision.nn.intraocular import LOG_FLOOR, RegionLogMeans, retina_regions
+
+    xy = _retina_xy()
+    pool = RegionLogMeans(xy, rings=3, sectors=4)
+    onv = torch.rand(5, 3 * len(xy), dtype=torch.float64).float() * 10 ** torch.linspace(-3, 2, 5)[:, None]
+    got = pool(onv).view(5, 13, 3)
+    region = retina_regions(xy, 3, 4)
+    x = onv.double().numpy().reshape(5, -1, 3)
+    for r in range(12):
+        np.testing.assert_allclose(got[:, r].numpy(), np.log10(x[:, region == r].mean(1) + LOG_FLOOR), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(got[:, 12].numpy(), np.log10(x.mean(1) + LOG_FLOOR), rtol=1e-5, atol=1e-5)
+    counts = np.bincount(region, minlength=12).reshape(3, 4).sum(1)
+    assert counts.max() - counts.min() <= 1  # rings of equal photoreceptor counts
+
+
+def test_the_pupil_net_refuses_bad_inputs_and_answers_within_the_iris_range():
+    from warp_vision.nn.intraocular import PupilNet
+
+    net = PupilNet(_retina_xy(), hidden=4)
+    onv = torch.rand(3, 900)
+    out = net(onv, torch.tensor([2.0, 4.0, 8.0]))
+    assert out.shape == (3,) and ((out > 2) & (out < 8)).all()
+    for bad, match in [((torch.rand(3, 899), [4.0] * 3), r"\[B, 900\]"), ((torch.rand(900), [4.0]), r"\[B, 900\]"),
+                       ((-torch.rand(3, 900), [4.0] * 3), ">= 0"), ((torch.full((3, 900), float("nan")), [4.0] * 3), "finite"),
+                       ((onv, [4.0, 4.0]), "one diameter per ONV"), ((onv, [4.0, 0.0, 4.0]), r"\(0, 10\]"),
+                       ((onv, [4.0, 11.0, 4.0]), r"\(0, 10\]")]:
+        with pytest.raises(ValueError, match=match):
+            net(bad[0], torch.tensor(bad[1]))
+
+
+def test_pupil_samples_carry_the_luminance_their_exposure_gives_them():
+    from warp_vision.data.foveation import make_retina
+    from warp_vision.data.intraocular import PUPIL_GRID_MM, PupilDataConfig, render_pupil_samples
+    from warp_vision.eye.pupil import adapting_luminance
+
+    cfg = PupilDataConfig(samples=40, photoreceptors=300, samples_per_receptor=1, luminance_decades=4.0)
+    retina = make_retina(cfg.scene_config())
+    d = render_pupil_samples(cfg, range(14, 20), retina)  # across a room block's edge (16)
+    lum = adapting_luminance(d["onv"].astype(np.float64).mean(1) * d["exposure"], d["pupil"])
+    np.testing.assert_allclose(lum, d["luminance"], rtol=1e-4)
+    assert set(d["pupil"].tolist()) <= set(PUPIL_GRID_MM)
+    assert d["pupil"][0] == d["pupil"][1] and np.all((d["luminance"] > 75.17e-2) & (d["luminance"] < 75.17e2))
+    again = render_pupil_samples(cfg, [17], retina)  # a sample does not depend on its batch
+    np.testing.assert_array_equal(again["onv"][0], d["onv"][3])
+    assert again["exposure"][0] == d["exposure"][3]
+    with pytest.raises(ValueError, match="luminance_decades"):
+        PupilDataConfig(luminance_decades=0).validate()
+    with pytest.raises(ValueError, match="rooms"):
+        PupilDataConfig(rooms="elsewhere").validate()
+
+
+def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
+    from warp_vision.sim.loop import load_pupil
+    from warp_vision.train.config import PUPIL_PRESETS, PupilTrainConfig, resolve
+    from warp_vision.train.pupil import run
+
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, PupilTrainConfig, PUPIL_PRESETS)
+    summary = run(cfg, progress=False, log=lambda *_a, **_k: None)
+    held = summary["heldout_rooms"]
+    assert set(held) >= {"median_error_mm", "p90_error_mm", "median_relative_error", "within_5pct"}
+    assert np.isfinite(held["median_error_mm"]) and held["median_error_mm"] >= 0
+    assert (tmp_path / "run" / "figures" / "pupil.png").exists()
+    net = load_pupil(str(tmp_path / "run"))
+    assert net(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0, 5.0])).shape == (2,)
+    with pytest.raises(ValueError, match="pupil_mm"):
+        load_pupil(str(tmp_path / "run"))(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0]))
+
+
+# --- the pupil in the closed loop ----------------------------------------------------------------------
+
+
+class _ConstantPupilNet:
+    def __init__(self, mm):
+        self.mm, self.calls = mm, 0
+
+    def __call__(self, onv, pupil_mm):
+        self.calls += 1
+        assert onv.shape[0] == 1 and pupil_mm.shape == (1,)
+        return torch.tensor([self.mm])
+
+
+@pytest.fixture(scope="module")
+def bare_body():
+    return Body(BodyConfig(arms=False))
+
+
+def _loop(body, **kw):
+    from test_loop import _HoldingOculomotor, _OracleFoveator
+
+    from warp_vision.sim.loop import VisuomotorLoop
+
+    return VisuomotorLoop(body, {s: _OracleFoveator(body, s) for s in SIDES},
+                          {s: _HoldingOculomotor(body, s) for s in SIDES}, **kw)
+
+
+def test_a_light_step_in_the_loop_settles_on_the_teachers_steady_state(bare_body):
+    from warp_vision.eye.plants import PUPIL_LATENCY_S
+    from warp_vision.sim.scenarios import light_steps
+
+    res = light_steps(_loop(bare_body), phases=((1.5, 1.0), (1.5, 100.0)), progress=False)
+    tr = res["traces"]
+    for st in res["steps"]:
+        assert st["direction"] == "constrict" and st["log_units"] == 2.0
+        assert st["end_relative_error"] < 0.05 and st["settle_s"] is not None and st["settle_s"] < 1.5
+        # the iris waits its latency (and at most one visual frame of 40 ms) before it moves
+        assert PUPIL_LATENCY_S[0] <= st["latency_s"] <= PUPIL_LATENCY_S[1] + 0.05
+        assert st["steady_state_mm"] < st["from_mm"] - 0.5
+    assert tr["light"][0] == 1.0 and tr["light"][-1] == 100.0
+
+
+def test_the_loop_commands_the_pupil_from_its_nets(bare_body):
+    from warp_vision.sim.loop import VisuomotorLoop
+    from warp_vision.sim.scenarios import light_steps
+
+    nets = {s: _ConstantPupilNet(6.0) for s in SIDES}
+    res = light_steps(_loop(bare_body, pupil_nets=nets), phases=((2.5, 1.0),), progress=False)
+    assert nets["left"].calls >= 150 // 4
+    assert abs(res["traces"]["pupil_left"][-1] - 6.0) < 0.05  # the net's command, not the teacher's
+    assert abs(res["traces"]["teacher_left"][-1] - 6.0) > 1.0
+    with pytest.raises(ValueError, match="pupil_nets"):
+        VisuomotorLoop(bare_body, {}, {}, pupil_nets={"left": nets["left"]})

@@ -1,0 +1,181 @@
+"""The intraocular shallow nets (the paper's SNNs 1-4): each eye's pupil net and lens net (:class:`LensNet`).
+
+:class:`PupilNet`: (ONV [B, 3P], current pupil [B] mm) -> the commanded pupil [B] mm. The brightness of
+an ONV is the scene's luminance times the pupil's area, so the net is given the pupil it looked through
+(the efference copy of its last command, as the oculomotor nets are given their current activations).
+Its first layer is fixed: the mean irradiance of each channel over ``rings`` x ``sectors`` regions of
+the retina (rings of equal photoreceptor counts by eccentricity) and over the whole field, in log10 (one
+decade is one unit, whatever the light level). The log pupil joins them, and a hidden layer of ``hidden``
+tanh units maps them to the diameter, within 2-8 mm.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+PUPIL_MM = (2.0, 8.0)
+LOG_FLOOR = 1e-9  # irradiance floor under the log10 (far below any lit scene's)
+
+
+def _check_onv(onv: torch.Tensor, P: int, name: str = "onv") -> None:
+    if not torch.is_tensor(onv) or onv.dim() != 2 or onv.shape[1] != 3 * P:
+        shape = tuple(onv.shape) if torch.is_tensor(onv) else type(onv).__name__
+        raise ValueError(f"{name}: expected a tensor [B, {3 * P}] (3 channels of {P} photoreceptors), got {shape}")
+    if not torch.isfinite(onv).all() or (onv < 0).any():
+        raise ValueError(f"{name}: expected finite irradiances >= 0")
+
+
+def retina_regions(domain_xy: np.ndarray, rings: int, sectors: int) -> np.ndarray:
+    """[P] region of each photoreceptor: ``rings`` eccentricity rings of equal counts times ``sectors``
+    polar sectors, numbered ring-major."""
+    xy = np.asarray(domain_xy, np.float64)
+    rho, theta = np.hypot(xy[:, 0], xy[:, 1]), np.mod(np.arctan2(xy[:, 1], xy[:, 0]), 2 * np.pi)
+    edges = np.quantile(rho, np.linspace(0, 1, rings + 1)[1:-1])
+    ring = np.searchsorted(edges, rho, side="right")
+    sector = np.minimum((theta / (2 * np.pi) * sectors).astype(int), sectors - 1)
+    return ring * sectors + sector
+
+
+class RegionLogMeans(torch.nn.Module):
+    """ONV [B, 3P] -> [B, 3 (R + 1)]: log10 of each channel's mean irradiance over each region and over
+    the whole retina. No weights."""
+
+    def __init__(self, domain_xy: np.ndarray, rings: int, sectors: int):
+        super().__init__()
+        region = retina_regions(domain_xy, rings, sectors)
+        R = rings * sectors
+        A = np.zeros((len(region), R + 1), np.float32)
+        A[np.arange(len(region)), region] = 1.0
+        A[:, R] = 1.0
+        A /= np.maximum(A.sum(axis=0, keepdims=True), 1.0)
+        self.P = len(region)
+        self.register_buffer("average", torch.from_numpy(A))
+
+    @property
+    def features(self) -> int:
+        return 3 * self.average.shape[1]
+
+    def forward(self, onv: torch.Tensor) -> torch.Tensor:
+        x = onv.float().view(len(onv), self.P, 3)
+        m = torch.einsum("bpc,pr->brc", x, self.average)
+        return torch.log10(m.clamp_min(0) + LOG_FLOOR).flatten(1)
+
+
+class PupilNet(torch.nn.Module):
+    """(ONV [B, 3P], current pupil [B] mm) -> commanded pupil [B] mm (module docstring)."""
+
+    def __init__(self, domain_xy: np.ndarray, hidden: int = 32, rings: int = 4, sectors: int = 8):
+        super().__init__()
+        self.pool = RegionLogMeans(domain_xy, rings, sectors)
+        n = self.pool.features + 1
+        self.register_buffer("feature_mean", torch.zeros(n))
+        self.register_buffer("feature_std", torch.ones(n))
+        self.hidden = torch.nn.Linear(n, hidden)
+        self.out = torch.nn.Linear(hidden, 1)
+
+    def features(self, onv: torch.Tensor, pupil_mm: torch.Tensor) -> torch.Tensor:
+        """The net's standardised inputs [B, 3 (R + 1) + 1] (fit ``feature_mean`` and ``feature_std`` on them)."""
+        _check_onv(onv, self.pool.P)
+        pupil_mm = torch.as_tensor(pupil_mm, dtype=torch.float32, device=onv.device).reshape(-1)
+        if len(pupil_mm) != len(onv):
+            raise ValueError(f"pupil_mm: expected one diameter per ONV ({len(onv)}), got {len(pupil_mm)}")
+        if not torch.isfinite(pupil_mm).all() or (pupil_mm <= 0).any() or (pupil_mm > 10).any():
+            raise ValueError(f"pupil_mm: expected diameters in (0, 10] mm, got {pupil_mm.tolist()[:5]}")
+        f = torch.cat([self.pool(onv), torch.log10(pupil_mm)[:, None]], dim=1)
+        return (f - self.feature_mean) / self.feature_std
+
+    def forward(self, onv: torch.Tensor, pupil_mm: torch.Tensor) -> torch.Tensor:
+        z = self.out(torch.tanh(self.hidden(self.features(onv, pupil_mm))))[:, 0]
+        lo, hi = PUPIL_MM
+        return lo + (hi - lo) * torch.sigmoid(z)
+
+
+#: :class:`LensNet`'s centre-surround scales: the surround is the mean of this many nearest photoreceptors.
+LENS_SCALES = (6, 18, 54)
+
+
+class CentreSurround(torch.nn.Module):
+    """Central ONV [B, N, 3] -> [B, 3 scales x 3 channels x rings] log10 contrast energies: at each
+    photoreceptor and channel, its response (relative to the channel's mean over the field) minus the mean
+    of its ``k`` nearest neighbours (the centre-surround receptive fields of retinal ganglion cells), squared
+    and averaged over each eccentricity ring. Fixed weights."""
+
+    def __init__(self, domain_xy: np.ndarray, scales=LENS_SCALES, rings: int = 2):
+        super().__init__()
+        from scipy.spatial import cKDTree
+
+        xy = np.asarray(domain_xy, np.float64)
+        _d, nbr = cKDTree(xy).query(xy, max(scales) + 1)
+        self.scales = tuple(int(k) for k in scales)
+        self.register_buffer("neighbours", torch.from_numpy(nbr[:, 1:].astype(np.int64)))
+        rho = np.hypot(xy[:, 0], xy[:, 1])
+        ring = np.searchsorted(np.quantile(rho, np.linspace(0, 1, rings + 1)[1:-1]), rho, side="right")
+        A = np.zeros((len(xy), rings), np.float32)
+        A[np.arange(len(xy)), ring] = 1.0
+        self.register_buffer("ring_average", torch.from_numpy(A / A.sum(0, keepdims=True)))
+
+    @property
+    def features(self) -> int:
+        return len(self.scales) * 3 * self.ring_average.shape[1]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x / x.mean(dim=1, keepdim=True).clamp_min(1e-12)
+        out = []
+        for k in self.scales:
+            surround = x[:, self.neighbours[:, :k]].mean(dim=2)  # [B, N, 3]
+            e = torch.einsum("bnc,nr->bcr", (x - surround) ** 2, self.ring_average)
+            out.append(torch.log10(e + 1e-8).flatten(1))
+        return torch.cat(out, dim=1)
+
+
+class LensNet(torch.nn.Module):
+    """(ONV [B, 3P], current pupil [B] mm) -> the signed defocus [B] in dioptres: the accommodation minus
+    the fixated object's vergence (positive: focused too near). It reads the photoreceptors ``central``
+    (indices into the retina), through the fixed :class:`CentreSurround` energies of each colour channel
+    at three scales; the eye's longitudinal chromatic aberration (about 1.6 D from blue to red) blurs the
+    channels unequally, and the order of their sharpness gives the sign. The log pupil joins the energies,
+    and two hidden layers of ``hidden`` tanh units map them to the defocus."""
+
+    def __init__(self, domain_xy: np.ndarray, central: np.ndarray, photoreceptors: int, hidden: int = 64):
+        super().__init__()
+        central = np.asarray(central, np.int64)
+        if central.ndim != 1 or len(central) < 60 or central.min() < 0 or central.max() >= photoreceptors:
+            raise ValueError(f"central: expected at least 60 photoreceptor indices below {photoreceptors}")
+        self.P = int(photoreceptors)
+        self.register_buffer("central", torch.from_numpy(central))
+        self.cs = CentreSurround(np.asarray(domain_xy)[central])
+        n = self.cs.features + 1
+        self.register_buffer("feature_mean", torch.zeros(n))
+        self.register_buffer("feature_std", torch.ones(n))
+        self.mlp = torch.nn.Sequential(torch.nn.Linear(n, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, hidden),
+                                       torch.nn.Tanh(), torch.nn.Linear(hidden, 1))
+
+    def raw_features(self, onv: torch.Tensor, pupil_mm: torch.Tensor, central_only: bool = False) -> torch.Tensor:
+        """The fixed first layer's outputs [B, features] (the energies and the log pupil), before
+        standardisation. ``central_only``: ``onv`` holds only the central photoreceptors ([B, 3
+        len(central)], as the lens datasets store them)."""
+        N = len(self.central)
+        _check_onv(onv, N if central_only else self.P)
+        pupil_mm = torch.as_tensor(pupil_mm, dtype=torch.float32, device=onv.device).reshape(-1)
+        if len(pupil_mm) != len(onv):
+            raise ValueError(f"pupil_mm: expected one diameter per ONV ({len(onv)}), got {len(pupil_mm)}")
+        if not torch.isfinite(pupil_mm).all() or (pupil_mm <= 0).any() or (pupil_mm > 10).any():
+            raise ValueError(f"pupil_mm: expected diameters in (0, 10] mm, got {pupil_mm.tolist()[:5]}")
+        x = onv.float().view(len(onv), -1, 3)
+        if not central_only:
+            x = x[:, self.central]
+        return torch.cat([self.cs(x), torch.log10(pupil_mm)[:, None]], dim=1)
+
+    def head(self, raw: torch.Tensor) -> torch.Tensor:
+        """The learned part: :meth:`raw_features` [B, features] -> defocus [B] (D)."""
+        return self.mlp((raw - self.feature_mean) / self.feature_std)[:, 0]
+
+    def forward(self, onv: torch.Tensor | None = None, pupil_mm: torch.Tensor | None = None, central_only: bool = False,
+                raw: torch.Tensor | None = None) -> torch.Tensor:
+        """The defocus [B] (D) of (``onv``, ``pupil_mm``), or of precomputed :meth:`raw_features` ``raw``."""
+        if raw is None:
+            if onv is None or pupil_mm is None:
+                raise ValueError("LensNet: expected onv and pupil_mm, or raw features")
+            raw = self.raw_features(onv, pupil_mm, central_only)
+        return self.head(raw)
