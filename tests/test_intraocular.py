@@ -79,6 +79,10 @@ def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
     assert (tmp_path / "run" / "figures" / "pupil.png").exists()
     net = load_pupil(str(tmp_path / "run"))
     assert net(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0, 5.0])).shape == (2,)
+    from warp_vision.sim.loop import load_lens
+
+    with pytest.raises(ValueError, match="expected a lens run"):
+        load_lens(str(tmp_path / "run"))
     with pytest.raises(ValueError, match="pupil_mm"):
         load_pupil(str(tmp_path / "run"))(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0]))
 
@@ -136,3 +140,134 @@ def test_the_loop_commands_the_pupil_from_its_nets(bare_body):
     assert abs(res["traces"]["teacher_left"][-1] - 6.0) > 1.0
     with pytest.raises(ValueError, match="pupil_nets"):
         VisuomotorLoop(bare_body, {}, {}, pupil_nets={"left": nets["left"]})
+
+
+# --- the lens --------------------------------------------------------------------------------------------
+
+
+def test_textured_cards_face_forward_with_a_seeded_pattern():
+    from warp_vision.scene.textures import ALBEDO_RANGE, card_pattern, textured_card
+
+    card = textured_card(0.3, 32, 5)
+    assert np.allclose(card.face_normals[:, 2], 1.0) and np.allclose(card.bounds, [[-0.15, -0.15, 0], [0.15, 0.15, 0]])
+    p = card_pattern(32, 5)
+    assert p.min() >= 0 and p.max() <= 1 and p.std() > 0.1
+    assert ALBEDO_RANGE[0] * 0.85 <= p.min() and p.max() <= ALBEDO_RANGE[1] * 1.15
+    np.testing.assert_array_equal(p, card_pattern(32, 5))
+    assert not np.array_equal(p, card_pattern(32, 6))
+    with pytest.raises(ValueError, match="textured_card"):
+        textured_card(0.0, 32, 5)
+
+
+def test_centre_surround_energies_match_a_plain_reference():
+    from scipy.spatial import cKDTree
+
+    from warp_vision.nn.intraocular import CentreSurround
+
+    xy = _retina_xy(200)
+    cs = CentreSurround(xy, scales=(3, 7), rings=2)
+    x = torch.rand(4, 200, 3, dtype=torch.float64).float() + 0.1
+    got = cs(x).view(4, 2, 3, 2).numpy()  # [B, scale, channel, ring]
+    _d, nbr = cKDTree(xy).query(xy, 8)
+    rho = np.hypot(*xy.T)
+    ring = (rho > np.median(rho)).astype(int)
+    xn = x.double().numpy() / x.double().numpy().mean(1, keepdims=True)
+    for si, k in enumerate((3, 7)):
+        s = xn - xn[:, nbr[:, 1:k + 1]].mean(2)
+        for r in range(2):
+            np.testing.assert_allclose(got[:, si, :, r], np.log10((s[:, ring == r] ** 2).mean(1) + 1e-8), rtol=1e-4, atol=1e-4)
+
+
+def test_the_lens_net_refuses_bad_inputs():
+    from warp_vision.nn.intraocular import LensNet
+
+    xy = _retina_xy(300)
+    net = LensNet(xy, np.arange(100), 300, hidden=4)
+    assert net(torch.rand(2, 900), torch.tensor([3.0, 4.0])).shape == (2,)
+    assert net(torch.rand(2, 300), torch.tensor([3.0, 4.0]), central_only=True).shape == (2,)
+    with pytest.raises(ValueError, match=r"\[B, 900\]"):
+        net(torch.rand(2, 300), torch.tensor([3.0, 4.0]))
+    with pytest.raises(ValueError, match="one diameter per ONV"):
+        net(torch.rand(2, 900), torch.tensor([3.0]))
+    with pytest.raises(ValueError, match="onv and pupil_mm"):
+        net()
+    with pytest.raises(ValueError, match="central"):
+        LensNet(xy, np.arange(250, 310), 300)
+
+
+def test_the_lens_holds_on_an_image_without_contrast():
+    """A uniform field (a glowing ball filling the fovea) carries no defocus cue: the loop's lens command
+    holds instead of following the net's meaningless estimate."""
+    from warp_vision.nn.intraocular import LensNet
+    from warp_vision.sim.loop import _lens_command
+
+    net = LensNet(_retina_xy(300), np.arange(100), 300, hidden=4)
+    textured, uniform = torch.rand(1, 900) + 0.1, torch.full((1, 900), 0.3)
+    c_tex = float(net.contrast(net.raw_features(textured, torch.tensor([4.0])))[0])
+    c_uni = float(net.contrast(net.raw_features(uniform, torch.tensor([4.0])))[0])
+    assert c_uni < -7 < c_tex
+    net.contrast_floor.fill_(c_tex - 1.0)
+    assert _lens_command(net, uniform, 2.0, 4.0, hold=1.5) == (1.5, None)
+    cmd, d = _lens_command(net, textured, 2.0, 4.0, hold=1.5)
+    assert d is not None and cmd == pytest.approx(2.0 - d)
+
+
+def test_lens_samples_fill_the_central_field_with_a_card_at_the_stated_defocus():
+    from warp_vision.data.foveation import FoveationDataConfig, make_retina
+    from warp_vision.data.intraocular import LensDataConfig, central_photoreceptors, render_lens_samples
+
+    cfg = LensDataConfig(samples=40, photoreceptors=1000, samples_per_receptor=1, card_vertices=48)
+    retina = make_retina(FoveationDataConfig(photoreceptors=1000))
+    central = central_photoreceptors(retina, cfg.central_deg)
+    pos = np.asarray(retina.positions_optical_mm)[central]
+    d = render_lens_samples(cfg, range(12, 20), pos)
+    np.testing.assert_allclose(d["defocus"], d["accommodation"] - 1.0 / d["distance"], atol=1e-5)
+    assert np.all(np.abs(d["defocus"]) <= cfg.defocus_range_D + 1e-6) and np.all((d["distance"] >= 0.2) & (d["distance"] <= 5.0))
+    onv = d["onv"].astype(np.float32).reshape(len(d["onv"]), -1, 3)
+    assert (onv.sum(2) > 0).all()  # every central photoreceptor sees the card (the background is black)
+    again = render_lens_samples(cfg, [13], pos)
+    np.testing.assert_array_equal(again["onv"][0], d["onv"][1])
+
+
+def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path):
+    from warp_vision.sim.loop import load_lens
+    from warp_vision.train.config import LENS_PRESETS, LensTrainConfig, resolve
+    from warp_vision.train.lens import run
+
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, LensTrainConfig, LENS_PRESETS)
+    summary = run(cfg, progress=False, log=lambda *_a, **_k: None)
+    assert {"median_error_D", "p90_error_D", "sign_correct_above_0.5D"} <= set(summary["heldout"])
+    assert (tmp_path / "run" / "figures" / "lens.png").exists()
+    net = load_lens(str(tmp_path / "run"))
+    assert net(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0, 5.0])).shape == (2,)
+
+
+class _OracleLensNet:
+    """The true defocus of the rendered state: (the accommodation the frame was rendered at) minus the
+    card's vergence from the eye."""
+
+    def __init__(self, loop, side):
+        self.loop, self.side = loop, side
+
+    def __call__(self, onv, pupil_mm):
+        loop, s = self.loop, self.side
+        acc = loop._optics[s][0]
+        centre = loop.fov[s].target()
+        return torch.tensor([acc - 1.0 / np.linalg.norm(centre - loop.body.eye_pose(s)[:3, 3])])
+
+
+def test_a_focus_step_in_the_loop_comes_into_focus(bare_body):
+    from warp_vision.eye.plants import LENS_LATENCY_S
+    from warp_vision.sim.scenarios import FOCUS_TOLERANCE_D, focus_steps
+
+    for lens in ("vergence", "nets"):
+        loop = _loop(bare_body)
+        if lens == "nets":
+            loop.lens_nets = {s: _OracleLensNet(loop, s) for s in SIDES}
+            loop.optics_step_d = 0.1
+        res = focus_steps(loop, phases=((1.0, 2.0), (1.5, 1.0 / 3.0)), progress=False)
+        for st in res["steps"]:
+            assert st["in_focus_s"] is not None and st["in_focus_s"] < 1.2, (lens, st)
+            assert abs(st["end_defocus_D"]) < FOCUS_TOLERANCE_D
+            assert st["latency_s"] >= LENS_LATENCY_S - 0.01  # the lens waits its latency
+        assert len(res["snapshots"]) >= 1 and "focus_card" in [o.name for o in loop.scene.objects]

@@ -1,4 +1,4 @@
-"""Data for the intraocular nets, synthesised by the virtual human itself.
+"""Data for the intraocular nets (pupil and lens), synthesised by the virtual human itself.
 
 **Pupil** (:class:`PupilDataConfig`, :func:`synthesize_pupil`). Each sample is one ONV of an everyday
 scene (generator v8's rooms, lamps, balls, distractors and arms: :mod:`warp_vision.data.foveation_scenes`)
@@ -16,8 +16,17 @@ brightness grows with the pupil's area.
   stored ONV is the rendered one (float16); ``exposure`` is stored beside it and applied on loading.
 - Held-out rooms (``rooms="heldout"``) come from v8's held-out room family.
 
-Each sample's pupil and luminance come from generators seeded with (seed, block or index, stream), so a
-sample does not depend on the chunk or shard that renders it.
+**Lens** (:class:`LensDataConfig`, :func:`synthesize_lens`). Each sample is the central field (the
+photoreceptors within ``central_deg``) of one eye looking at a textured card
+(:func:`warp_vision.scene.textures.textured_card`) at 0.2-5 m, lit by two lamps of random colour, with
+the lens at a random state: per block of 16 samples an accommodation (0-6 D) and a pupil (3-6 mm), and
+per sample a card distance whose vergence lies within ``defocus_range_D`` of the accommodation (half the
+samples near focus, sd 0.5 D). The target is the signed defocus, accommodation minus vergence. Only
+the central photoreceptors are rendered and stored. Held-out sets (seed + 1000) have new textures, lamps
+and distances.
+
+Each sample's parameters come from generators seeded with (seed, block or index, stream), so a sample
+does not depend on the chunk or shard that renders it.
 """
 
 from __future__ import annotations
@@ -161,14 +170,22 @@ def load_pupil(store) -> dict:
 # --- the lens ------------------------------------------------------------------------------------------
 
 #: Bump when what a lens config renders changes.
-LENS_DATA_VERSION = 1
-#: Textured cards: CARD_SIZES_M (each in CARD_TEXTURES textures); a sample at distance d shows the
-#: largest card that subtends at most CARD_MAX_RAD there (5.6-8.8 deg across), so the card always covers
-#: the central field the lens net reads, and its pattern's angular scale varies with the card.
-CARD_SIZES_M = tuple(float(s) for s in 0.021 * 1.58 ** np.arange(8))
-CARD_TEXTURES = 3
-CARD_VERTICES = 128
+LENS_DATA_VERSION = 3
+#: Textured cards: CARD_SIZES_M (each in CARD_TEXTURES textures of CARD_VERTICES^2 vertices). A sample
+#: at distance d shows the largest card whose third subtends at most CARD_MAX_RAD there (the whole card
+#: 17-26 deg across), and looks at a random point of it, at least FILL_RAD from its edges: the card always
+#: covers the central field the lens net reads, each sample sees its own patch of the pattern (so the
+#: net cannot learn a few textures by heart), and the pattern's angular scale varies with the card. A new
+#: set of textures (same geometry, so the cards' BVHs are built once) every TEXTURE_SET_BLOCKS blocks of
+#: 16 samples: 10,000 samples see 256 textures. The texel's angular size (card size / CARD_VERTICES / d)
+#: tells the distance within a size bin; the nets are therefore not given the accommodation, which with
+#: the distance would give the defocus away (README: measured).
+CARD_SIZES_M = tuple(float(s) for s in 3 * 0.021 * 1.58 ** np.arange(8))
+CARD_TEXTURES = 2
+CARD_VERTICES = 384
 CARD_MAX_RAD = 0.154
+TEXTURE_SET_BLOCKS = 40
+FILL_RAD = np.radians(3.2)
 #: The share of samples whose defocus is drawn near focus (normal, sd 0.5 D) rather than uniformly.
 NEAR_FOCUS_SHARE = 0.5
 
@@ -185,10 +202,13 @@ class LensDataConfig:
     central_deg: float = 2.0  # only photoreceptors within this eccentricity are rendered and read
     defocus_range_D: float = 2.5  # |accommodation - the card's vergence| up to this
     pupil_range_mm: tuple = (3.0, 6.0)  # the current pupil, per room block of 16
+    card_vertices: int = CARD_VERTICES  # per side of each card's grid (fewer: coarser patterns, for tests)
     seed: int = 0
     chunk_size: int = 256
 
     def validate(self) -> None:
+        if self.card_vertices < 8:
+            raise ValueError(f"card_vertices: expected at least 8, got {self.card_vertices}")
         if self.eye not in SIDES:
             raise ValueError(f"eye: expected one of {SIDES}, got {self.eye!r}")
         for name in ("samples", "photoreceptors", "samples_per_receptor", "chunk_size"):
@@ -205,6 +225,8 @@ class LensDataConfig:
     def manifest(self) -> dict:
         d = asdict(self)
         d["pupil_range_mm"] = list(d["pupil_range_mm"])
+        if d["card_vertices"] == CARD_VERTICES:  # as before the field existed: cached datasets are found again
+            del d["card_vertices"]
         return {"generator": "lens", "generator_version": LENS_DATA_VERSION, **d}
 
     def key(self) -> str:
@@ -228,21 +250,22 @@ def lens_fields(cfg: LensDataConfig, n_central: int) -> dict:
 _CARDS: dict = {}
 
 
-def card_scene(seed: int):
-    """The cards of dataset seed ``seed`` (every size in every texture, hidden) and two lamps."""
+def card_scene(seed: int, texture_set: int = 0, vertices: int = CARD_VERTICES):
+    """Texture set ``texture_set`` of dataset seed ``seed``: every card size in CARD_TEXTURES textures
+    (hidden), and two lamps. The last one built is kept for the next call."""
     from warp_vision.scene import Material, Scene
     from warp_vision.scene.textures import textured_card
 
-    if _CARDS.get("seed") != seed:
+    if _CARDS.get("key") != (seed, texture_set, vertices):
         sc = Scene(ambient=(0.02, 0.02, 0.02))
         for k, size in enumerate(CARD_SIZES_M):
             for t in range(CARD_TEXTURES):
-                sc.add(f"card{k}_{t}", textured_card(size, CARD_VERTICES, [seed, k, t, 73]), Material(vertex_colors=True),
-                       np.eye(4))
+                sc.add(f"card{k}_{t}", textured_card(size, vertices, [seed, texture_set, k, t, 73]),
+                       Material(vertex_colors=True), np.eye(4))
                 sc.set_visible(f"card{k}_{t}", False)
         sc.add_light((0.0, 0.0, 0.0))
         sc.add_light((0.0, 0.0, 0.0))
-        _CARDS.update(seed=seed, scene=sc)
+        _CARDS.update(key=(seed, texture_set, vertices), scene=sc)
     return _CARDS["scene"]
 
 
@@ -269,14 +292,19 @@ def lens_sample(cfg: LensDataConfig, index: int, accommodation: float) -> dict:
     else:  # pragma: no cover - accommodation within 0-6 D always finds one
         raise RuntimeError("no card distance found")
     d = 1.0 / vergence
-    k = max(i for i, s in enumerate(CARD_SIZES_M) if s <= CARD_MAX_RAD * d or i == 0)
-    # the card's centre within 0.3 deg of the line of sight, turned up to 25 deg from facing the eye
+    k = max(i for i, s in enumerate(CARD_SIZES_M) if s / 3 <= CARD_MAX_RAD * d or i == 0)
+    size = CARD_SIZES_M[k]
+    # the line of sight meets the card at a random point (u, v) of it, at least FILL_RAD (at d) from its
+    # edges, within 0.3 deg of the fovea; the card is turned up to 25 deg from facing the eye
+    half = max(size / 2 - d * np.tan(FILL_RAD), 0.0)
+    uv = rng.uniform(-half, half, 2)
     off = np.radians(0.3) * np.sqrt(rng.uniform()) * np.array([np.cos(a := rng.uniform(0, 2 * np.pi)), np.sin(a)])
-    centre = d * np.array([np.tan(off[0]), np.tan(off[1]), 1.0])
+    sight = d * np.array([np.tan(off[0]), np.tan(off[1]), 1.0])
     tilt = Rotation.from_rotvec(np.append(rng.normal(0, 1, 2) * np.radians(25) / 2, rng.uniform(0, 2 * np.pi)))
     T = np.eye(4)
     T[:3, :3] = (Rotation.from_euler("y", np.pi) * tilt).as_matrix()  # +z (the card's face) toward the eye
-    T[:3, 3] = centre
+    T[:3, 3] = sight - T[:3, :3] @ np.array([uv[0], uv[1], 0.0])
+    centre = sight
     lamps = []
     for _ in range(2):
         v = rng.normal(size=3)
@@ -294,12 +322,12 @@ def render_lens_samples(cfg: LensDataConfig, indices, positions_mm: np.ndarray, 
     from warp_vision.eye.optics import NavarroEye
     from warp_vision.kernels.render import render_onv
 
-    sc = card_scene(cfg.seed)
-    names = [o.name for o in sc.objects if o.name.startswith("card")]
     out = {k: [] for k in ("onv", "defocus", "accommodation", "distance", "pupil")}
     indices = [int(i) for i in indices]
     for block in sorted({i // ROOM_BLOCK for i in indices}):
         idx = [i for i in indices if i // ROOM_BLOCK == block]
+        sc = card_scene(cfg.seed, block // TEXTURE_SET_BLOCKS, cfg.card_vertices)
+        names = [o.name for o in sc.objects if o.name.startswith("card")]
         acc, pupil = block_optics(cfg, block)
         ps = [lens_sample(cfg, i, acc) for i in idx]
         B = len(ps)

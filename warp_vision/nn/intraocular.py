@@ -148,6 +148,8 @@ class LensNet(torch.nn.Module):
         n = self.cs.features + 1
         self.register_buffer("feature_mean", torch.zeros(n))
         self.register_buffer("feature_std", torch.ones(n))
+        #: below this :meth:`contrast` the image holds no defocus cue (set from the training data)
+        self.register_buffer("contrast_floor", torch.tensor(-np.inf))
         self.mlp = torch.nn.Sequential(torch.nn.Linear(n, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, hidden),
                                        torch.nn.Tanh(), torch.nn.Linear(hidden, 1))
 
@@ -166,6 +168,12 @@ class LensNet(torch.nn.Module):
         if not central_only:
             x = x[:, self.central]
         return torch.cat([self.cs(x), torch.log10(pupil_mm)[:, None]], dim=1)
+
+    def contrast(self, raw: torch.Tensor) -> torch.Tensor:
+        """[B] the image's fine contrast: the mean log10 energy of the finest centre-surround scale over
+        channels and rings. A uniform field (a glowing ball filling the fovea) has none: compare with
+        ``contrast_floor``, under which the net's estimate means nothing."""
+        return raw[:, : 3 * self.cs.ring_average.shape[1]].mean(dim=1)
 
     def head(self, raw: torch.Tensor) -> torch.Tensor:
         """The learned part: :meth:`raw_features` [B, features] -> defocus [B] (D)."""

@@ -6,9 +6,10 @@
                retina at four moments (Fig. 7) and the gaze error over time.
   experiments  saccades to a ball appearing at 20 deg in eight directions, vergence at 1 m, tracking a
                ball moving at 15 and 30 deg/s both ways round, the loop's time shares. Writes experiments.json.
-  intraocular  light steps of +2 and -2 log units while fixating: the pupils under their nets and, in the
-               same run, under the analytic law (the nets' teacher). Writes intraocular.json and
-               figures/light_steps.png.
+  intraocular  light steps of +2 and -2 log units, and focus steps (a textured card from 2 m to 0.33 m and
+               back, fixated): the pupils and lenses under their nets and, in the same run, under the
+               analytic laws (their teachers). Writes intraocular.json and figures/light_steps.png,
+               focus_steps.png and focus_retina.png.
   oculomotor   both eyes' oculomotor nets only: trains the missing ones.
 
 Demo, experiments and intraocular work from a fresh clone: each net the loop needs (both eyes' foveation
@@ -39,13 +40,15 @@ def _specs(args):
     runs = default_runs(args.quick)
     left = getattr(args, "left", None) or runs["left"]
     right = getattr(args, "right", None) or runs["right"]
-    pupil = (getattr(args, "pupil", None) or runs["pupil"]) if getattr(args, "intraocular", "analytic") == "nets" else None
-    return plan(left, right, args.oculomotor or runs["oculomotor"], quick=args.quick, pupil=pupil)
+    nets = getattr(args, "intraocular", "analytic") == "nets"
+    return plan(left, right, args.oculomotor or runs["oculomotor"], quick=args.quick,
+                pupil=(getattr(args, "pupil", None) or runs["pupil"]) if nets else None,
+                lens=(getattr(args, "lens", None) or runs["lens"]) if nets else None)
 
 
 def _setup(args):
     """Provide the nets (training missing ones), build the body and the loop; writes nets.json to --out."""
-    from warp_vision.sim.loop import Foveator, VisuomotorLoop, load_pupil
+    from warp_vision.sim.loop import Foveator, VisuomotorLoop, load_lens, load_pupil
     from warp_vision.sim.oculomotor import load_oculomotor
     from warp_vision.sim.provision import manifest, provide
 
@@ -61,9 +64,11 @@ def _setup(args):
         print(f"note: {', '.join(old)} learnt on generator v7 (a glowing ball in a dim room); with --ball ordinary "
               "it will not find the ball. Retrain it (python -m warp_vision.train --eye EYE --overwrite) or use --ball glowing.")
     ocu_root = os.path.dirname(specs[2].run)
-    pupil = {s: load_pupil(spec.run) for s, spec in zip(SIDES, specs[4:6])} if len(specs) > 4 else None
+    runs = {(spec.kind, spec.eye): spec.run for spec in specs}
+    pupil = {s: load_pupil(runs["pupil", s]) for s in SIDES} if ("pupil", "left") in runs else None
+    lens = {s: load_lens(runs["lens", s]) for s in SIDES} if ("lens", "left") in runs else None
     return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
-                                ball=args.ball, pupil_nets=pupil)
+                                ball=args.ball, pupil_nets=pupil, lens_nets=lens)
 
 
 class _Viewer:
@@ -176,16 +181,17 @@ def demo(args) -> dict:
 
 
 def intraocular(args) -> dict:
-    """Light steps of +2 and -2 log units with the pupil nets and, in the same run, with their teacher (the
-    analytic law): the measures of :func:`warp_vision.sim.scenarios.light_steps` and a figure of both
-    responses against the teacher's steady state over time."""
+    """Light steps of +2 and -2 log units and focus steps (a textured card from 2 m to 0.33 m and back),
+    with the pupil and lens nets and, in the same run, with their teachers (the analytic laws): the
+    measures of :func:`warp_vision.sim.scenarios.light_steps` and :func:`~warp_vision.sim.scenarios.focus_steps`,
+    and figures of the responses over time and of the left retina blurred, then sharp."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from warp_vision.sim.loop import VisuomotorLoop
-    from warp_vision.sim.scenarios import LIGHT_PHASES, light_steps
+    from warp_vision.sim.scenarios import FOCUS_PHASES, LIGHT_PHASES, focus_steps, light_steps
 
     args.intraocular = "nets"
     _body, nets_loop = _setup(args)
@@ -193,30 +199,63 @@ def intraocular(args) -> dict:
     body.step(int(SETTLE_S / body.model.opt.timestep))
     analytic_loop = VisuomotorLoop(body, nets_loop.fov, nets_loop.ocu, seed=args.seed, frame_every=args.frame_every,
                                    ball=args.ball)
-    runs = {"nets": light_steps(nets_loop, progress=not args.no_progress),
-            "analytic": light_steps(analytic_loop, progress=not args.no_progress)}
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
-    for ax, s in zip(axes, SIDES):
-        for mode, style in (("nets", "C0-"), ("analytic", "C1--")):
-            tr = runs[mode]["traces"]
-            ax.plot(tr["t"], tr[f"pupil_{s}"], style, label=f"pupil, {mode} ({'pupil net' if mode == 'nets' else 'teacher'} in the loop)")
-        tr = runs["nets"]["traces"]
-        ax.plot(tr["t"], tr[f"teacher_{s}"], "k:", lw=1, label="teacher's command (Watson & Yellott)")
-        for st in runs["nets"]["steps"]:
-            if st["eye"] == s:
-                ax.axvline(st["at_s"], color="0.7", lw=0.8)
-        ax.set(xlabel="simulated time (s)", title=f"{s} eye: light steps of +2 and -2 log units")
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("pupil diameter (mm)")
-    axes[0].legend(fontsize=8)
-    fig.tight_layout()
-    os.makedirs(os.path.join(args.out, "figures"), exist_ok=True)
-    fig.savefig(os.path.join(args.out, "figures", "light_steps.png"), dpi=110)
-    plt.close(fig)
-    out = {"phases_s_scale": [list(p) for p in LIGHT_PHASES]}
-    for mode, r in runs.items():
-        out[mode] = {"steps": r["steps"], "traces": {k: v.tolist() for k, v in r["traces"].items()}}
+    loops = {"nets": nets_loop, "analytic": analytic_loop}
+    light = {m: light_steps(lp, progress=not args.no_progress) for m, lp in loops.items()}
+    focus = {m: focus_steps(lp, progress=not args.no_progress) for m, lp in loops.items()}
+    fig_dir = os.path.join(args.out, "figures")
+    os.makedirs(fig_dir, exist_ok=True)
+    labels = {"nets": "nets in the loop", "analytic": "analytic law in the loop"}
+    for name, runs, key, teacher, ylabel, title in (
+            ("light_steps", light, "pupil", "teacher", "pupil diameter (mm)", "light steps of +2 and -2 log units"),
+            ("focus_steps", focus, "accommodation", "vergence", "dioptres", "focus steps: card at 2 m, 0.33 m, 2 m")):
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4), sharey=True)
+        for ax, s in zip(axes, SIDES):
+            for mode, style in (("nets", "C0-"), ("analytic", "C1--")):
+                tr = runs[mode]["traces"]
+                ax.plot(tr["t"], tr[f"{key}_{s}"], style, label=f"{key}, {labels[mode]}")
+            tr = runs["nets"]["traces"]
+            ax.plot(tr["t"], tr[f"{teacher}_{s}"], "k:", lw=1,
+                    label="teacher's command (Watson & Yellott)" if key == "pupil" else "the card's vergence")
+            for st in runs["nets"]["steps"]:
+                if st["eye"] == s:
+                    ax.axvline(st["at_s"], color="0.7", lw=0.8)
+            ax.set(xlabel="simulated time (s)", title=f"{s} eye: {title}")
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel(ylabel)
+        axes[0].legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(os.path.join(fig_dir, f"{name}.png"), dpi=110)
+        plt.close(fig)
+    _focus_retinas(focus["nets"]["snapshots"], nets_loop.fov["left"].retina, os.path.join(fig_dir, "focus_retina.png"))
+    out = {"light_phases_s_scale": [list(p) for p in LIGHT_PHASES], "focus_phases_s_m": [list(p) for p in FOCUS_PHASES]}
+    for mode in loops:
+        out[mode] = {"light_steps": light[mode]["steps"], "focus_steps": focus[mode]["steps"],
+                     "light_traces": {k: v.tolist() for k, v in light[mode]["traces"].items()},
+                     "focus_traces": {k: v.tolist() for k, v in focus[mode]["traces"].items()}}
     return out
+
+
+def _focus_retinas(shots: list, retina, path: str) -> None:
+    """The left retina's central 3 degrees in the focus steps' snapshots (just after a step, blurred; at
+    the phase's end, sharp)."""
+    import matplotlib.pyplot as plt
+
+    if not shots:
+        return
+    rho = np.degrees(retina.rho)
+    keep = rho <= 3.0
+    xy = np.degrees(retina.domain_xy[keep])
+    fig, axes = plt.subplots(1, len(shots), figsize=(3.2 * len(shots), 3.4))
+    for ax, sh in zip(np.atleast_1d(axes), shots):
+        rgb = sh["onv"].reshape(-1, 3)[keep]
+        ax.scatter(xy[:, 0], xy[:, 1], c=np.clip(rgb / max(np.percentile(rgb, 99), 1e-12), 0, 1), s=2)
+        ax.set(title=f"t = {sh['t']:.2f} s, defocus {sh['defocus_D']:+.2f} D", xticks=[], yticks=[])
+        ax.set_aspect("equal")
+        ax.title.set_fontsize(9)
+    fig.suptitle("left retina, central 3 deg, lens nets in the loop: after each step (blurred) and at its end (sharp)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _draw_gaze(img: np.ndarray, body: Body, cam: np.ndarray, w: int, h: int, fov_deg: float) -> np.ndarray:
@@ -263,11 +302,13 @@ def main(argv=None) -> int:
         p.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
         p.add_argument("--seed", type=int, default=0, help="the room's seed")
         p.add_argument("--intraocular", choices=INTRAOCULAR, default="nets",
-                       help="nets (default): each eye's pupil net commands its iris from the ONV (trained into "
-                            "runs/pupil/<eye> if missing); analytic: the nets' teacher, Watson & Yellott's pupil for the "
-                            "adapting luminance. Accommodation follows the gaze lines' vergence in both (no lens net yet)")
+                       help="nets (default): each eye's pupil and lens nets command its iris and lens from the ONV "
+                            "(trained into runs/pupil/<eye> and runs/lens/<eye> if missing); analytic: their teachers, "
+                            "Watson & Yellott's pupil for the adapting luminance and accommodation to where the gaze "
+                            "lines converge")
         p.add_argument("--pupil", default=None, help="the pupil runs' directory: <dir>/left, <dir>/right (default "
                                                      "runs/pupil, or runs/quick/pupil with --quick)")
+        p.add_argument("--lens", default=None, help="the lens runs' directory (likewise: runs/lens, runs/quick/lens)")
         p.add_argument("--ball", choices=BALLS, default="glowing",
                        help="glowing (default): a white ball that glows, in the room dimmed (generator v7's scene, what the "
                             "default foveation nets learn); ordinary: a grey-white ball lit by the room's lamps, in a room at "
@@ -315,13 +356,17 @@ def _run(args) -> None:
     elif args.command == "intraocular":
         result = intraocular(args)
         for mode in ("nets", "analytic"):
-            for st in result[mode]["steps"]:
+            for st in result[mode]["light_steps"]:
                 print(f"{mode:8s} {st['eye']:5s} eye, {st['log_units']:+.0f} log units at {st['at_s']:.1f} s ({st['direction']}): "
                       f"{st['from_mm']:.2f} -> {st['end_mm']:.2f} mm (steady state {st['steady_state_mm']:.2f}, off by "
                       f"{100 * st['end_relative_error']:.1f}%), latency {st['latency_s']} s, 10-90% {st['rise_10_90_s']} s, "
                       f"settled within 5% after {st['settle_s']} s")
+            for st in result[mode]["focus_steps"]:
+                print(f"{mode:8s} {st['eye']:5s} eye, card {st['from_m']:.2f} -> {st['to_m']:.2f} m at {st['at_s']:.1f} s: "
+                      f"{st['from_D']:.2f} -> {st['to_D']:.2f} D, latency {st['latency_s']} s, in focus (0.25 D) after "
+                      f"{st['in_focus_s']} s, defocus at the end {st['end_defocus_D']:+.3f} D")
         write_json(os.path.join(args.out, "intraocular.json"), result)
-        print(f"wrote {os.path.join(args.out, 'intraocular.json')} and {os.path.join(args.out, 'figures', 'light_steps.png')}")
+        print(f"wrote {os.path.join(args.out, 'intraocular.json')} and figures in {os.path.join(args.out, 'figures')}")
         return
     else:
         _body, loop = _setup(args)

@@ -65,12 +65,25 @@ MAX_GAZE_DEG = 35.0
 ACTIVATION_PER_DEG = 0.12
 ACTIVATION_SLACK = 0.005
 OPTICS_STEP_D = 0.5
+LENS_OPTICS_STEP_D = 0.1  # with lens nets in the loop (their goal: within 0.25 D)
 PUPIL_STEP_MM = 0.5
 OPTICS_HYSTERESIS = 0.75  # of a step: how far from its rendered state the eye must be to change it
 
 
-#: Who commands the iris: "nets" (each eye's pupil net) or "analytic" (their teacher, Watson & Yellott).
+#: Who commands the iris and the lens: "nets" (each eye's pupil and lens nets) or "analytic" (their
+#: teachers: Watson & Yellott's pupil, and accommodation to where the gaze lines converge).
 INTRAOCULAR = ("nets", "analytic")
+
+
+def load_lens(run_dir: str, device: str = "cpu"):
+    """An eye's trained lens net (:class:`warp_vision.nn.intraocular.LensNet`), in eval mode."""
+    from warp_vision.nn.trained import load_net
+
+    model, ck = load_net(run_dir, device)
+    if ck.get("net", {}).get("kind") != "lens":
+        raise ValueError(f"{run_dir}: expected a lens run (python -m warp_vision.train lens), got a "
+                         f"{ck.get('net', {}).get('kind')!r} net")
+    return model
 
 
 def load_pupil(run_dir: str, device: str = "cpu"):
@@ -212,13 +225,21 @@ class VisuomotorLoop:
     control period. ``timing`` accumulates wall seconds per stage (render, nets, mujoco, control)."""
 
     def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, frame_every: int = FRAME_EVERY,
-                 ball: str = "glowing", pupil_nets: dict | None = None):
+                 ball: str = "glowing", pupil_nets: dict | None = None, lens_nets: dict | None = None):
         if not isinstance(frame_every, (int, np.integer)) or frame_every < 1:
             raise ValueError(f"frame_every: expected a whole number of control periods >= 1, got {frame_every!r}")
-        if pupil_nets is not None and set(pupil_nets) != set(SIDES):
-            raise ValueError(f"pupil_nets: expected one net per eye {SIDES}, got {sorted(pupil_nets)}")
+        for name, nets in (("pupil_nets", pupil_nets), ("lens_nets", lens_nets)):
+            if nets is not None and set(nets) != set(SIDES):
+                raise ValueError(f"{name}: expected one net per eye {SIDES}, got {sorted(nets)}")
         #: each eye's pupil net (:class:`warp_vision.nn.intraocular.PupilNet`), or None: the analytic law
         self.pupil_nets = pupil_nets
+        #: each eye's lens net (:class:`warp_vision.nn.intraocular.LensNet`), or None: the vergence law
+        self.lens_nets = lens_nets
+        #: the accommodation steps the eyes render at: a lens net needs finer ones than its 0.25 D goal
+        self.optics_step_d = LENS_OPTICS_STEP_D if lens_nets is not None else OPTICS_STEP_D
+        #: per eye, the vergence law's accommodation command (D) and, with lens nets, the defocus they read
+        self.lens_teacher: dict = {}
+        self.defocus_estimate: dict = {}
         #: the room's light level: every lamp, the ambient light and every emission times this (the renderer
         #: is linear in them, so the ONVs are the rendered ones times it); the light-step scenario changes it
         self.light_scale = 1.0
@@ -238,6 +259,7 @@ class VisuomotorLoop:
         self.onv: dict = {}
         self.estimate: dict = {}
         self._pupil_command: dict = {}
+        self._lens_command: dict = {}
         self._optics: dict = {}  # per eye, the quantised (accommodation, pupil) it renders with
         self._neck_hold()
 
@@ -247,6 +269,7 @@ class VisuomotorLoop:
         self.body.reset()
         self.period = 0
         self._pupil_command = {}
+        self._lens_command = {}
         self.eyes = {s: EyeState() for s in SIDES}
         self.neck_target = np.zeros(3)
         self._neck_hold()
@@ -275,7 +298,7 @@ class VisuomotorLoop:
             # when the eye is OPTICS_HYSTERESIS steps beyond it, so a state near a boundary does not
             # flicker between two ray sets.
             last = self._optics.get(s)
-            q = (_quantise(acc, OPTICS_STEP_D, None if last is None else last[0]),
+            q = (_quantise(acc, self.optics_step_d, None if last is None else last[0]),
                  _quantise(pupil, PUPIL_STEP_MM, None if last is None else last[1]))
             self._optics[s] = q
             eye = NavarroEye(*q)
@@ -371,6 +394,11 @@ class VisuomotorLoop:
         body.step(int(round(CONTROL_DT / body.model.opt.timestep)))
         self.timing["mujoco"] += time.perf_counter() - t0
 
+    def _lens_net_command(self, s: str, acc_looked: float, looked: float) -> float:
+        cmd, d = _lens_command(self.lens_nets[s], self.onv[s], acc_looked, looked, self._lens_command.get(s, acc_looked))
+        self.defocus_estimate[s] = d
+        return cmd
+
     def _intraocular(self, seen: bool) -> None:
         """Accommodate to where the gaze lines converge; on a new frame (``seen``) the pupil is commanded
         from its ONV: by the eye's pupil net, or by the analytic law (Watson & Yellott's pupil for the
@@ -380,15 +408,36 @@ class VisuomotorLoop:
 
         dist = vergence_distance(self.body)
         for s in SIDES:
+            self.lens_teacher[s] = 1.0 / max(dist, 0.1)
             if seen or s not in self._pupil_command:
-                looked = self._optics[s][1]  # the (quantised) pupil the frame was rendered through
+                acc_looked, looked = self._optics[s]  # the (quantised) lens and pupil the frame was rendered through
                 self.pupil_teacher[s] = float(pupil_diameter_mm(adapting_luminance(max(float(self.onv[s].mean()), 1e-12), looked)))
-                if self.pupil_nets is None:
-                    self._pupil_command[s] = self.pupil_teacher[s]
-                else:
-                    with torch.no_grad():
+                with torch.no_grad():
+                    if self.pupil_nets is None:
+                        self._pupil_command[s] = self.pupil_teacher[s]
+                    else:
                         self._pupil_command[s] = float(self.pupil_nets[s](self.onv[s].float(), torch.tensor([looked]))[0])
-            self.body.set_intraocular(s, pupil_mm=self._pupil_command[s], accommodation_D=1.0 / max(dist, 0.1))
+                    if self.lens_nets is not None:
+                        self._lens_command[s] = self._lens_net_command(s, acc_looked, looked)
+            acc = self._lens_command[s] if self.lens_nets is not None else self.lens_teacher[s]
+            self.body.set_intraocular(s, pupil_mm=self._pupil_command[s], accommodation_D=acc)
+
+
+def _lens_command(net, onv: torch.Tensor, acc_looked: float, pupil: float, hold: float) -> tuple[float, float | None]:
+    """(accommodation command, defocus estimate or None) of a lens net for an ONV rendered at
+    ``acc_looked`` through ``pupil``. The defocus is the accommodation minus the object's vergence, so the
+    command is the vergence the net sees: an absolute target (the plant's latency winds nothing up). An
+    image without fine contrast (``net.contrast`` under its floor: a uniform glowing ball filling the
+    fovea) carries no defocus cue: the lens holds ``hold``, its last command."""
+    with torch.no_grad():
+        if not hasattr(net, "raw_features"):  # any callable (onv, pupil) -> defocus
+            d = float(net(onv.float(), torch.tensor([pupil]))[0])
+            return acc_looked - d, d
+        raw = net.raw_features(onv.float(), torch.tensor([pupil]))
+        if float(net.contrast(raw)[0]) < float(net.contrast_floor):
+            return hold, None
+        d = float(net.head(raw)[0])
+    return acc_looked - d, d
 
 
 def gaze_line(body: Body, side: str) -> tuple[np.ndarray, np.ndarray]:

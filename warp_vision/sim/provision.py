@@ -26,16 +26,17 @@ from dataclasses import dataclass
 from warp_vision.body import SIDES
 
 #: Wall minutes of each training on the 2-core reference CPU (measured; README has the runs): the
-#: foveation net's dataset synthesis plus its training, and the oculomotor net's holding-activation
-#: dataset plus its training.
+#: foveation net's dataset synthesis plus its training, the oculomotor net's holding-activation dataset
+#: plus its training, the pupil and lens nets' datasets plus their training (the lens net's first run on
+#: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards).
 MINUTES = {("foveation", "default"): 4.5, ("foveation", "quick"): 1.2,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
-           ("pupil", "default"): 3.0, ("pupil", "quick"): 1.0}
+           ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 5.0, ("lens", "quick"): 3.0}
 
 
 @dataclass
 class NetSpec:
-    """One net the loop needs: its kind (foveation | oculomotor | pupil), eye, run directory and training preset."""
+    """One net the loop needs: its kind (foveation | oculomotor | pupil | lens), eye, run directory and training preset."""
 
     kind: str
     eye: str
@@ -61,21 +62,24 @@ class NetSpec:
 
 
 def default_runs(quick: bool) -> dict:
-    """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor", "pupil"}."""
+    """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor", "pupil", "lens"}."""
     root = os.path.join("runs", "quick") if quick else "runs"
     return {"left": os.path.join(root, "foveation_left"), "right": os.path.join(root, "foveation_right"),
-            "oculomotor": os.path.join(root, "oculomotor"), "pupil": os.path.join(root, "pupil")}
+            "oculomotor": os.path.join(root, "oculomotor"), "pupil": os.path.join(root, "pupil"),
+            "lens": os.path.join(root, "lens")}
 
 
-def plan(left: str, right: str, oculomotor: str, quick: bool = False, pupil: str | None = None) -> list[NetSpec]:
+def plan(left: str, right: str, oculomotor: str, quick: bool = False, pupil: str | None = None,
+         lens: str | None = None) -> list[NetSpec]:
     """The nets of the loop: both eyes' foveation nets in ``left`` and ``right``, their oculomotor nets in
-    ``oculomotor/<eye>``, and (with ``pupil``) their pupil nets in ``pupil/<eye>``, in that order;
-    ``quick`` trains missing ones with the ``quick`` presets."""
+    ``oculomotor/<eye>``, and (with ``pupil`` and ``lens``) their pupil and lens nets in ``pupil/<eye>`` and
+    ``lens/<eye>``, in that order; ``quick`` trains missing ones with the ``quick`` presets."""
     preset = "quick" if quick else "default"
     fov = {"left": left, "right": right}
     return ([NetSpec("foveation", s, fov[s], preset) for s in SIDES]
             + [NetSpec("oculomotor", s, os.path.join(oculomotor, s), preset) for s in SIDES]
-            + ([NetSpec("pupil", s, os.path.join(pupil, s), preset) for s in SIDES] if pupil else []))
+            + [NetSpec(kind, s, os.path.join(root, s), preset) for kind, root in (("pupil", pupil), ("lens", lens)) if root
+               for s in SIDES])
 
 
 def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None) -> list[NetSpec]:

@@ -214,3 +214,110 @@ def pupil_step_metrics(t: np.ndarray, pupil: np.ndarray, teacher: np.ndarray, st
             "end_relative_error": float(abs(p[-1] - ss) / ss), "settle_s": settle, "latency_s": moved(0.05),
             "rise_10_90_s": None if t10 is None or t90 is None else t90 - t10,
             "direction": "constrict" if ss < before else "dilate"}
+
+
+#: The focus-step scenario: the fixated card's distance (m) in phases of (duration s, distance).
+FOCUS_PHASES = ((1.5, 2.0), (2.0, 1.0 / 3.0), (2.0, 2.0))
+#: Accommodation is in focus within this many dioptres of the card's vergence.
+FOCUS_TOLERANCE_D = 0.25
+FOCUS_CARD_M = 0.2  # the card's size: 5.7 deg across at 2 m, so it fills the lens nets' central field
+
+
+class FixationOracle:
+    """Stands in for an eye's foveation net in the focus-step scenario: the true direction of a point
+    (``target()``) in the eye frame, so the eyes fixate the card's centre. The foveation nets are trained
+    on balls; this scenario measures accommodation alone."""
+
+    def __init__(self, foveator, body, side: str, target):
+        self.retina, self.trained_eye = foveator.retina, foveator.trained_eye
+        self.samples_per_receptor, self.norm = foveator.samples_per_receptor, foveator.norm
+        self.generator = getattr(foveator, "generator", None)
+        self.body, self.side, self.target = body, side, target
+
+    def __call__(self, onv):
+        from warp_vision.frames import gaze_angles
+
+        T = self.body.eye_pose(self.side)
+        d = T[:3, :3].T @ (self.target() - T[:3, 3])
+        return np.asarray(gaze_angles(d / np.linalg.norm(d)))[None]
+
+
+def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True) -> dict:
+    """The eyes fixate a textured card straight ahead while it steps through the distances of
+    ``phases``; per period each eye's accommodation, its command, the card's vergence from the eye (D)
+    and the defocus (accommodation minus that vergence). Per step and eye: the latency (until the
+    accommodation has moved 5% of the way), the time until it is within ``FOCUS_TOLERANCE_D`` of the
+    card's vergence for good, and the defocus at the phase's end. With ``snapshots``, the left eye's ONV
+    just after each step and at the phase's end (blurred, then sharp)."""
+    from tqdm import tqdm
+
+    from warp_vision.scene import Material
+    from warp_vision.scene.textures import textured_card
+    from warp_vision.sim.loop import CONTROL_DT, point_at
+
+    body = loop.body
+    body.model.opt.gravity[:] = 0
+    if "focus_card" not in [o.name for o in loop.scene.objects]:
+        loop.scene.add("focus_card", textured_card(FOCUS_CARD_M, 256, 2024), Material(vertex_colors=True), np.eye(4))
+    loop.reset(SETTLE_S)
+    starts = np.cumsum([0.0] + [d for d, _ in phases])
+    state = {"centre": None}
+    fov = loop.fov
+    loop.fov = {s: FixationOracle(fov[s], body, s, lambda: state["centre"]) for s in SIDES}
+    H = body.head_pose()
+    parked = H[:3, 3] - 1.5 * H[:3, 2]  # the ball is not in this scenario: 1.5 m behind the head, out of sight
+    body.set_ball(parked)
+    tr = {"t": [], "distance": [], **{f"{k}_{s}": [] for k in ("accommodation", "command", "vergence", "defocus") for s in SIDES}}
+    shots = []
+    n = int(round(starts[-1] / CONTROL_DT))
+    t0 = body.time
+    try:
+        for k in tqdm(range(n), desc="focus steps", disable=not progress, leave=False):
+            t = k * CONTROL_DT
+            phase = int(np.searchsorted(starts, t, side="right")) - 1
+            dist = phases[phase][1]
+            state["centre"] = point_at(body, 0.0, 0.0, dist) if k == 0 or dist != tr["distance"][-1] else state["centre"]
+            T = np.eye(4)
+            T[:3, :3] = body.head_pose()[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # its face (+z) toward the eyes (head -z)
+            T[:3, 3] = state["centre"]
+            loop.scene.set_transform("focus_card", T)
+            body.set_ball(parked)
+            loop.step()
+            tr["t"].append(body.time - t0)
+            tr["distance"].append(dist)
+            for s in SIDES:
+                acc = body.intraocular(s)[1]
+                verg = 1.0 / np.linalg.norm(state["centre"] - body.eye_pose(s)[:3, 3])
+                tr[f"accommodation_{s}"].append(acc)
+                tr[f"command_{s}"].append(loop._lens_command.get(s, loop.lens_teacher.get(s, np.nan)))
+                tr[f"vergence_{s}"].append(verg)
+                tr[f"defocus_{s}"].append(acc - verg)
+            if snapshots and loop.period % loop.frame_every == 1 and phase > 0:
+                since = t - starts[phase]
+                if since < loop.frame_every * CONTROL_DT or abs(t - (starts[phase + 1] - 0.1)) < loop.frame_every * CONTROL_DT / 2:
+                    shots.append({"t": float(tr["t"][-1]), "defocus_D": float(tr["defocus_left"][-1]),
+                                  "onv": loop.onv["left"][0].numpy().copy()})
+    finally:
+        loop.fov = fov
+        loop.scene.set_visible("focus_card", False)
+    tr = {k: np.asarray(v) for k, v in tr.items()}
+    steps = []
+    for i in range(1, len(phases)):
+        a, b = starts[i], starts[i + 1]
+        for s in SIDES:
+            steps.append({"eye": s, "at_s": float(a), "from_m": phases[i - 1][1], "to_m": phases[i][1],
+                          **focus_step_metrics(tr["t"], tr[f"accommodation_{s}"], tr[f"vergence_{s}"], a, b)})
+    return {"traces": tr, "steps": steps, "snapshots": shots}
+
+
+def focus_step_metrics(t: np.ndarray, acc: np.ndarray, vergence: np.ndarray, start: float, end: float) -> dict:
+    """An eye's accommodation response to a focus step at ``start`` (the phase ending at ``end``)."""
+    before = acc[(t > start - 0.2) & (t <= start)].mean()
+    phase = (t > start) & (t <= end)
+    tt, a, v = t[phase] - start, acc[phase], vergence[phase]
+    goal = v[-1]
+    frac = (a - before) / (goal - before)
+    off = np.abs(a - v) > FOCUS_TOLERANCE_D
+    in_focus = float(tt[np.nonzero(off)[0][-1] + 1]) if off.any() and not off[-1] else (0.0 if not off.any() else None)
+    return {"from_D": float(before), "to_D": float(goal), "latency_s": float(tt[np.argmax(frac >= 0.05)]) if (frac >= 0.05).any() else None,
+            "in_focus_s": in_focus, "end_defocus_D": float(a[-1] - v[-1])}

@@ -343,12 +343,13 @@ class LensTrainConfig:
     data_dir: str = ""  # dataset directory; default: runs/datasets/lens-<config hash>
     eye: str = "left"  # which eye's retina
     # the dataset (warp_vision.data.intraocular): textured cards at 0.2-5 m, the lens at random states near them
-    samples: int = 6000  # training ONVs (validation and test split off them)
+    samples: int = 10_000  # training ONVs (validation and test split off them)
     heldout_samples: int = 1000  # ONVs of new textures, lamps and distances, measured at the end
     photoreceptors: int = 14_400  # P: the foveation nets' retina
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel (the loop's)
     central_deg: float = 2.0  # the net reads the photoreceptors within this eccentricity
     defocus_range_D: float = 2.5  # |defocus| up to this
+    card_vertices: int = 384  # per side of each textured card's grid
     # the model
     hidden: int = 64  # tanh units per hidden layer
     # optimisation
@@ -367,7 +368,7 @@ class LensTrainConfig:
 
         return LensDataConfig(samples=self.samples, photoreceptors=self.photoreceptors, eye=self.eye,
                               samples_per_receptor=self.samples_per_receptor, central_deg=self.central_deg,
-                              defocus_range_D=self.defocus_range_D, seed=self.seed)
+                              defocus_range_D=self.defocus_range_D, card_vertices=self.card_vertices, seed=self.seed)
 
     def validate(self) -> None:
         _check_common(self, LENS_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor", "hidden"))
@@ -382,7 +383,7 @@ class LensTrainConfig:
 
 LENS_PRESETS: dict[str, dict] = {
     # seconds, for tests
-    "smoke": dict(samples=48, heldout_samples=16, photoreceptors=2000, central_deg=6.0, samples_per_receptor=1, hidden=8,
+    "smoke": dict(samples=48, heldout_samples=16, photoreceptors=1000, samples_per_receptor=1, card_vertices=48, hidden=8,
                   epochs=2, patience=2),
     # a first look (``python -m warp_vision.sim demo --quick``)
     "quick": dict(samples=2000, heldout_samples=400, epochs=80, patience=80),

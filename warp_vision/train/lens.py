@@ -1,0 +1,163 @@
+"""The lens task: each eye's lens net (:class:`warp_vision.nn.intraocular.LensNet`) from (ONV, current
+pupil) to the signed defocus of the current accommodation (accommodation minus the fixated object's
+vergence, dioptres).
+
+``python -m warp_vision.train lens --eye left|right [--preset smoke|quick|default] [--flag value ...]``
+
+The dataset is :func:`warp_vision.data.intraocular.synthesize_lens`: textured cards at 0.2-5 m filling
+the central field, the lens at random states within ``defocus_range_D`` of them (half the samples near
+focus). The loss is Huber (1 D) on the defocus. The best epoch has the smallest validation median error;
+the summary reports the test split's and a held-out set's (new textures, lamps and distances) median and
+90th percentile absolute error (D) and the share of samples beyond 0.5 D whose sign is right.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from warp_vision.train import harness
+from warp_vision.train.config import LensTrainConfig
+
+#: The sign of the defocus is scored on samples whose defocus exceeds this (D).
+SIGN_ABOVE_D = 0.5
+
+
+def _errors(pred: torch.Tensor, true: torch.Tensor) -> dict:
+    e = (pred - true).abs()
+    big = true.abs() > SIGN_ABOVE_D
+    return {"loss": float(torch.nn.functional.huber_loss(pred, true)), "median_error_D": float(e.median()),
+            "p90_error_D": float(torch.quantile(e, 0.9)),
+            "sign_correct_above_0.5D": float((torch.sign(pred[big]) == torch.sign(true[big])).float().mean()) if big.any() else float("nan"),
+            "median_error_D_within_0.5D": float(e[~big].median()) if (~big).any() else float("nan")}
+
+
+class LensTask(harness.Task):
+    name = "lens"
+    config_cls = LensTrainConfig
+    selection = {"median_error_D": "min"}
+
+    def _load_set(self, dcfg, ddir, shard, progress, synthesize):
+        from warp_vision.data.intraocular import synthesize_lens
+        from warp_vision.data.store import ChunkedStore
+
+        if synthesize:
+            synthesize_lens(ddir, dcfg, shard=shard, progress=progress, log=self.log)
+        d = ChunkedStore.open(ddir).load(["onv", "defocus", "pupil", "distance", "accommodation"])
+        out = {k: torch.as_tensor(d[k]) for k in d if k != "onv"}
+        # the first layer is fixed: its outputs are computed once, and training runs the learned head on them
+        net = self._net()
+        with torch.no_grad():
+            out["raw"] = torch.cat([net.raw_features(torch.as_tensor(d["onv"][s:s + 256]).float(), out["pupil"][s:s + 256],
+                                                     central_only=True) for s in range(0, len(d["onv"]), 256)])
+        return out
+
+    def _net(self):
+        from warp_vision.nn.trained import build_net
+
+        return build_net(self.net_spec())
+
+    def load(self, shard, progress, synthesize: bool = True):
+        from warp_vision.data.foveation import FoveationDataConfig, make_retina
+        from warp_vision.data.intraocular import central_photoreceptors
+
+        dcfg = self.cfg.data_config()
+        self.retina = make_retina(FoveationDataConfig(photoreceptors=self.cfg.photoreceptors, eye=self.cfg.eye))
+        self.central = central_photoreceptors(self.retina, self.cfg.central_deg)
+        self.data = self._load_set(dcfg, self.cfg.data_dir, shard, progress, synthesize)
+        hcfg = dcfg.heldout(self.cfg.heldout_samples)
+        self.heldout_dir = str(Path(self.cfg.data_dir).parent / f"lens-{hcfg.key()}")  # new textures, lamps, distances
+        self.heldout = self._load_set(hcfg, self.heldout_dir, shard, progress, synthesize)
+
+    def splits(self):
+        c = self.cfg
+        return harness.splits(len(self.data["raw"]), c.seed, c.val_fraction, c.test_fraction, min_test=2)
+
+    def net_spec(self):
+        c = self.cfg
+        return {"kind": "lens", "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
+                "central": torch.from_numpy(self.central.astype(np.int64)), "photoreceptors": c.photoreceptors,
+                "hidden": c.hidden, "seed": c.seed}
+
+    def fit_norm(self, train):
+        f = self.data["raw"][torch.as_tensor(train)]
+        # the contrast floor: a decade of energy under the faintest 1% of the training images
+        floor = torch.quantile(self._net().contrast(f), 0.01) - 1.0
+        return {"feature_mean": f.mean(0), "feature_std": f.std(0).clamp_min(1e-3), "contrast_floor": floor}
+
+    def prepare(self, model, norm):
+        with torch.no_grad():
+            model.feature_mean.copy_(norm["feature_mean"])
+            model.feature_std.copy_(norm["feature_std"])
+            model.contrast_floor.copy_(norm["contrast_floor"])
+
+    def data_config(self):
+        from dataclasses import asdict
+
+        return asdict(self.cfg.data_config())
+
+    def _predict(self, net, data, idx, device):
+        i = torch.as_tensor(np.asarray(idx))
+        return net(raw=data["raw"][i].to(device)), data["defocus"][i].to(device)
+
+    def batch_loss(self, net, idx, norm, device):
+        pred, true = self._predict(net, self.data, idx, device)
+        loss = torch.nn.functional.huber_loss(pred, true)
+        return loss, {"loss": loss.item()}
+
+    def evaluate(self, model, idx, norm, device):
+        with torch.no_grad():
+            pred, true = self._predict(model, self.data, idx, device)
+        return _errors(pred.cpu(), true.cpu())
+
+    def describe(self, model):
+        return (f"lens net ({self.cfg.eye} eye, {len(self.central):,} central photoreceptors, hidden {self.cfg.hidden}): "
+                f"{sum(p.numel() for p in model.parameters()):,} parameters")
+
+    def epoch_line(self, row):
+        return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.3e}  val median error {row['val_median_error_D']:.3f} D, "
+                f"sign right beyond 0.5 D: {100 * row['val_sign_correct_above_0.5D']:.1f}%")
+
+    def summary(self, test, history, model):
+        model = model.cpu()
+        with torch.no_grad():
+            pred, true = self._predict(model, self.heldout, np.arange(len(self.heldout["raw"])), "cpu")
+        self._heldout_pred = (pred.numpy(), true.numpy(), self.heldout["distance"].numpy())
+        return {"eye": self.cfg.eye, "test": test, "heldout": _errors(pred, true), "dataset": self.cfg.data_dir,
+                "heldout_dataset": self.heldout_dir}
+
+    def figures(self, out, history, test, idx):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        pred, true, dist = self._heldout_pred
+        fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+        sc = ax[0].scatter(true, pred, c=np.log10(dist), s=6, cmap="viridis")
+        fig.colorbar(sc, ax=ax[0], label="log10 card distance (m)")
+        lim = [float(min(true.min(), pred.min())), float(max(true.max(), pred.max()))]
+        ax[0].plot(lim, lim, "k-", lw=0.8)
+        ax[0].set(xlabel="true defocus (D)", ylabel="lens net's estimate (D)", title=f"{self.cfg.eye} eye, held-out cards")
+        ax[1].hist(pred - true, bins=60, color="C1")
+        ax[1].set(xlabel="error (D)", ylabel="held-out ONVs")
+        fig.tight_layout()
+        (out / "figures").mkdir(parents=True, exist_ok=True)
+        fig.savefig(out / "figures" / "lens.png", dpi=110)
+        plt.close(fig)
+
+    def eval_line(self, run_dir, split, n, ev):
+        return (f"{run_dir} ({split}, {n:,} ONVs): median error {ev['median_error_D']:.3f} D, p90 {ev['p90_error_D']:.3f} D, "
+                f"sign right beyond 0.5 D: {100 * ev['sign_correct_above_0.5D']:.1f}%")
+
+
+def run(cfg: LensTrainConfig | None = None, **kw) -> dict:
+    """Train (or resume) one eye's lens run: :func:`warp_vision.train.harness.run` for this task."""
+    return harness.run(LensTask, cfg, **kw)
+
+
+def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
+    """Re-evaluate a lens run's best checkpoint on its held-out ONVs."""
+    return harness.evaluate_run(LensTask, run_dir, split, log)
