@@ -73,7 +73,7 @@ def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
 
     cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, PupilTrainConfig, PUPIL_PRESETS)
     summary = run(cfg, progress=False, log=lambda *_a, **_k: None)
-    held = summary["heldout_rooms"]
+    held = summary["heldout"]
     assert set(held) >= {"median_error_mm", "p90_error_mm", "median_relative_error", "within_5pct"}
     assert np.isfinite(held["median_error_mm"]) and held["median_error_mm"] >= 0
     assert (tmp_path / "run" / "figures" / "pupil.png").exists()
@@ -265,9 +265,9 @@ def test_a_focus_step_in_the_loop_comes_into_focus(bare_body):
         if lens == "nets":
             loop.lens_nets = {s: _OracleLensNet(loop, s) for s in SIDES}
             loop.optics_step_d = 0.1
-        res = focus_steps(loop, phases=((1.0, 2.0), (1.5, 1.0 / 3.0)), progress=False)
+        res = focus_steps(loop, phases=((1.0, 2.0), (1.5, 1.0 / 3.0)), progress=False, card_vertices=48)
         for st in res["steps"]:
             assert st["in_focus_s"] is not None and st["in_focus_s"] < 1.2, (lens, st)
             assert abs(st["end_defocus_D"]) < FOCUS_TOLERANCE_D
             assert st["latency_s"] >= LENS_LATENCY_S - 0.01  # the lens waits its latency
-        assert len(res["snapshots"]) >= 1 and "focus_card" in [o.name for o in loop.scene.objects]
+        assert len(res["snapshots"]) >= 1 and sum(o.name.startswith("focus_card") for o in loop.scene.objects) == 2

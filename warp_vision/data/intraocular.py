@@ -269,6 +269,12 @@ def card_scene(seed: int, texture_set: int = 0, vertices: int = CARD_VERTICES):
     return _CARDS["scene"]
 
 
+def card_size_for(distance_m: float) -> float:
+    """The size (m) of the card a lens sample at ``distance_m`` shows (the largest of CARD_SIZES_M whose
+    third subtends at most CARD_MAX_RAD)."""
+    return CARD_SIZES_M[max(i for i, s in enumerate(CARD_SIZES_M) if s / 3 <= CARD_MAX_RAD * distance_m or i == 0)]
+
+
 def block_optics(cfg: LensDataConfig, block: int) -> tuple[float, float]:
     """(accommodation D, pupil mm) of room block ``block``: the accommodation uniform in 0-6 D (0.05 D
     steps), the pupil in ``pupil_range_mm`` (0.5 mm steps)."""
@@ -292,8 +298,8 @@ def lens_sample(cfg: LensDataConfig, index: int, accommodation: float) -> dict:
     else:  # pragma: no cover - accommodation within 0-6 D always finds one
         raise RuntimeError("no card distance found")
     d = 1.0 / vergence
-    k = max(i for i, s in enumerate(CARD_SIZES_M) if s / 3 <= CARD_MAX_RAD * d or i == 0)
-    size = CARD_SIZES_M[k]
+    size = card_size_for(d)
+    k = CARD_SIZES_M.index(size)
     # the line of sight meets the card at a random point (u, v) of it, at least FILL_RAD (at d) from its
     # edges, within 0.3 deg of the fovea; the card is turned up to 25 deg from facing the eye
     half = max(size / 2 - d * np.tan(FILL_RAD), 0.0)

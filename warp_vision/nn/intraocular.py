@@ -26,6 +26,16 @@ def _check_onv(onv: torch.Tensor, P: int, name: str = "onv") -> None:
         raise ValueError(f"{name}: expected finite irradiances >= 0")
 
 
+def _check_pupil(pupil_mm, onv: torch.Tensor) -> torch.Tensor:
+    """``pupil_mm`` as a float32 [B] tensor on ``onv``'s device: one diameter in (0, 10] mm per ONV."""
+    pupil_mm = torch.as_tensor(pupil_mm, dtype=torch.float32, device=onv.device).reshape(-1)
+    if len(pupil_mm) != len(onv):
+        raise ValueError(f"pupil_mm: expected one diameter per ONV ({len(onv)}), got {len(pupil_mm)}")
+    if not torch.isfinite(pupil_mm).all() or (pupil_mm <= 0).any() or (pupil_mm > 10).any():
+        raise ValueError(f"pupil_mm: expected diameters in (0, 10] mm, got {pupil_mm.tolist()[:5]}")
+    return pupil_mm
+
+
 def retina_regions(domain_xy: np.ndarray, rings: int, sectors: int) -> np.ndarray:
     """[P] region of each photoreceptor: ``rings`` eccentricity rings of equal counts times ``sectors``
     polar sectors, numbered ring-major."""
@@ -74,21 +84,26 @@ class PupilNet(torch.nn.Module):
         self.hidden = torch.nn.Linear(n, hidden)
         self.out = torch.nn.Linear(hidden, 1)
 
-    def features(self, onv: torch.Tensor, pupil_mm: torch.Tensor) -> torch.Tensor:
-        """The net's standardised inputs [B, 3 (R + 1) + 1] (fit ``feature_mean`` and ``feature_std`` on them)."""
+    def raw_features(self, onv: torch.Tensor, pupil_mm: torch.Tensor) -> torch.Tensor:
+        """The fixed first layer's outputs [B, 3 (R + 1) + 1] (region log-means and the log pupil), before
+        standardisation."""
         _check_onv(onv, self.pool.P)
-        pupil_mm = torch.as_tensor(pupil_mm, dtype=torch.float32, device=onv.device).reshape(-1)
-        if len(pupil_mm) != len(onv):
-            raise ValueError(f"pupil_mm: expected one diameter per ONV ({len(onv)}), got {len(pupil_mm)}")
-        if not torch.isfinite(pupil_mm).all() or (pupil_mm <= 0).any() or (pupil_mm > 10).any():
-            raise ValueError(f"pupil_mm: expected diameters in (0, 10] mm, got {pupil_mm.tolist()[:5]}")
-        f = torch.cat([self.pool(onv), torch.log10(pupil_mm)[:, None]], dim=1)
-        return (f - self.feature_mean) / self.feature_std
+        return torch.cat([self.pool(onv), torch.log10(_check_pupil(pupil_mm, onv))[:, None]], dim=1)
 
-    def forward(self, onv: torch.Tensor, pupil_mm: torch.Tensor) -> torch.Tensor:
-        z = self.out(torch.tanh(self.hidden(self.features(onv, pupil_mm))))[:, 0]
+    def head(self, raw: torch.Tensor) -> torch.Tensor:
+        """The learned part: :meth:`raw_features` -> the commanded pupil [B] mm."""
+        z = self.out(torch.tanh(self.hidden((raw - self.feature_mean) / self.feature_std)))[:, 0]
         lo, hi = PUPIL_MM
         return lo + (hi - lo) * torch.sigmoid(z)
+
+    def forward(self, onv: torch.Tensor | None = None, pupil_mm: torch.Tensor | None = None,
+                raw: torch.Tensor | None = None) -> torch.Tensor:
+        """The commanded pupil [B] mm of (``onv``, ``pupil_mm``), or of precomputed :meth:`raw_features`."""
+        if raw is None:
+            if onv is None or pupil_mm is None:
+                raise ValueError("PupilNet: expected onv and pupil_mm, or raw features")
+            raw = self.raw_features(onv, pupil_mm)
+        return self.head(raw)
 
 
 #: :class:`LensNet`'s centre-surround scales: the surround is the mean of this many nearest photoreceptors.
@@ -159,11 +174,7 @@ class LensNet(torch.nn.Module):
         len(central)], as the lens datasets store them)."""
         N = len(self.central)
         _check_onv(onv, N if central_only else self.P)
-        pupil_mm = torch.as_tensor(pupil_mm, dtype=torch.float32, device=onv.device).reshape(-1)
-        if len(pupil_mm) != len(onv):
-            raise ValueError(f"pupil_mm: expected one diameter per ONV ({len(onv)}), got {len(pupil_mm)}")
-        if not torch.isfinite(pupil_mm).all() or (pupil_mm <= 0).any() or (pupil_mm > 10).any():
-            raise ValueError(f"pupil_mm: expected diameters in (0, 10] mm, got {pupil_mm.tolist()[:5]}")
+        pupil_mm = _check_pupil(pupil_mm, onv)
         x = onv.float().view(len(onv), -1, 3)
         if not central_only:
             x = x[:, self.central]

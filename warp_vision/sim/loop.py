@@ -75,26 +75,24 @@ OPTICS_HYSTERESIS = 0.75  # of a step: how far from its rendered state the eye m
 INTRAOCULAR = ("nets", "analytic")
 
 
-def load_lens(run_dir: str, device: str = "cpu"):
-    """An eye's trained lens net (:class:`warp_vision.nn.intraocular.LensNet`), in eval mode."""
+def _load_kind(run_dir: str, kind: str, device: str):
     from warp_vision.nn.trained import load_net
 
     model, ck = load_net(run_dir, device)
-    if ck.get("net", {}).get("kind") != "lens":
-        raise ValueError(f"{run_dir}: expected a lens run (python -m warp_vision.train lens), got a "
+    if ck.get("net", {}).get("kind") != kind:
+        raise ValueError(f"{run_dir}: expected a {kind} run (python -m warp_vision.train {kind}), got a "
                          f"{ck.get('net', {}).get('kind')!r} net")
     return model
 
 
 def load_pupil(run_dir: str, device: str = "cpu"):
     """An eye's trained pupil net (:class:`warp_vision.nn.intraocular.PupilNet`), in eval mode."""
-    from warp_vision.nn.trained import load_net
+    return _load_kind(run_dir, "pupil", device)
 
-    model, ck = load_net(run_dir, device)
-    if ck.get("net", {}).get("kind") != "pupil":
-        raise ValueError(f"{run_dir}: expected a pupil run (python -m warp_vision.train pupil), got a "
-                         f"{ck.get('net', {}).get('kind')!r} net")
-    return model
+
+def load_lens(run_dir: str, device: str = "cpu"):
+    """An eye's trained lens net (:class:`warp_vision.nn.intraocular.LensNet`), in eval mode."""
+    return _load_kind(run_dir, "lens", device)
 
 
 class Foveator:

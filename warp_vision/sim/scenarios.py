@@ -220,7 +220,8 @@ def pupil_step_metrics(t: np.ndarray, pupil: np.ndarray, teacher: np.ndarray, st
 FOCUS_PHASES = ((1.5, 2.0), (2.0, 1.0 / 3.0), (2.0, 2.0))
 #: Accommodation is in focus within this many dioptres of the card's vergence.
 FOCUS_TOLERANCE_D = 0.25
-FOCUS_CARD_M = 0.2  # the card's size: 5.7 deg across at 2 m, so it fills the lens nets' central field
+#: The cards' texture seed: none of the lens datasets' (their seeds are 0 and 1000).
+FOCUS_CARD_SEED = 2024
 
 
 class FixationOracle:
@@ -242,23 +243,35 @@ class FixationOracle:
         return np.asarray(gaze_angles(d / np.linalg.norm(d)))[None]
 
 
-def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True) -> dict:
+def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True, card_vertices: int | None = None) -> dict:
     """The eyes fixate a textured card straight ahead while it steps through the distances of
-    ``phases``; per period each eye's accommodation, its command, the card's vergence from the eye (D)
+    ``phases`` (a card per distance, sized as the lens data size theirs: :func:`warp_vision.data.intraocular.card_size_for`); per period each eye's accommodation, its command, the card's vergence from the eye (D)
     and the defocus (accommodation minus that vergence). Per step and eye: the latency (until the
     accommodation has moved 5% of the way), the time until it is within ``FOCUS_TOLERANCE_D`` of the
     card's vergence for good, and the defocus at the phase's end. With ``snapshots``, the left eye's ONV
-    just after each step and at the phase's end (blurred, then sharp)."""
+    just after each step and at the phase's end (blurred, then sharp). ``card_vertices``: the cards' grid
+    (default the lens data's)."""
     from tqdm import tqdm
 
     from warp_vision.scene import Material
     from warp_vision.scene.textures import textured_card
     from warp_vision.sim.loop import CONTROL_DT, point_at
 
+    from warp_vision.data.intraocular import CARD_VERTICES, card_size_for
+
     body = loop.body
     body.model.opt.gravity[:] = 0
-    if "focus_card" not in [o.name for o in loop.scene.objects]:
-        loop.scene.add("focus_card", textured_card(FOCUS_CARD_M, 256, 2024), Material(vertex_colors=True), np.eye(4))
+    # a card per distance, of the kind the lens nets learnt on (the size their data show at that distance,
+    # so the pattern's angular scale is theirs) but with a texture of its own
+    cards = {}
+    for _dur, dist in phases:
+        name = f"focus_card_{dist:.3f}"
+        cards[dist] = name
+        if name not in [o.name for o in loop.scene.objects]:
+            loop.scene.add(name, textured_card(card_size_for(dist), card_vertices or CARD_VERTICES,
+                                               [FOCUS_CARD_SEED, int(dist * 1000)]),
+                           Material(vertex_colors=True), np.eye(4))
+            loop.scene.set_visible(name, False)
     loop.reset(SETTLE_S)
     starts = np.cumsum([0.0] + [d for d, _ in phases])
     state = {"centre": None}
@@ -280,7 +293,9 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
             T = np.eye(4)
             T[:3, :3] = body.head_pose()[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # its face (+z) toward the eyes (head -z)
             T[:3, 3] = state["centre"]
-            loop.scene.set_transform("focus_card", T)
+            for dd, name in cards.items():
+                loop.scene.set_visible(name, dd == dist)
+            loop.scene.set_transform(cards[dist], T)
             body.set_ball(parked)
             loop.step()
             tr["t"].append(body.time - t0)
@@ -299,7 +314,8 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
                                   "onv": loop.onv["left"][0].numpy().copy()})
     finally:
         loop.fov = fov
-        loop.scene.set_visible("focus_card", False)
+        for name in cards.values():
+            loop.scene.set_visible(name, False)
     tr = {k: np.asarray(v) for k, v in tr.items()}
     steps = []
     for i in range(1, len(phases)):

@@ -13,13 +13,12 @@ the summary reports the test split's and a held-out set's (new textures, lamps a
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import torch
 
 from warp_vision.train import harness
 from warp_vision.train.config import LensTrainConfig
+from warp_vision.train.intraocular import ShallowNetTask
 
 #: The sign of the defocus is scored on samples whose defocus exceeds this (D).
 SIGN_ABOVE_D = 0.5
@@ -34,46 +33,24 @@ def _errors(pred: torch.Tensor, true: torch.Tensor) -> dict:
             "median_error_D_within_0.5D": float(e[~big].median()) if (~big).any() else float("nan")}
 
 
-class LensTask(harness.Task):
+class LensTask(ShallowNetTask):
     name = "lens"
     config_cls = LensTrainConfig
     selection = {"median_error_D": "min"}
+    target = "defocus"
+    raw_kwargs = {"central_only": True}
 
-    def _load_set(self, dcfg, ddir, shard, progress, synthesize):
-        from warp_vision.data.intraocular import synthesize_lens
+    def _render_set(self, dcfg, ddir, shard, progress, synthesize):
+        from warp_vision.data.foveation import FoveationDataConfig, make_retina
+        from warp_vision.data.intraocular import central_photoreceptors, synthesize_lens
         from warp_vision.data.store import ChunkedStore
 
+        self.retina = make_retina(FoveationDataConfig(photoreceptors=self.cfg.photoreceptors, eye=self.cfg.eye))
+        self.central = central_photoreceptors(self.retina, self.cfg.central_deg)
         if synthesize:
             synthesize_lens(ddir, dcfg, shard=shard, progress=progress, log=self.log)
         d = ChunkedStore.open(ddir).load(["onv", "defocus", "pupil", "distance", "accommodation"])
-        out = {k: torch.as_tensor(d[k]) for k in d if k != "onv"}
-        # the first layer is fixed: its outputs are computed once, and training runs the learned head on them
-        net = self._net()
-        with torch.no_grad():
-            out["raw"] = torch.cat([net.raw_features(torch.as_tensor(d["onv"][s:s + 256]).float(), out["pupil"][s:s + 256],
-                                                     central_only=True) for s in range(0, len(d["onv"]), 256)])
-        return out
-
-    def _net(self):
-        from warp_vision.nn.trained import build_net
-
-        return build_net(self.net_spec())
-
-    def load(self, shard, progress, synthesize: bool = True):
-        from warp_vision.data.foveation import FoveationDataConfig, make_retina
-        from warp_vision.data.intraocular import central_photoreceptors
-
-        dcfg = self.cfg.data_config()
-        self.retina = make_retina(FoveationDataConfig(photoreceptors=self.cfg.photoreceptors, eye=self.cfg.eye))
-        self.central = central_photoreceptors(self.retina, self.cfg.central_deg)
-        self.data = self._load_set(dcfg, self.cfg.data_dir, shard, progress, synthesize)
-        hcfg = dcfg.heldout(self.cfg.heldout_samples)
-        self.heldout_dir = str(Path(self.cfg.data_dir).parent / f"lens-{hcfg.key()}")  # new textures, lamps, distances
-        self.heldout = self._load_set(hcfg, self.heldout_dir, shard, progress, synthesize)
-
-    def splits(self):
-        c = self.cfg
-        return harness.splits(len(self.data["raw"]), c.seed, c.val_fraction, c.test_fraction, min_test=2)
+        return {k: torch.as_tensor(v) for k, v in d.items()}
 
     def net_spec(self):
         c = self.cfg
@@ -82,35 +59,15 @@ class LensTask(harness.Task):
                 "hidden": c.hidden, "seed": c.seed}
 
     def fit_norm(self, train):
-        f = self.data["raw"][torch.as_tensor(train)]
         # the contrast floor: a decade of energy under the faintest 1% of the training images
-        floor = torch.quantile(self._net().contrast(f), 0.01) - 1.0
-        return {"feature_mean": f.mean(0), "feature_std": f.std(0).clamp_min(1e-3), "contrast_floor": floor}
+        f = self.data["raw"][torch.as_tensor(train)]
+        return {**super().fit_norm(train), "contrast_floor": torch.quantile(self._net().contrast(f), 0.01) - 1.0}
 
-    def prepare(self, model, norm):
-        with torch.no_grad():
-            model.feature_mean.copy_(norm["feature_mean"])
-            model.feature_std.copy_(norm["feature_std"])
-            model.contrast_floor.copy_(norm["contrast_floor"])
+    def loss(self, pred, true):
+        return torch.nn.functional.huber_loss(pred, true)
 
-    def data_config(self):
-        from dataclasses import asdict
-
-        return asdict(self.cfg.data_config())
-
-    def _predict(self, net, data, idx, device):
-        i = torch.as_tensor(np.asarray(idx))
-        return net(raw=data["raw"][i].to(device)), data["defocus"][i].to(device)
-
-    def batch_loss(self, net, idx, norm, device):
-        pred, true = self._predict(net, self.data, idx, device)
-        loss = torch.nn.functional.huber_loss(pred, true)
-        return loss, {"loss": loss.item()}
-
-    def evaluate(self, model, idx, norm, device):
-        with torch.no_grad():
-            pred, true = self._predict(model, self.data, idx, device)
-        return _errors(pred.cpu(), true.cpu())
+    def errors(self, pred, true):
+        return _errors(pred, true)
 
     def describe(self, model):
         return (f"lens net ({self.cfg.eye} eye, {len(self.central):,} central photoreceptors, hidden {self.cfg.hidden}): "
@@ -120,21 +77,14 @@ class LensTask(harness.Task):
         return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.3e}  val median error {row['val_median_error_D']:.3f} D, "
                 f"sign right beyond 0.5 D: {100 * row['val_sign_correct_above_0.5D']:.1f}%")
 
-    def summary(self, test, history, model):
-        model = model.cpu()
-        with torch.no_grad():
-            pred, true = self._predict(model, self.heldout, np.arange(len(self.heldout["raw"])), "cpu")
-        self._heldout_pred = (pred.numpy(), true.numpy(), self.heldout["distance"].numpy())
-        return {"eye": self.cfg.eye, "test": test, "heldout": _errors(pred, true), "dataset": self.cfg.data_dir,
-                "heldout_dataset": self.heldout_dir}
-
     def figures(self, out, history, test, idx):
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        pred, true, dist = self._heldout_pred
+        pred, true = self.heldout_pred
+        dist = self.heldout["distance"].numpy()
         fig, ax = plt.subplots(1, 2, figsize=(10, 4))
         sc = ax[0].scatter(true, pred, c=np.log10(dist), s=6, cmap="viridis")
         fig.colorbar(sc, ax=ax[0], label="log10 card distance (m)")
@@ -143,10 +93,7 @@ class LensTask(harness.Task):
         ax[0].set(xlabel="true defocus (D)", ylabel="lens net's estimate (D)", title=f"{self.cfg.eye} eye, held-out cards")
         ax[1].hist(pred - true, bins=60, color="C1")
         ax[1].set(xlabel="error (D)", ylabel="held-out ONVs")
-        fig.tight_layout()
-        (out / "figures").mkdir(parents=True, exist_ok=True)
-        fig.savefig(out / "figures" / "lens.png", dpi=110)
-        plt.close(fig)
+        self.save_figure(fig, out, "lens.png")
 
     def eval_line(self, run_dir, split, n, ev):
         return (f"{run_dir} ({split}, {n:,} ONVs): median error {ev['median_error_D']:.3f} D, p90 {ev['p90_error_D']:.3f} D, "

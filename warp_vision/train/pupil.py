@@ -12,13 +12,12 @@ and the share within 5%.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import torch
 
 from warp_vision.train import harness
 from warp_vision.train.config import PupilTrainConfig
+from warp_vision.train.intraocular import ShallowNetTask
 
 
 def _errors(pred: torch.Tensor, true: torch.Tensor) -> dict:
@@ -29,71 +28,32 @@ def _errors(pred: torch.Tensor, true: torch.Tensor) -> dict:
             "p90_relative_error": float(torch.quantile(rel, 0.9)), "within_5pct": float((rel <= 0.05).float().mean())}
 
 
-class PupilTask(harness.Task):
+class PupilTask(ShallowNetTask):
     name = "pupil"
     config_cls = PupilTrainConfig
     selection = {"median_error_mm": "min"}
+    target = "teacher"
 
-    def _load_set(self, dcfg, ddir, shard, progress, synthesize):
+    def _render_set(self, dcfg, ddir, shard, progress, synthesize):
+        from warp_vision.data.foveation import make_retina
         from warp_vision.data.intraocular import load_pupil, synthesize_pupil
         from warp_vision.data.store import ChunkedStore
 
+        self.retina = make_retina(dcfg.scene_config())
         if synthesize:
             synthesize_pupil(ddir, dcfg, shard=shard, progress=progress, log=self.log)
         return load_pupil(ChunkedStore.open(ddir))
-
-    def load(self, shard, progress, synthesize: bool = True):
-        from warp_vision.data.foveation import make_retina
-
-        dcfg = self.cfg.data_config()
-        self.retina = make_retina(dcfg.scene_config())
-        self.data = self._load_set(dcfg, self.cfg.data_dir, shard, progress, synthesize)
-        hcfg = dcfg.heldout(self.cfg.heldout_samples)
-        # beside the training set: held-out rooms, sample seeds offset by 1000
-        self.heldout_dir = str(Path(self.cfg.data_dir).parent / f"pupil-{hcfg.key()}")
-        self.heldout = self._load_set(hcfg, self.heldout_dir, shard, progress, synthesize)
-
-    def splits(self):
-        c = self.cfg
-        return harness.splits(len(self.data["onv"]), c.seed, c.val_fraction, c.test_fraction, min_test=2)
 
     def net_spec(self):
         c = self.cfg
         return {"kind": "pupil", "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
                 "hidden": c.hidden, "rings": c.rings, "sectors": c.sectors, "seed": c.seed}
 
-    def fit_norm(self, train):
-        from warp_vision.nn.trained import build_net
+    def loss(self, pred, true):
+        return torch.mean((pred - true) ** 2)
 
-        net = build_net(self.net_spec())
-        idx = torch.as_tensor(train[:2000])
-        with torch.no_grad():
-            f = net.features(self.data["onv"][idx], self.data["pupil"][idx])
-        return {"feature_mean": f.mean(0), "feature_std": f.std(0).clamp_min(1e-3)}
-
-    def prepare(self, model, norm):
-        with torch.no_grad():
-            model.feature_mean.copy_(norm["feature_mean"])
-            model.feature_std.copy_(norm["feature_std"])
-
-    def data_config(self):
-        from dataclasses import asdict
-
-        return asdict(self.cfg.data_config())
-
-    def _predict(self, net, data, idx, device):
-        i = torch.as_tensor(np.asarray(idx))
-        return net(data["onv"][i].to(device), data["pupil"][i].to(device)), data["teacher"][i].to(device)
-
-    def batch_loss(self, net, idx, norm, device):
-        pred, true = self._predict(net, self.data, idx, device)
-        loss = torch.mean((pred - true) ** 2)
-        return loss, {"loss": loss.item()}
-
-    def evaluate(self, model, idx, norm, device):
-        with torch.no_grad():
-            pred, true = self._predict(model, self.data, idx, device)
-        return _errors(pred.cpu(), true.cpu())
+    def errors(self, pred, true):
+        return _errors(pred, true)
 
     def describe(self, model):
         return (f"pupil net ({self.cfg.eye} eye, {self.cfg.rings}x{self.cfg.sectors} regions, hidden {self.cfg.hidden}): "
@@ -104,15 +64,8 @@ class PupilTask(harness.Task):
                 f"{row['val_median_error_mm']:.3f} mm ({100 * row['val_median_relative_error']:.1f}%)")
 
     def summary(self, test, history, model):
-        model = model.cpu()
-        with torch.no_grad():
-            pred, true = self._predict(model, self.heldout, np.arange(len(self.heldout["onv"])), "cpu")
-        held = _errors(pred, true)
         lum = self.data["luminance"].numpy()
-        self._heldout_pred = (pred.numpy(), true.numpy(), self.heldout["luminance"].numpy(), self.heldout["pupil"].numpy())
-        return {"eye": self.cfg.eye, "test": test, "heldout_rooms": held, "dataset": self.cfg.data_dir,
-                "heldout_dataset": self.heldout_dir,
-                "luminance_cd_m2_range": [float(lum.min()), float(lum.max())]}
+        return {**super().summary(test, history, model), "luminance_cd_m2_range": [float(lum.min()), float(lum.max())]}
 
     def figures(self, out, history, test, idx):
         import matplotlib
@@ -120,7 +73,8 @@ class PupilTask(harness.Task):
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        pred, true, lum, cur = self._heldout_pred
+        pred, true = self.heldout_pred
+        lum, cur = self.heldout["luminance"].numpy(), self.heldout["pupil"].numpy()
         fig, ax = plt.subplots(1, 2, figsize=(10, 4))
         order = np.argsort(lum)
         ax[0].semilogx(lum[order], true[order], "k-", label="Watson & Yellott (teacher)")
@@ -131,10 +85,7 @@ class PupilTask(harness.Task):
         ax[0].legend(loc="upper right")
         ax[1].hist(100 * (pred - true) / true, bins=40, color="C1")
         ax[1].set(xlabel="error relative to the teacher (%)", ylabel="held-out ONVs")
-        fig.tight_layout()
-        (out / "figures").mkdir(parents=True, exist_ok=True)
-        fig.savefig(out / "figures" / "pupil.png", dpi=110)
-        plt.close(fig)
+        self.save_figure(fig, out, "pupil.png")
 
     def eval_line(self, run_dir, split, n, ev):
         return (f"{run_dir} ({split}, {n:,} ONVs): median error {ev['median_error_mm']:.3f} mm "
