@@ -169,8 +169,12 @@ def load_pupil(store) -> dict:
 
 # --- the lens ------------------------------------------------------------------------------------------
 
-#: Bump when what a lens config renders changes.
-LENS_DATA_VERSION = 3
+#: Bump when what a lens config renders changes (4: every set through the eye's own rays, EYE_RAY_SEED).
+LENS_DATA_VERSION = 4
+#: The seed of the eye's ray sampling through the pupil (which S points of the pupil each photoreceptor's
+#: rays cross): part of the eye, like its retina, so every lens set, held-out ones included, and the loop
+#: (``render_onv(..., seed=0)`` in sim/loop.py) use the same one; held-out sets differ in their scenes.
+EYE_RAY_SEED = 0
 #: Textured cards: CARD_SIZES_M (each in CARD_TEXTURES textures of CARD_VERTICES^2 vertices). A sample
 #: at distance d shows the largest card whose third subtends at most CARD_MAX_RAD there (the whole card
 #: 17-26 deg across), and looks at a random point of it, at least FILL_RAD from its edges: the card always
@@ -346,7 +350,7 @@ def render_lens_samples(cfg: LensDataConfig, indices, positions_mm: np.ndarray, 
             light.intensity = np.array([p["lamps"][j][2] for p in ps])
         sc.set_ambient(np.stack([p["ambient"] for p in ps]))
         onv = render_onv(sc, positions_mm, NavarroEye(acc, pupil), np.tile(np.eye(4), (B, 1, 1)), cfg.samples_per_receptor,
-                         seed=cfg.seed, device=device)
+                         seed=EYE_RAY_SEED, device=device)
         out["onv"].append(onv.cpu().numpy().astype(np.float16))
         out["defocus"].append(np.array([p["defocus"] for p in ps], np.float32))
         out["accommodation"].append(np.full(B, acc, np.float32))
