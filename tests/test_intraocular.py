@@ -243,13 +243,22 @@ def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path):
 
 
 class _OracleLensNet:
-    """The true defocus of the rendered state: (the accommodation the frame was rendered at) minus the
-    card's vergence from the eye."""
+    """A lens net's interface (raw_features, contrast above its floor, head) answering the true defocus
+    of the rendered state: the accommodation the frame was rendered at minus the card's vergence from
+    the eye."""
+
+    contrast_floor = torch.tensor(-np.inf)
 
     def __init__(self, loop, side):
         self.loop, self.side = loop, side
 
-    def __call__(self, onv, pupil_mm):
+    def raw_features(self, onv, pupil_mm):
+        return torch.zeros(len(onv), 1)
+
+    def contrast(self, raw):
+        return torch.zeros(len(raw))
+
+    def head(self, raw):
         loop, s = self.loop, self.side
         acc = loop._optics[s][0]
         centre = loop.fov[s].target()

@@ -154,7 +154,7 @@ def synthesize_pupil(out_dir, cfg: PupilDataConfig, shard=(0, 1), batch: int = 1
     return store
 
 
-def load_pupil(store) -> dict:
+def read_pupil_store(store) -> dict:
     """A pupil store's samples: ``onv`` [N, 3P] float32 with its exposure applied, ``pupil`` and
     ``luminance`` [N], and ``teacher`` [N], Watson & Yellott's diameter (mm) for the luminance."""
     import torch
@@ -314,13 +314,12 @@ def lens_sample(cfg: LensDataConfig, index: int, accommodation: float) -> dict:
     T = np.eye(4)
     T[:3, :3] = (Rotation.from_euler("y", np.pi) * tilt).as_matrix()  # +z (the card's face) toward the eye
     T[:3, 3] = sight - T[:3, :3] @ np.array([uv[0], uv[1], 0.0])
-    centre = sight
     lamps = []
     for _ in range(2):
         v = rng.normal(size=3)
         v[2] = -abs(v[2]) - 0.3  # on the eye's side of the card
         dist = d * rng.uniform(0.5, 1.5)
-        lamps.append((centre + dist * v / np.linalg.norm(v), 1.0 + rng.uniform(-0.2, 0.2, 3),
+        lamps.append((sight + dist * v / np.linalg.norm(v), 1.0 + rng.uniform(-0.2, 0.2, 3),
                       dist**2 * rng.uniform(0.3, 1.5)))
     return {"distance": d, "defocus": accommodation - vergence, "card": f"card{k}_{rng.integers(CARD_TEXTURES)}",
             "transform": T, "lamps": lamps, "ambient": rng.uniform(0.0, 0.05) * np.ones(3)}

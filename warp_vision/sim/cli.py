@@ -301,11 +301,12 @@ def main(argv=None) -> int:
         p.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
         p.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
         p.add_argument("--seed", type=int, default=0, help="the room's seed")
-        p.add_argument("--intraocular", choices=INTRAOCULAR, default="nets",
-                       help="nets (default): each eye's pupil and lens nets command its iris and lens from the ONV "
-                            "(trained into runs/pupil/<eye> and runs/lens/<eye> if missing); analytic: their teachers, "
-                            "Watson & Yellott's pupil for the adapting luminance and accommodation to where the gaze "
-                            "lines converge")
+        if name != "intraocular":  # that command runs both, nets and teachers
+            p.add_argument("--intraocular", choices=INTRAOCULAR, default="nets",
+                           help="nets (default): each eye's pupil and lens nets command its iris and lens from the ONV "
+                                "(trained into runs/pupil/<eye> and runs/lens/<eye> if missing); analytic: their teachers, "
+                                "Watson & Yellott's pupil for the adapting luminance and accommodation to where the gaze "
+                                "lines converge")
         p.add_argument("--pupil", default=None, help="the pupil runs' directory: <dir>/left, <dir>/right (default "
                                                      "runs/pupil, or runs/quick/pupil with --quick)")
         p.add_argument("--lens", default=None, help="the lens runs' directory (likewise: runs/lens, runs/quick/lens)")

@@ -392,11 +392,6 @@ class VisuomotorLoop:
         body.step(int(round(CONTROL_DT / body.model.opt.timestep)))
         self.timing["mujoco"] += time.perf_counter() - t0
 
-    def _lens_net_command(self, s: str, acc_looked: float, looked: float) -> float:
-        cmd, d = _lens_command(self.lens_nets[s], self.onv[s], acc_looked, looked, self._lens_command.get(s, acc_looked))
-        self.defocus_estimate[s] = d
-        return cmd
-
     def _intraocular(self, seen: bool) -> None:
         """Accommodate to where the gaze lines converge; on a new frame (``seen``) the pupil is commanded
         from its ONV: by the eye's pupil net, or by the analytic law (Watson & Yellott's pupil for the
@@ -416,7 +411,8 @@ class VisuomotorLoop:
                     else:
                         self._pupil_command[s] = float(self.pupil_nets[s](self.onv[s].float(), torch.tensor([looked]))[0])
                     if self.lens_nets is not None:
-                        self._lens_command[s] = self._lens_net_command(s, acc_looked, looked)
+                        self._lens_command[s], self.defocus_estimate[s] = _lens_command(
+                            self.lens_nets[s], self.onv[s], acc_looked, looked, self._lens_command.get(s, acc_looked))
             acc = self._lens_command[s] if self.lens_nets is not None else self.lens_teacher[s]
             self.body.set_intraocular(s, pupil_mm=self._pupil_command[s], accommodation_D=acc)
 
@@ -428,9 +424,6 @@ def _lens_command(net, onv: torch.Tensor, acc_looked: float, pupil: float, hold:
     image without fine contrast (``net.contrast`` under its floor: a uniform glowing ball filling the
     fovea) carries no defocus cue: the lens holds ``hold``, its last command."""
     with torch.no_grad():
-        if not hasattr(net, "raw_features"):  # any callable (onv, pupil) -> defocus
-            d = float(net(onv.float(), torch.tensor([pupil]))[0])
-            return acc_looked - d, d
         raw = net.raw_features(onv.float(), torch.tensor([pupil]))
         if float(net.contrast(raw)[0]) < float(net.contrast_floor):
             return hold, None

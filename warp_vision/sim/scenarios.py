@@ -171,6 +171,7 @@ def light_steps(loop, phases=LIGHT_PHASES, progress: bool = True) -> dict:
 
     body = loop.body
     body.model.opt.gravity[:] = 0
+    light = loop.light_scale  # the loop's own, given back at the end
     loop.light_scale = phases[0][1]
     loop.reset(SETTLE_S)
     ball = point_at(body, 0.0, 0.0, 1.0)
@@ -178,17 +179,20 @@ def light_steps(loop, phases=LIGHT_PHASES, progress: bool = True) -> dict:
     starts = np.cumsum([0.0] + [d for d, _ in phases])
     n = int(round(starts[-1] / CONTROL_DT))
     t0 = body.time
-    for k in tqdm(range(n), desc="light steps", disable=not progress, leave=False):
-        t = k * CONTROL_DT
-        loop.light_scale = phases[int(np.searchsorted(starts, t, side="right")) - 1][1]
-        body.set_ball(ball)
-        loop.step()
-        tr["t"].append(body.time - t0)
-        tr["light"].append(loop.light_scale)
-        for s in SIDES:
-            tr[f"pupil_{s}"].append(body.intraocular(s)[0])
-            tr[f"command_{s}"].append(loop._pupil_command[s])
-            tr[f"teacher_{s}"].append(loop.pupil_teacher[s])
+    try:
+        for k in tqdm(range(n), desc="light steps", disable=not progress, leave=False):
+            t = k * CONTROL_DT
+            loop.light_scale = phases[int(np.searchsorted(starts, t, side="right")) - 1][1]
+            body.set_ball(ball)
+            loop.step()
+            tr["t"].append(body.time - t0)
+            tr["light"].append(loop.light_scale)
+            for s in SIDES:
+                tr[f"pupil_{s}"].append(body.intraocular(s)[0])
+                tr[f"command_{s}"].append(loop._pupil_command[s])
+                tr[f"teacher_{s}"].append(loop.pupil_teacher[s])
+    finally:
+        loop.light_scale = light
     tr = {k: np.asarray(v) for k, v in tr.items()}
     steps = []
     for i in range(1, len(phases)):
@@ -289,7 +293,8 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
             t = k * CONTROL_DT
             phase = int(np.searchsorted(starts, t, side="right")) - 1
             dist = phases[phase][1]
-            state["centre"] = point_at(body, 0.0, 0.0, dist) if k == 0 or dist != tr["distance"][-1] else state["centre"]
+            if k == 0 or dist != tr["distance"][-1]:  # the card moves at a step, then stays put in the world
+                state["centre"] = point_at(body, 0.0, 0.0, dist)
             T = np.eye(4)
             T[:3, :3] = body.head_pose()[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # its face (+z) toward the eyes (head -z)
             T[:3, 3] = state["centre"]

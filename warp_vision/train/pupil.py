@@ -36,13 +36,13 @@ class PupilTask(ShallowNetTask):
 
     def _render_set(self, dcfg, ddir, shard, progress, synthesize):
         from warp_vision.data.foveation import make_retina
-        from warp_vision.data.intraocular import load_pupil, synthesize_pupil
+        from warp_vision.data.intraocular import read_pupil_store, synthesize_pupil
         from warp_vision.data.store import ChunkedStore
 
         self.retina = make_retina(dcfg.scene_config())
         if synthesize:
             synthesize_pupil(ddir, dcfg, shard=shard, progress=progress, log=self.log)
-        return load_pupil(ChunkedStore.open(ddir))
+        return read_pupil_store(ChunkedStore.open(ddir))
 
     def net_spec(self):
         c = self.cfg
