@@ -14,7 +14,9 @@
   (:mod:`warp_vision.eye.plants`: a latency, then a first-order movement): their states, the pupil
   diameter (mm) and the accommodation (dioptres), are the eye's optical state. Two force-free MuJoCo
   actuators per eye mirror them (``ctrl`` = ``act`` = the plant's state), for viewers and state dumps.
-- A cannon (a static barrel) and a ball on a free joint that it launches.
+- A cannon (a static barrel) and a ball on a free joint that it launches. The ball bounces off the floor
+  and, with ``BodyConfig.ball_contacts``, off the arms (hands, forearms, upper arms), torso and head:
+  myo-sim's collision geoms (see :data:`BALL_SOLREF` for the contact's settings).
 
 Frames: world +z up (docs/ARCHITECTURE.md); the body faces -y; its left is +x. At rest each eye's body
 frame is the eye frame of docs/ARCHITECTURE.md (+z the optical axis, +y up, +x = +y cross +z = the body's
@@ -64,6 +66,32 @@ NECK_MUSCLE_TIMECONST = (0.01, 0.04)
 ACCOMMODATION_RANGE_D = LENS_RANGE_D
 BALL_RADIUS = 0.04
 BALL_MASS = 0.06
+#: The ball's contacts (with ``BodyConfig.ball_contacts``). The ball has contype 0 and conaffinity 1
+#: (``BODY_CONTYPE``): myo-sim's collision geoms (contype 1, conaffinity 0, so never with one another)
+#: touch it; the floor does by an explicit pair with the same settings but no margin. Its priority (1, over
+#: everything's 0) makes its solref, solimp, friction and condim the contact's. Settings, measured with
+#: 60 g balls shot at 3-25 m/s at a wall and at the torso, head, upper arm, forearm and hand (1 ms steps,
+#: implicitfast; no MuJoCo warning anywhere):
+#: - solref (time constant 4 ms, damping ratio 0.3): as stiff as 1 ms steps allow (MuJoCo holds time
+#:   constants at >= 2 steps), with a coefficient of restitution of 0.4 +- 0.1 (a ball on a body).
+#:   Critically damped contacts stop the ball dead (e ~ 0.1); a damping ratio of 0.2 or less, or a direct
+#:   (negative) solref, throws it back faster than it came: a contact starts a random fraction of a step
+#:   deep (a 15 m/s ball moves 15 mm a step) and a stiffer spring gives that depth back as energy.
+#: - solimp (0.95, 0.99, 1 mm): impedance near 1 at once, so the ball is stopped within a few steps.
+#: - margin 5 mm: the contact acts from 5 mm off the body's surface, which takes 5 mm off the depth at
+#:   which a fast ball is first caught. Deepest penetrations measured (shots at 11 collision geoms of the
+#:   torso, head and left arm): 6 mm at 15 m/s, 11 mm at 20 m/s, 17 mm at 25 m/s (``max_penetration`` is
+#:   20 mm; against a wall, without the margin, 19 mm at 20 m/s).
+#: - no tunnelling at these speeds: the thinnest collision geom (a fingertip, 2 mm half-thickness) and
+#:   the ball (radius 40 mm) overlap along at least 84 mm of path: 5.6 steps at 15 m/s, 4.2 at 20 m/s.
+#: - condim 3, sliding friction 0.5 (a ball on skin or clothes): glancing hits take some spin.
+BALL_SOLREF = (0.004, 0.3)
+BALL_SOLIMP = (0.95, 0.99, 0.001, 0.5, 2.0)
+BALL_MARGIN = 0.005  # m
+BALL_FRICTION = (0.5, 0.005, 0.0001)
+BALL_CONDIM = 3
+#: contype of myo-sim's collision geoms (its arms', torso's and head's), the bit the ball's conaffinity adds
+BODY_CONTYPE = 1
 TIMESTEP = 0.001  # s
 SIDES = ("left", "right")
 
@@ -110,6 +138,9 @@ class BodyConfig:
     #: m: deeper contacts raise SimulationError. myo-sim's rest pose already has each humerus's collision
     #: capsule 11.4 mm inside the thorax's (measured), hence 2 cm.
     max_penetration: float = 0.02
+    #: The ball collides with the arms, torso and head (myo-sim's collision geoms; the bare torso of
+    #: ``arms=False`` has none, so there it flies through). False: only with the floor.
+    ball_contacts: bool = True
 
 
 def _nasal_sign(side: str) -> float:
@@ -240,8 +271,20 @@ def _add_world(spec: mujoco.MjSpec, cfg: BodyConfig) -> None:
     cannon.add_site(name="muzzle", pos=[0, 0, 0.25])
     ball = wb.add_body(name="ball", pos=[0, 3.0, BALL_RADIUS])  # resting on the floor behind the body
     ball.add_freejoint(name="ball")
-    ball.add_geom(name="ball", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[BALL_RADIUS, 0, 0], mass=BALL_MASS,
-                  rgba=[1, 1, 1, 1], group=0, contype=4, conaffinity=4)  # hits the floor, flies through the body (a target)
+    geom = ball.add_geom(name="ball", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[BALL_RADIUS, 0, 0], mass=BALL_MASS,
+                         rgba=[1, 1, 1, 1], group=0, contype=4, conaffinity=4)  # hits the floor
+    if cfg.ball_contacts:  # ... and the body: see BALL_SOLREF
+        geom.contype, geom.conaffinity = 0, BODY_CONTYPE
+        geom.priority = 1
+        geom.solref, geom.solimp = list(BALL_SOLREF), list(BALL_SOLIMP)
+        geom.friction, geom.condim = list(BALL_FRICTION), BALL_CONDIM
+        geom.margin = BALL_MARGIN
+        # the floor by an explicit pair, without the margin (a contact takes the larger of its geoms'
+        # margins; a geom's gap did not offset it in MuJoCo 3.17, as measured): the ball lands on the
+        # floor, not 5 mm above it
+        spec.add_pair(name="ball_floor", geomname1="floor", geomname2="ball", condim=BALL_CONDIM, margin=0.0,
+                      solref=list(BALL_SOLREF), solimp=list(BALL_SOLIMP),
+                      friction=[BALL_FRICTION[0], BALL_FRICTION[0], BALL_FRICTION[1], BALL_FRICTION[2], BALL_FRICTION[2]])
 
 
 def _frame_z(z) -> np.ndarray:
