@@ -159,23 +159,40 @@ def test_textured_cards_face_forward_with_a_seeded_pattern():
         textured_card(0.0, 32, 5)
 
 
-def test_centre_surround_energies_match_a_plain_reference():
+def test_band_energies_match_a_plain_reference():
+    """Band-pass energies and channel correlations against a direct numpy computation: each band is the
+    mean over one neighbourhood minus the mean over the next (the photoreceptor itself first)."""
     from scipy.spatial import cKDTree
 
-    from warp_vision.nn.intraocular import CentreSurround
+    from warp_vision.nn.intraocular import CHANNEL_PAIRS, BandEnergies
 
     xy = _retina_xy(200)
-    cs = CentreSurround(xy, scales=(3, 7), rings=2)
+    ks = (3, 7, 12)
+    be = BandEnergies(xy, neighbourhoods=ks, rings=2)
+    assert be.features == 3 * 6 * 2
     x = torch.rand(4, 200, 3, dtype=torch.float64).float() + 0.1
-    got = cs(x).view(4, 2, 3, 2).numpy()  # [B, scale, channel, ring]
-    _d, nbr = cKDTree(xy).query(xy, 8)
+    got = be(x).view(4, 3, 6, 2).numpy()  # [B, band, 3 energies + 3 correlations, ring]
+    _d, nbr = cKDTree(xy).query(xy, 13)
     rho = np.hypot(*xy.T)
     ring = (rho > np.median(rho)).astype(int)
     xn = x.double().numpy() / x.double().numpy().mean(1, keepdims=True)
-    for si, k in enumerate((3, 7)):
-        s = xn - xn[:, nbr[:, 1:k + 1]].mean(2)
+    levels = [xn] + [xn[:, nbr[:, 1:k + 1]].mean(2) for k in ks]
+    for bi in range(len(ks)):
+        band = levels[bi] - levels[bi + 1]
         for r in range(2):
-            np.testing.assert_allclose(got[:, si, :, r], np.log10((s[:, ring == r] ** 2).mean(1) + 1e-8), rtol=1e-4, atol=1e-4)
+            b = band[:, ring == r]
+            e = (b ** 2).mean(1)  # [B, 3]
+            np.testing.assert_allclose(got[:, bi, :3, r], np.log10(e + 1e-8), rtol=1e-4, atol=1e-4)
+            for c, (i, j) in enumerate(CHANNEL_PAIRS):
+                corr = (b[..., i] * b[..., j]).mean(1) / np.sqrt(e[:, i] * e[:, j])
+                np.testing.assert_allclose(got[:, bi, 3 + c, r], corr, rtol=1e-4, atol=1e-4)
+    # a channel blurred (smoothed) relative to the others loses fine energy and its correlation with them
+    y = x.clone()
+    y[..., 2] = torch.from_numpy(levels[2][..., 2]).float()
+    f = be(y).view(4, 3, 6, 2).numpy()
+    assert (f[:, 0, 2] < got[:, 0, 2] - 0.3).all()
+    with pytest.raises(ValueError, match="neighbourhoods"):
+        BandEnergies(xy, neighbourhoods=(6, 3))
 
 
 def test_the_lens_net_refuses_bad_inputs():
@@ -185,6 +202,8 @@ def test_the_lens_net_refuses_bad_inputs():
     net = LensNet(xy, np.arange(100), 300, hidden=4)
     assert net(torch.rand(2, 900), torch.tensor([3.0, 4.0])).shape == (2,)
     assert net(torch.rand(2, 300), torch.tensor([3.0, 4.0]), central_only=True).shape == (2,)
+    with pytest.raises(ValueError, match="samples_per_receptor"):
+        LensNet(xy, np.arange(100), 300, samples_per_receptor=0)
     with pytest.raises(ValueError, match=r"\[B, 900\]"):
         net(torch.rand(2, 300), torch.tensor([3.0, 4.0]))
     with pytest.raises(ValueError, match="one diameter per ONV"):
@@ -207,8 +226,9 @@ def test_the_lens_holds_on_an_image_without_contrast():
     c_uni = float(net.contrast(net.raw_features(uniform, torch.tensor([4.0])))[0])
     assert c_uni < -7 < c_tex
     net.contrast_floor.fill_(c_tex - 1.0)
-    assert _lens_command(net, uniform, 2.0, 4.0, hold=1.5) == (1.5, None)
-    cmd, d = _lens_command(net, textured, 2.0, 4.0, hold=1.5)
+    central = lambda onv: onv.view(1, 300, 3)[:, :100].reshape(1, 300)  # the loop renders the net's field only
+    assert _lens_command(net, central(uniform), 2.0, 4.0, hold=1.5) == (1.5, None)
+    cmd, d = _lens_command(net, central(textured), 2.0, 4.0, hold=1.5)
     assert d is not None and cmd == pytest.approx(2.0 - d)
 
 
@@ -248,11 +268,15 @@ class _OracleLensNet:
     the eye."""
 
     contrast_floor = torch.tensor(-np.inf)
+    samples_per_receptor = 1
 
     def __init__(self, loop, side):
         self.loop, self.side = loop, side
+        self.P = len(loop.fov[side].retina.positions_optical_mm)
+        self.central = torch.arange(0, self.P, 10)
 
-    def raw_features(self, onv, pupil_mm):
+    def raw_features(self, onv, pupil_mm, central_only=False):
+        assert central_only and onv.shape == (1, 3 * len(self.central))
         return torch.zeros(len(onv), 1)
 
     def contrast(self, raw):

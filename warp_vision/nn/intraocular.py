@@ -106,23 +106,38 @@ class PupilNet(torch.nn.Module):
         return self.head(raw)
 
 
-#: :class:`LensNet`'s centre-surround scales: the surround is the mean of this many nearest photoreceptors.
-LENS_SCALES = (6, 18, 54)
+#: :class:`BandEnergies`' neighbourhood sizes: the image averaged over each photoreceptor and this many of
+#: its nearest neighbours, finest first; successive averages differ by one octave of spatial frequency.
+LENS_NEIGHBOURHOODS = (3, 6, 12, 24, 48, 96)
+#: The colour-channel pairs whose band responses :class:`BandEnergies` correlates: (R, B), (R, G), (G, B).
+CHANNEL_PAIRS = ((0, 2), (0, 1), (1, 2))
 
 
-class CentreSurround(torch.nn.Module):
-    """Central ONV [B, N, 3] -> [B, 3 scales x 3 channels x rings] log10 contrast energies: at each
-    photoreceptor and channel, its response (relative to the channel's mean over the field) minus the mean
-    of its ``k`` nearest neighbours (the centre-surround receptive fields of retinal ganglion cells), squared
-    and averaged over each eccentricity ring. Fixed weights."""
+class BandEnergies(torch.nn.Module):
+    """Central ONV [B, N, 3] -> [B, bands x (3 + 3) x rings] fixed band-pass features of each colour channel.
 
-    def __init__(self, domain_xy: np.ndarray, scales=LENS_SCALES, rings: int = 2):
+    Each channel is divided by its mean over the field (so the scene's light level and tint drop out), then
+    split into band-pass images (differences of Gaussians on the irregular retina, the receptive fields of
+    retinal ganglion cells): band 0 is each photoreceptor minus the mean of its ``neighbourhoods[0]``
+    nearest neighbours, band i the mean over ``neighbourhoods[i - 1]`` neighbours minus the mean over
+    ``neighbourhoods[i]``. Per band and per eccentricity ring (``rings`` of equal photoreceptor counts):
+    the log10 mean energy of each channel (how much contrast the blur leaves at that scale), then the
+    correlation of the band's responses between the channel pairs of :data:`CHANNEL_PAIRS` (1 where two
+    channels are blurred alike; the eye's chromatic aberration blurs them unequally, in an order set by
+    the sign of the defocus). No weights."""
+
+    def __init__(self, domain_xy: np.ndarray, neighbourhoods=LENS_NEIGHBOURHOODS, rings: int = 3):
         super().__init__()
         from scipy.spatial import cKDTree
 
+        ks = tuple(int(k) for k in neighbourhoods)
+        if len(ks) < 1 or ks[0] < 1 or any(b <= a for a, b in zip(ks, ks[1:])):
+            raise ValueError(f"neighbourhoods: expected increasing positive counts, got {neighbourhoods}")
         xy = np.asarray(domain_xy, np.float64)
-        _d, nbr = cKDTree(xy).query(xy, max(scales) + 1)
-        self.scales = tuple(int(k) for k in scales)
+        if len(xy) <= ks[-1]:
+            raise ValueError(f"domain_xy: expected more than {ks[-1]} photoreceptors, got {len(xy)}")
+        _d, nbr = cKDTree(xy).query(xy, ks[-1] + 1)
+        self.neighbourhoods = ks
         self.register_buffer("neighbours", torch.from_numpy(nbr[:, 1:].astype(np.int64)))
         rho = np.hypot(xy[:, 0], xy[:, 1])
         ring = np.searchsorted(np.quantile(rho, np.linspace(0, 1, rings + 1)[1:-1]), rho, side="right")
@@ -131,36 +146,66 @@ class CentreSurround(torch.nn.Module):
         self.register_buffer("ring_average", torch.from_numpy(A / A.sum(0, keepdims=True)))
 
     @property
+    def rings(self) -> int:
+        return self.ring_average.shape[1]
+
+    @property
     def features(self) -> int:
-        return len(self.scales) * 3 * self.ring_average.shape[1]
+        return len(self.neighbourhoods) * (3 + len(CHANNEL_PAIRS)) * self.rings
+
+    def bands(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The band-pass images [B, N, 3] of ``x`` (finest first), after each channel's normalisation."""
+        x = x / x.mean(dim=1, keepdim=True).clamp_min(1e-12)
+        out, level, total, done = [], x, torch.zeros_like(x), 0
+        for k in self.neighbourhoods:  # the neighbour sums grow by the next nearest ones only
+            total = total + x[:, self.neighbours[:, done:k]].sum(dim=2)
+            done = k
+            coarser = total / k
+            out.append(level - coarser)
+            level = coarser
+        return out
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = x / x.mean(dim=1, keepdim=True).clamp_min(1e-12)
         out = []
-        for k in self.scales:
-            surround = x[:, self.neighbours[:, :k]].mean(dim=2)  # [B, N, 3]
-            e = torch.einsum("bnc,nr->bcr", (x - surround) ** 2, self.ring_average)
+        for b in self.bands(x):
+            e = torch.einsum("bnc,nr->bcr", b * b, self.ring_average)  # [B, 3, rings]
             out.append(torch.log10(e + 1e-8).flatten(1))
+            for i, j in CHANNEL_PAIRS:
+                cross = torch.einsum("bn,nr->br", b[..., i] * b[..., j], self.ring_average)
+                out.append(cross / torch.sqrt(e[:, i] * e[:, j]).clamp_min(1e-12))
         return torch.cat(out, dim=1)
 
 
 class LensNet(torch.nn.Module):
-    """(ONV [B, 3P], current pupil [B] mm) -> the signed defocus [B] in dioptres: the accommodation minus
-    the fixated object's vergence (positive: focused too near). It reads the photoreceptors ``central``
-    (indices into the retina), through the fixed :class:`CentreSurround` energies of each colour channel
-    at three scales; the eye's longitudinal chromatic aberration (about 1.6 D from blue to red) blurs the
-    channels unequally, and the order of their sharpness gives the sign. The log pupil joins the energies,
-    and two hidden layers of ``hidden`` tanh units map them to the defocus."""
+    """(central ONV, current pupil [B] mm) -> the signed defocus [B] in dioptres: the accommodation minus
+    the fixated object's vergence (positive: focused too near).
 
-    def __init__(self, domain_xy: np.ndarray, central: np.ndarray, photoreceptors: int, hidden: int = 64):
+    It reads the photoreceptors ``central`` (indices into the retina of ``photoreceptors``) through the fixed
+    :class:`BandEnergies` of each colour channel: how much contrast the blur leaves in each octave, and how
+    alike the channels are blurred (the eye's longitudinal chromatic aberration, about 1.6 D from blue to
+    red, blurs them unequally, and the order of their sharpness gives the sign). The log pupil joins them,
+    and two hidden layers of ``hidden`` tanh units map them to the defocus.
+
+    The central field is rendered for this net with ``samples_per_receptor`` rays per photoreceptor and
+    channel (the lens data's, more than the foveation ONV's 4: with 4 pupil points a blurred image is
+    sampled too sparsely to tell its blur apart, README), so it is usually given just those photoreceptors
+    (``central_only``)."""
+
+    def __init__(self, domain_xy: np.ndarray, central: np.ndarray, photoreceptors: int, hidden: int = 64,
+                 samples_per_receptor: int = 16):
         super().__init__()
         central = np.asarray(central, np.int64)
-        if central.ndim != 1 or len(central) < 60 or central.min() < 0 or central.max() >= photoreceptors:
-            raise ValueError(f"central: expected at least 60 photoreceptor indices below {photoreceptors}")
+        need = LENS_NEIGHBOURHOODS[-1] + 1
+        if central.ndim != 1 or len(central) < need or central.min() < 0 or central.max() >= photoreceptors:
+            raise ValueError(f"central: expected at least {need} photoreceptor indices below {photoreceptors}")
         self.P = int(photoreceptors)
+        #: S of the central render this net reads (its training data's)
+        if isinstance(samples_per_receptor, bool) or int(samples_per_receptor) < 1:
+            raise ValueError(f"samples_per_receptor: expected a positive integer, got {samples_per_receptor!r}")
+        self.samples_per_receptor = int(samples_per_receptor)
         self.register_buffer("central", torch.from_numpy(central))
-        self.cs = CentreSurround(np.asarray(domain_xy)[central])
-        n = self.cs.features + 1
+        self.bands = BandEnergies(np.asarray(domain_xy)[central])
+        n = self.bands.features + 1
         self.register_buffer("feature_mean", torch.zeros(n))
         self.register_buffer("feature_std", torch.ones(n))
         #: below this :meth:`contrast` the image holds no defocus cue (set from the training data)
@@ -178,13 +223,13 @@ class LensNet(torch.nn.Module):
         x = onv.float().view(len(onv), -1, 3)
         if not central_only:
             x = x[:, self.central]
-        return torch.cat([self.cs(x), torch.log10(pupil_mm)[:, None]], dim=1)
+        return torch.cat([self.bands(x), torch.log10(pupil_mm)[:, None]], dim=1)
 
     def contrast(self, raw: torch.Tensor) -> torch.Tensor:
-        """[B] the image's fine contrast: the mean log10 energy of the finest centre-surround scale over
+        """[B] the image's fine contrast: the mean log10 energy of the finest band over
         channels and rings. A uniform field (a glowing ball filling the fovea) has none: compare with
         ``contrast_floor``, under which the net's estimate means nothing."""
-        return raw[:, : 3 * self.cs.ring_average.shape[1]].mean(dim=1)
+        return raw[:, : 3 * self.bands.rings].mean(dim=1)
 
     def head(self, raw: torch.Tensor) -> torch.Tensor:
         """The learned part: :meth:`raw_features` [B, features] -> defocus [B] (D)."""

@@ -69,7 +69,8 @@ def _lens(spec: dict):
     from warp_vision.nn.intraocular import LensNet
 
     torch.manual_seed(spec["seed"])
-    return LensNet(_array(spec["photoreceptor_xy"]), _array(spec["central"]), spec["photoreceptors"], spec["hidden"])
+    return LensNet(_array(spec["photoreceptor_xy"]), _array(spec["central"]), spec["photoreceptors"], spec["hidden"],
+                   spec["samples_per_receptor"])
 
 
 #: spec["kind"] -> the function that builds the untrained net from the spec

@@ -248,6 +248,9 @@ class VisuomotorLoop:
         self.period = 0
         self.ball = ball
         self.scene = body_scene(body, seed, ball)
+        #: per eye, the central field rendered for its lens net on the last frame
+        self.lens_onv: dict = {}
+        self._lens_positions: dict = {}
         self.eyes = {s: EyeState() for s in SIDES}
         self.neck_target = np.zeros(3)
         self.last_neck = body.neck_angles()
@@ -301,9 +304,10 @@ class VisuomotorLoop:
             self._optics[s] = q
             eye = NavarroEye(*q)
             out[s] = render_onv(self.scene, self.fov[s].retina, eye, self.body.eye_pose(s)[None],
-                                self.fov[s].samples_per_receptor, seed=0)
-            if self.light_scale != 1.0:
-                out[s] = out[s] * self.light_scale
+                                self.fov[s].samples_per_receptor, seed=0) * self.light_scale
+            if self.lens_nets is not None:  # the lens net's central field, at the S it was trained with
+                self.lens_onv[s] = render_onv(self.scene, self._lens_field(s), eye, self.body.eye_pose(s)[None],
+                                              self.lens_nets[s].samples_per_receptor, seed=0) * self.light_scale
         self.timing["render"] += time.perf_counter() - t0
         self.onv = out
         return out
@@ -392,6 +396,18 @@ class VisuomotorLoop:
         body.step(int(round(CONTROL_DT / body.model.opt.timestep)))
         self.timing["mujoco"] += time.perf_counter() - t0
 
+    def _lens_field(self, s: str) -> np.ndarray:
+        """[N, 3] optical-frame positions (mm) of the photoreceptors eye ``s``'s lens net reads (its central
+        field), taken from the eye's retina once per net."""
+        net = self.lens_nets[s]
+        cached = self._lens_positions.get(s)
+        if cached is None or cached[0] is not net:
+            pos = np.asarray(self.fov[s].retina.positions_optical_mm)
+            if net.P != len(pos):
+                raise ValueError(f"lens_nets[{s!r}]: reads a retina of {net.P:,} photoreceptors, the {s} eye has {len(pos):,}")
+            cached = self._lens_positions[s] = (net, np.ascontiguousarray(pos[net.central.cpu().numpy()]))
+        return cached[1]
+
     def _intraocular(self, seen: bool) -> None:
         """Accommodate to where the gaze lines converge; on a new frame (``seen``) the pupil is commanded
         from its ONV: by the eye's pupil net, or by the analytic law (Watson & Yellott's pupil for the
@@ -412,19 +428,19 @@ class VisuomotorLoop:
                         self._pupil_command[s] = float(self.pupil_nets[s](self.onv[s].float(), torch.tensor([looked]))[0])
                     if self.lens_nets is not None:
                         self._lens_command[s], self.defocus_estimate[s] = _lens_command(
-                            self.lens_nets[s], self.onv[s], acc_looked, looked, self._lens_command.get(s, acc_looked))
+                            self.lens_nets[s], self.lens_onv[s], acc_looked, looked, self._lens_command.get(s, acc_looked))
             acc = self._lens_command[s] if self.lens_nets is not None else self.lens_teacher[s]
             self.body.set_intraocular(s, pupil_mm=self._pupil_command[s], accommodation_D=acc)
 
 
 def _lens_command(net, onv: torch.Tensor, acc_looked: float, pupil: float, hold: float) -> tuple[float, float | None]:
-    """(accommodation command, defocus estimate or None) of a lens net for an ONV rendered at
-    ``acc_looked`` through ``pupil``. The defocus is the accommodation minus the object's vergence, so the
+    """(accommodation command, defocus estimate or None) of a lens net for its central field ``onv`` (the
+    photoreceptors ``net.central`` only) rendered at ``acc_looked`` through ``pupil``. The defocus is the accommodation minus the object's vergence, so the
     command is the vergence the net sees: an absolute target (the plant's latency winds nothing up). An
     image without fine contrast (``net.contrast`` under its floor: a uniform glowing ball filling the
     fovea) carries no defocus cue: the lens holds ``hold``, its last command."""
     with torch.no_grad():
-        raw = net.raw_features(onv.float(), torch.tensor([pupil]))
+        raw = net.raw_features(onv.float(), torch.tensor([pupil]), central_only=True)
         if float(net.contrast(raw)[0]) < float(net.contrast_floor):
             return hold, None
         d = float(net.head(raw)[0])

@@ -31,7 +31,7 @@ from warp_vision.body import SIDES
 #: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards).
 MINUTES = {("foveation", "default"): 4.5, ("foveation", "quick"): 1.2,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
-           ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 5.0, ("lens", "quick"): 3.0}
+           ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 8.0, ("lens", "quick"): 3.0}
 
 
 @dataclass

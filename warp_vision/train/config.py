@@ -343,10 +343,10 @@ class LensTrainConfig:
     data_dir: str = ""  # dataset directory; default: runs/datasets/lens-<config hash>
     eye: str = "left"  # which eye's retina
     # the dataset (warp_vision.data.intraocular): textured cards at 0.2-5 m, the lens at random states near them
-    samples: int = 10_000  # training ONVs (validation and test split off them)
+    samples: int = 6000  # training ONVs (validation and test split off them)
     heldout_samples: int = 1000  # ONVs of new textures, lamps and distances, measured at the end
     photoreceptors: int = 14_400  # P: the foveation nets' retina
-    samples_per_receptor: int = 4  # S rays per photoreceptor and channel (the loop's)
+    samples_per_receptor: int = 8  # S rays per photoreceptor and channel (the loop renders the net's field at this S)
     central_deg: float = 2.0  # the net reads the photoreceptors within this eccentricity
     defocus_range_D: float = 2.5  # |defocus| up to this
     card_vertices: int = 384  # per side of each textured card's grid

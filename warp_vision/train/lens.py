@@ -56,7 +56,7 @@ class LensTask(ShallowNetTask):
         c = self.cfg
         return {"kind": "lens", "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
                 "central": torch.from_numpy(self.central.astype(np.int64)), "photoreceptors": c.photoreceptors,
-                "hidden": c.hidden, "seed": c.seed}
+                "hidden": c.hidden, "samples_per_receptor": c.samples_per_receptor, "seed": c.seed}
 
     def fit_norm(self, train):
         # the contrast floor: a decade of energy under the faintest 1% of the training images
