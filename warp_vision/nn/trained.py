@@ -73,8 +73,15 @@ def _lens(spec: dict):
                    spec["samples_per_receptor"])
 
 
+def _arm(spec: dict):
+    from warp_vision.nn.arm import ArmNets
+
+    torch.manual_seed(spec["seed"])
+    return ArmNets(hidden=spec["hidden"])
+
+
 #: spec["kind"] -> the function that builds the untrained net from the spec
-BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor, "pupil": _pupil, "lens": _lens}
+BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor, "pupil": _pupil, "lens": _lens, "arm": _arm}
 
 #: the ONV dtypes a net can read (spec["onv_dtype"]; checkpoints without one read float32)
 ONV_DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}

@@ -5,6 +5,7 @@
     python -m warp_vision.train faces [--preset smoke|default|paper] [--flag value ...]  active face recognition
     python -m warp_vision.train faces --resume RUN_DIR [--epochs N]                    continue a stopped AFR run
     python -m warp_vision.train oculomotor --eye left|right [--preset smoke|quick|default]   an eye's oculomotor net
+    python -m warp_vision.train arm --side left|right [--preset smoke|quick|default]         an arm's motor nets
     python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
     python -m warp_vision.train evaluate RUN_DIR [RUN_DIR ...] --conditions            foveation nets on held-out conditions
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
@@ -57,6 +58,12 @@ TASKS = {
                    "on the MuJoCo body, train the net from (change of gaze, current activations) to the next "
                    "activations on transitions between them, check it on the body, and write config, checkpoints, "
                    "metrics and summary to --out (default runs/oculomotor/<eye>)."),
+    "arm": ("arm", "ArmTrainConfig", "ARM_PRESETS",
+            "An arm's motor nets (the paper's Fig. 8): solve (or reuse) the least-effort activations of its 63 muscles "
+            "that hold postures with the hand 0.2-0.6 m in front of the shoulder on the MuJoCo body, train the posture "
+            "net (joint angles and velocities to activations that hold and damp) and the voluntary net (hand "
+            "displacement, current activations, joint angles and velocities to the next activations), check both "
+            "on the body, and write config, checkpoints, metrics and summary to --out (default runs/arm/<side>)."),
     "pupil": ("pupil", "PupilTrainConfig", "PUPIL_PRESETS",
               "An eye's pupil net (the paper's SNNs for the iris): synthesise (or reuse) ONVs of everyday scenes seen "
               "through random pupils at light levels over five decades, train the net from (ONV, current pupil) to "

@@ -452,3 +452,70 @@ def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
 
 def asdict(cfg) -> dict:
     return dataclasses.asdict(cfg)
+
+
+@dataclass
+class ArmTrainConfig:
+    """Everything an arm motor-net run depends on (one arm: its posture and voluntary nets; written to
+    RUN_DIR/config.json)."""
+
+    preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
+    task: str = "arm"  # fixed: tells evaluate which kind of run a directory holds
+    out: str = ""  # output directory; default: runs/arm/<side>
+    data_dir: str = ""  # holding-activation dataset directory; default: runs/datasets/arm-<config hash>
+    side: str = "left"  # which arm: left or right
+    # the dataset: postures with the hand 0.2-0.6 m in front of the shoulder and the activations that hold them
+    postures: int = 4000  # postures whose holding activations are solved on the body
+    max_residual: float = 0.05  # N m: postures whose holding residual exceeds this are dropped (the muscles cannot hold them)
+    transitions: int = 100_000  # (current, next) posture pairs drawn among the training postures per run
+    torque_weight: float = 1.0  # 1/(N m): weight of the torque the nets' activations fall short by (a soft norm) in the loss
+    stiffness: float = 60.0  # N m/rad: the spring toward the goal posture the voluntary net learns (saturating at 0.3 rad)
+    damping: float = 8.0  # N m s/rad: the damping both nets learn
+    velocity_std: float = 1.0  # rad/s: the joint velocities drawn for half the samples
+    # the model
+    hidden: int = 256  # units per hidden layer of both MLPs
+    # optimisation
+    batch: int = 256
+    lr: float = 2e-3  # Adam learning rate (of the first epoch)
+    lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
+    epochs: int = 40  # at most
+    patience: int = 40  # early stopping: epochs without a better validation loss
+    val_fraction: float = 0.1  # of the postures: transitions among them choose the best epoch
+    test_fraction: float = 0.15  # of the postures: transitions among them, and the body checks, measure the nets
+    seed: int = 0  # posture sampling, initialisation and shuffling
+    body_checks: int = 60  # held-out reaches (and posture holds) simulated on the body to measure the nets
+    skip_teacher_feedback: bool = False  # do not measure the exact static optimisation in closed loop (the nets' teacher; the slowest check)
+    device: str = "cpu"  # cpu, cuda, or auto (small MLPs: the CPU is as fast)
+
+    def data_config(self):
+        from warp_vision.sim.arm import ArmDataConfig
+
+        return ArmDataConfig(side=self.side, postures=self.postures, seed=self.seed)
+
+    def validate(self) -> None:
+        _check_common(self, ARM_PRESETS, ("postures", "transitions", "hidden", "body_checks"))
+        if self.task != "arm":
+            raise ValueError(f"task: expected 'arm', got {self.task!r}")
+        if self.side not in ("left", "right"):
+            raise ValueError(f"side: expected one of ['left', 'right'], got {self.side!r}")
+        if not self.max_residual > 0:
+            raise ValueError(f"max_residual: expected > 0 N m, got {self.max_residual}")
+        for name in ("torque_weight", "stiffness", "damping", "velocity_std"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
+            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
+        if not self.out:
+            self.out = f"runs/arm/{self.side}"
+        self.data_config().validate()
+
+
+ARM_PRESETS: dict[str, dict] = {
+    # seconds, for tests
+    "smoke": dict(postures=40, transitions=500, hidden=16, epochs=1, patience=1, body_checks=2),
+    # a first look: one arm in about 1.5 minutes on a 2-core CPU
+    "quick": dict(postures=1500, transitions=30_000, epochs=15, patience=15, body_checks=30),
+    # one arm in about 6 minutes on a 2-core CPU shared with another job (data synthesis, about 35 s, and the
+    # body checks, about 2 minutes, included)
+    "default": {},
+}
