@@ -344,17 +344,25 @@ def arm_actuators(body: Body) -> np.ndarray:
 
 
 def run_shot(body: Body, shot: Shot, controller=None, settle: float = SETTLE_S, frontal_y: float | None = None,
-             threshold: float = DEFLECTION_DV) -> ShotResult:
+             threshold: float = DEFLECTION_DV, ready=None) -> ShotResult:
     """Fire ``shot`` at ``body`` and simulate until the ball lands, passes the body (``BEHIND_M`` behind
     its frontal plane) or ``TAIL_S`` after the shot's flight time. The body is reset first and its passive
     arms settle for ``settle`` s. ``controller(body, t)`` (optional) is called before every step with t s
     since the launch and may set the arms' controls (:func:`arm_actuators`); without one the arms stay
-    passive (zero activation). Raises :class:`~warp_vision.body.SimulationError` as ``body.step`` does."""
+    passive (zero activation). ``ready(body, t)`` (optional) is called before every step of the settle
+    phase with t s since the reset (0 first) and may place and hold the arms at a ready posture; without
+    one they settle passively. Raises :class:`~warp_vision.body.SimulationError` as ``body.step`` does."""
     muzzle = body.data.site_xpos[body.model.site("muzzle").id]
     if not np.allclose(muzzle, shot.muzzle, atol=1e-6):
         raise ValueError(f"shot: drawn for a muzzle at {shot.muzzle}, the body's is at {muzzle.round(3).tolist()}")
     body.reset()
-    body.step(int(round(settle / body.model.opt.timestep)))
+    dt = body.model.opt.timestep
+    if ready is None:
+        body.step(int(round(settle / dt)))
+    else:
+        for k in range(int(round(settle / dt))):
+            ready(body, k * dt)
+            body.step()
     body.fire_cannon(shot.target, shot.flight_time)
     det = DeflectionDetector(body, frontal_y, threshold)
     end = shot.flight_time + TAIL_S
