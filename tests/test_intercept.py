@@ -10,9 +10,9 @@ import torch
 
 from warp_vision.body import Body
 from warp_vision.nn.arm import ArmNets
-from warp_vision.sim.cannon import ARM_REACH, arm_actuators, make_shot, run_shot, sample_shots
+from warp_vision.sim.cannon import ARM_REACH, arm_actuators, make_shot, run_shot, sample_shots, shoulder
 from warp_vision.sim.intercept import (MIN_FRONT, REACH_FRACTION, arm_interceptor, ballistic_path, intercept_point,
-                                       intercept_stats, rest_shoulder)
+                                       intercept_stats)
 
 TRAINED_LEFT = Path(__file__).resolve().parents[1] / "runs" / "arm" / "left"
 
@@ -39,7 +39,7 @@ class _WildNets:
 
 
 def test_intercept_point_lies_on_the_predicted_path_within_reach():
-    sh = rest_shoulder("left")
+    sh = shoulder("left")
     for shot in sample_shots(5, seed=3, split="heldout", side="left"):
         p0, v0 = np.asarray(shot.muzzle), np.asarray(shot.launch_velocity)
         hand = sh + np.array([0.05, -0.375, -0.125])
@@ -94,9 +94,9 @@ def test_bad_arguments_raise(body, untrained):
     with pytest.raises(ValueError):
         arm_interceptor(body, untrained, "left", gain=0.0)
     with pytest.raises(ValueError):
-        intercept_point((0, -2, 1), (0, 5, 0), rest_shoulder("left"), (0.2, -0.3, 1.0), aim="anywhere")
+        intercept_point((0, -2, 1), (0, 5, 0), shoulder("left"), (0.2, -0.3, 1.0), aim="anywhere")
     with pytest.raises(ValueError):
-        rest_shoulder("up")
+        shoulder("up")
 
 
 def test_oracle_interception_beats_passive_arms_on_easy_shots(body):

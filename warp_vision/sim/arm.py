@@ -52,10 +52,9 @@ from dataclasses import asdict, dataclass
 import mujoco
 import numpy as np
 import torch
-from scipy.optimize import lsq_linear
 
 from warp_vision.body import SIDES, Body, BodyConfig, SimulationError
-from warp_vision.sim.oculomotor import muscle_torques
+from warp_vision.sim.oculomotor import least_effort, muscle_torques
 
 #: The independent joints of an arm that the postures vary (myo-sim's names without the side suffix).
 MAIN_JOINTS = ("elv_angle", "shoulder_elv", "shoulder_rot", "elbow_flexion", "pro_sup", "deviation", "flexion")
@@ -214,16 +213,6 @@ def holding_activations(arm: Arm, q, effort: float = EFFORT, data: mujoco.MjData
     return least_effort(*projected_torques(arm, q, data), effort, tone)
 
 
-def least_effort(Ap: np.ndarray, bp: np.ndarray, effort: float = EFFORT, tone: float = 0.0) -> tuple[np.ndarray, float]:
-    """The activations in [0, 1] that best solve ``Ap a = bp`` with the least ``|a - tone|`` (weighted by
-    ``effort``), and the residual torque norm (N m)."""
-    n = Ap.shape[1]
-    sol = lsq_linear(np.vstack([Ap, np.sqrt(effort) * np.eye(n)]), np.concatenate([bp, np.full(n, np.sqrt(effort) * tone)]), bounds=(0.0, 1.0),
-                     method="bvls")
-    a = np.clip(sol.x, 0.0, 1.0)
-    return a, float(np.linalg.norm(Ap @ a - bp))
-
-
 @dataclass
 class ArmDataConfig:
     """The static-optimisation dataset of one arm: postures with the hand in front and their holding activations."""
@@ -279,7 +268,7 @@ def solve_postures(arm: Arm, cfg: ArmDataConfig, r: range) -> dict:
     for i, k in enumerate(r):
         q = cfg.sample_posture(arm, k, d)
         Ap, bp = projected_torques(arm, q, d)
-        out["act"][i], out["residual"][i] = least_effort(Ap, bp)
+        out["act"][i], out["residual"][i] = least_effort(Ap, bp, EFFORT)
         out["torque_A"][i], out["torque_b"][i] = Ap, bp
         d.qpos[:] = q
         mujoco.mj_kinematics(arm.model, d)
@@ -424,7 +413,7 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
                 a = act[j[k]]
             elif mode == "teacher_feedback":
                 Ap, bp = projected_torques(arm, d.qpos.copy(), scratch)
-                a = least_effort(Ap, bp + demanded_torque(angles[j[k]] - arm.angles(d), arm.velocities(d)))[0]
+                a = least_effort(Ap, bp + demanded_torque(angles[j[k]] - arm.angles(d), arm.velocities(d)), EFFORT)[0]
             elif mode == "open" and t > 0:
                 return
             elif mode == "open":

@@ -48,7 +48,7 @@ from scipy.optimize import least_squares
 
 from warp_vision.body import SIDES, Body
 from warp_vision.sim.arm import CONTROL_PERIOD, MAIN_JOINTS, SAMPLE_RANGES, Arm
-from warp_vision.sim.cannon import ARM_REACH, GRAVITY, SETTLE_S, SHOULDER_LEFT, run_shot
+from warp_vision.sim.cannon import ARM_REACH, GRAVITY, SETTLE_S, SHOULDER_LEFT, run_shot, shoulder
 
 #: Perceptions :func:`arm_interceptor` knows by name (any callable ``(body, t) -> (position, velocity)`` also works).
 PERCEPTIONS = ("oracle",)
@@ -80,15 +80,6 @@ ARM_SPEED = 1.5
 def _mirror(offset, side: str) -> np.ndarray:
     x, f, u = offset
     return np.array([x if side == "left" else -x, -f, u])
-
-
-def rest_shoulder(side: str) -> np.ndarray:
-    """The shoulder's centre with the arm hanging (m, world): :data:`~warp_vision.sim.cannon.SHOULDER_LEFT`
-    or its mirror image."""
-    if side not in SIDES:
-        raise ValueError(f"side: expected one of {SIDES}, got {side!r}")
-    x, y, z = SHOULDER_LEFT
-    return np.array([x if side == "left" else -x, y, z])
 
 
 def ballistic_path(position, velocity, taus, gravity=GRAVITY) -> np.ndarray:
@@ -191,7 +182,7 @@ class ArmInterceptor:
         self.aim, self.gain, self.max_displacement = aim, float(gain), float(max_displacement)
         self.reach_fraction, self.min_front = float(reach_fraction), float(min_front)
         self.arm = Arm(body, side)
-        self.shoulder = rest_shoulder(side)
+        self.shoulder = shoulder(side)
         self.ready_hand = self.shoulder + _mirror(READY_OFFSET, side) if ready_hand is None else np.asarray(ready_hand, float)
         self.plane_y = float(self.shoulder[1] - PLANE_FRONT) if plane_y is None else float(plane_y)
         self._scratch = mujoco.MjData(body.model)

@@ -72,13 +72,20 @@ def holding_activations(body: Body, actuators, dofs, qpos, effort=EFFORT, weight
     (activations [len(actuators)], residual torque norm N m). ``effort``: a weight, or one per muscle;
     ``weights``: one per dof on the torque residual."""
     A, tau0, rest = muscle_torques(body, actuators, dofs, qpos, data)
-    n = A.shape[1]
     W = np.diag(np.ones(len(dofs)) if weights is None else np.asarray(weights, float))
-    M = np.vstack([W @ A, np.diag(np.sqrt(np.broadcast_to(effort, (n,))))])
-    b = np.concatenate([-W @ (tau0 + rest), np.zeros(n)])
-    sol = lsq_linear(M, b, bounds=(0.0, 1.0), method="bvls")
-    a = np.clip(sol.x, 0.0, 1.0)
+    a, _ = least_effort(W @ A, -W @ (tau0 + rest), effort)
     return a, float(np.linalg.norm(A @ a + tau0 + rest))
+
+
+def least_effort(A: np.ndarray, b: np.ndarray, effort=EFFORT, tone: float = 0.0) -> tuple[np.ndarray, float]:
+    """The activations in [0, 1] that best solve ``A a = b`` (torques, N m) with the least
+    ``effort``-weighted ``|a - tone|^2`` (``effort``: a weight, or one per muscle; scipy's bounded least
+    squares), and the residual norm ``|A a - b|``."""
+    n = A.shape[1]
+    w = np.sqrt(np.broadcast_to(np.asarray(effort, float), (n,)))
+    sol = lsq_linear(np.vstack([A, np.diag(w)]), np.concatenate([b, w * tone]), bounds=(0.0, 1.0), method="bvls")
+    a = np.clip(sol.x, 0.0, 1.0)
+    return a, float(np.linalg.norm(A @ a - b))
 
 
 def eye_qpos(body: Body, side: str, yaw: float, pitch: float) -> np.ndarray:
