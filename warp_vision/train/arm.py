@@ -16,8 +16,8 @@ the dataset:
 
 - the voluntary net, (hand_j - hand_i, act_i, angles_i, v) -> a, so that ``A_i a`` supplies ``b_i`` plus
   :func:`warp_vision.sim.arm.demanded_torque` (angles_j - angles_i, v): a saturating spring of
-  ``stiffness`` toward j's joints and a damper of ``damping``;
-- the posture net, (angles_i, v) -> a, so that ``A_i a`` supplies ``b_i`` plus the damper alone.
+  ``stiffness`` toward j's joints (saturating at ``saturation``) and a damper of ``damping``;
+- the posture net, (angles_i, v) -> a, so that ``A_i a`` supplies ``b_i`` plus a damper of ``posture_damping``.
 
 Each loss is ``torque_weight`` times a soft norm of the torque shortfall (quadratic below 0.1 N m, linear
 above: a demand beyond what the muscles can give must not drown the rest) plus the mean squared departure
@@ -120,8 +120,8 @@ class ArmTask(harness.Task):
 
         dq = t["angles"][j].to(device) - angles
         return {"vol": vol, "pos": pos, "a_i": a_i,
-                "vtorque": residual(vol, demanded_torque(dq, v, c.stiffness, c.damping, xp=torch)),
-                "ptorque": residual(pos, demanded_torque(torch.zeros_like(v), v, c.stiffness, c.damping, xp=torch))}
+                "vtorque": residual(vol, demanded_torque(dq, v, c.stiffness, c.damping, c.saturation, xp=torch)),
+                "ptorque": residual(pos, demanded_torque(torch.zeros_like(v), v, c.stiffness, c.posture_damping, c.saturation, xp=torch))}
 
     def _losses(self, p):
         tw = self.cfg.torque_weight
@@ -161,7 +161,9 @@ class ArmTask(harness.Task):
         self.log("checking the nets on the body (held-out postures and reaches)")
         body = self.body if getattr(self, "body", None) is not None else Body()
         on_body = evaluate_on_body(model.cpu().eval(), body, self.cfg.side, self.data, self.test_postures,
-                                   n=self.cfg.body_checks, teacher_feedback=not self.cfg.skip_teacher_feedback)
+                                   n=self.cfg.body_checks, teacher_feedback=not self.cfg.skip_teacher_feedback,
+                                   torque={"stiffness": self.cfg.stiffness, "damping": self.cfg.damping,
+                                           "saturation": self.cfg.saturation})
         r = self.data["residual"]
         return {"side": self.cfg.side, "hand_point": f"{HAND_SITE}_{self.cfg.side[0]} (world = torso frame)",
                 "reach_mode": "closed loop: the voluntary net every 10 ms on the remaining displacement from the true hand, "

@@ -469,8 +469,10 @@ class ArmTrainConfig:
     max_residual: float = 0.05  # N m: postures whose holding residual exceeds this are dropped (the muscles cannot hold them)
     transitions: int = 100_000  # (current, next) posture pairs drawn among the training postures per run
     torque_weight: float = 1.0  # 1/(N m): weight of the torque the nets' activations fall short by (a soft norm) in the loss
-    stiffness: float = 60.0  # N m/rad: the spring toward the goal posture the voluntary net learns (saturating at 0.3 rad)
-    damping: float = 8.0  # N m s/rad: the damping both nets learn
+    stiffness: float = 300.0  # N m/rad: the spring toward the goal posture the voluntary net learns
+    saturation: float = 0.5  # rad: where that spring saturates (its torque at most stiffness x saturation)
+    damping: float = 25.0  # N m s/rad: the damping the voluntary net learns (with the spring)
+    posture_damping: float = 8.0  # N m s/rad: the damping the posture net learns (more asks the muscles for more than they give when holding, and it drifts)
     velocity_std: float = 1.0  # rad/s: the joint velocities drawn for half the samples
     # the model
     hidden: int = 256  # units per hidden layer of both MLPs
@@ -500,7 +502,9 @@ class ArmTrainConfig:
             raise ValueError(f"side: expected one of ['left', 'right'], got {self.side!r}")
         if not self.max_residual > 0:
             raise ValueError(f"max_residual: expected > 0 N m, got {self.max_residual}")
-        for name in ("torque_weight", "stiffness", "damping", "velocity_std"):
+        if not self.saturation > 0:
+            raise ValueError(f"saturation: expected > 0 rad, got {self.saturation}")
+        for name in ("torque_weight", "stiffness", "damping", "posture_damping", "velocity_std"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
         if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
