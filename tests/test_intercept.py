@@ -112,3 +112,45 @@ def test_oracle_interception_beats_passive_arms_on_easy_shots(body):
     for o, p in zip(oracle["shots"], passive["shots"]):  # the hanging forearm passes within a few cm of these
         assert o["error"] is None and o["closest"] < 0.02 and o["closest"] < 0.5 * p["closest"], (o, p)
     assert oracle["deflected_fraction"] > passive["deflected_fraction"]
+
+
+def test_a_ball_fired_at_a_held_hand_is_deflected_and_a_passive_arm_misses_it(body):
+    """The body's own least-effort holding activations (the posture net's teacher) keep the hand in the
+    ball's path: the shot aimed at the grasp site is deflected by the hand or forearm before the frontal
+    plane, with no MuJoCo warning (``body.step`` raises on any). The same shot at the passive, hanging arm
+    touches neither hand nor forearm."""
+    from warp_vision.sim.arm import Arm, ArmDataConfig, solve_postures
+
+    arm = Arm(body, "left")
+    out = solve_postures(arm, ArmDataConfig(postures=8, seed=1), range(6))
+    k = int(np.argmin(out["residual"]))
+    qpos, act, hand = out["qpos"][k], out["act"][k], out["hand"][k]
+
+    def ready(b, t):
+        if t == 0.0:
+            b.data.qpos[arm.qadr] = qpos
+            b.data.act[arm.actadr] = act
+        b.data.ctrl[arm.actuators] = act
+
+    held = run_shot(body, make_shot(hand, 7.0), controller=lambda b, t: ready(b, t + 1.0), settle=0.3, ready=ready)
+    assert held.deflected and held.arm_contact in ("hand_left", "forearm_left"), held
+    assert held.speed_change > 1.0 and held.before_frontal_plane
+    passive = run_shot(body, make_shot(hand, 7.0))
+    assert passive.arm_contact is None and not passive.deflected and passive.closest > 0.05, passive
+
+
+def test_the_offset_oracle_is_the_truth_off_by_its_error_in_a_new_direction_per_shot(body):
+    from warp_vision.sim.intercept import OffsetOracle, oracle_perception
+
+    o = OffsetOracle(0.05, seed=3)
+    p, v = oracle_perception(body, 0.0)
+    q, w = o(body, 0.0)
+    assert np.linalg.norm(q - p) == pytest.approx(0.05) and np.array_equal(v, w)
+    first = o.offset.copy()
+    o.new_shot()
+    assert np.linalg.norm(o.offset) == pytest.approx(0.05) and not np.allclose(o.offset, first)
+    assert np.allclose(OffsetOracle(0.05, seed=3).offset, first)  # seeded
+    assert np.array_equal(OffsetOracle(0.0)(body, 0.0)[0], p)
+    for bad in (-0.01, float("nan"), float("inf")):
+        with pytest.raises(ValueError):
+            OffsetOracle(bad)

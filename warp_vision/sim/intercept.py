@@ -4,8 +4,8 @@ predicted path, and the arm's motor nets driving the hand there.
 - :class:`ArmInterceptor` (made by :func:`arm_interceptor`): a controller for
   :func:`warp_vision.sim.cannon.run_shot`. Every :data:`~warp_vision.sim.arm.CONTROL_PERIOD` (10 ms) it
   (a) asks its *perception* for the ball's position and velocity: ``"oracle"`` reads the simulation's true
-  state; any callable ``(body, t) -> (position [3], velocity [3])`` can stand in for it (a vision net's
-  estimate, later); (b) predicts the ball's ballistic path under gravity (no drag, no spin:
+  state; any callable ``(body, t) -> (position [3], velocity [3])`` or None (nothing seen yet: hold) can
+  stand in for it, as the limb vision nets do (:class:`warp_vision.sim.limb.LimbVision`); (b) predicts the ball's ballistic path under gravity (no drag, no spin:
   ``p(tau) = p + v tau + g tau^2 / 2``) and picks an interception point on it with :func:`intercept_point`;
   (c) feeds the arm's voluntary net (:class:`warp_vision.nn.arm.ArmNets`) the desired hand displacement,
   ``gain`` x (point - hand), as :func:`warp_vision.sim.arm.evaluate_on_body` runs it in closed loop (the true
@@ -157,6 +157,29 @@ def oracle_perception(body: Body, t: float) -> tuple[np.ndarray, np.ndarray]:
     return body.ball_position(), body.data.qvel[v:v + 3].copy()
 
 
+class OffsetOracle:
+    """The true ball state with a fixed position error: ``error_m`` metres in a direction drawn per shot
+    (uniform on the sphere, from ``seed`` and the shot's count), the velocity true. A perception with the
+    accuracy of an imperfect limb vision net, to measure how accurate the nets must be for the
+    interception (``python -m warp_vision.sim intercept --shots N --perception-error-cm ...``). Call
+    :meth:`new_shot` before each shot (:func:`intercept_stats` does, through the controller's ``ready``)."""
+
+    def __init__(self, error_m: float, seed: int = 0):
+        if not (np.isfinite(error_m) and error_m >= 0):
+            raise ValueError(f"error_m: expected a finite distance >= 0 m, got {error_m}")
+        self.error_m, self._rng = float(error_m), np.random.default_rng([17, seed])
+        self.offset = np.zeros(3)
+        self.new_shot()
+
+    def new_shot(self) -> None:
+        v = self._rng.normal(size=3)
+        self.offset = self.error_m * v / np.linalg.norm(v)
+
+    def __call__(self, body: Body, t: float) -> tuple[np.ndarray, np.ndarray]:
+        p, v = oracle_perception(body, t)
+        return p + self.offset, v
+
+
 class ArmInterceptor:
     """A :func:`~warp_vision.sim.cannon.run_shot` controller that intercepts the ball with one arm (see
     the module docstring); :meth:`ready` is ``run_shot``'s ``ready``. After a shot, ``log`` holds one
@@ -221,6 +244,7 @@ class ArmInterceptor:
         k = int(round(t / self._dt))
         if k == 0:
             self.log = []
+            getattr(self.perceive, "new_shot", lambda: None)()  # e.g. an OffsetOracle's error for this shot
             d = body.data
             q = self.arm.qpos(self.ready_q, d.qpos)
             d.qpos[self.arm.qadr] = q[self.arm.qadr]
@@ -235,8 +259,13 @@ class ArmInterceptor:
     def __call__(self, body: Body, t: float) -> None:
         if int(round(t / self._dt)) % self._per:
             return
-        position, velocity = self.perceive(body, t)
+        seen = self.perceive(body, t)
         hand = self.arm.hand(body.data)
+        if seen is None:  # nothing perceived yet: hold
+            self._set(self._hold())
+            self.log.append((t, None, hand))
+            return
+        position, velocity = seen
         hit = intercept_point(position, velocity, self.arm.shoulder(body.data), hand, self.aim, self.plane_y,
                               self.reach_fraction, self.min_front)
         if hit is None:
@@ -272,26 +301,34 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def intercept_stats(shots, controller_factory=None, body: Body | None = None, settle: float = SETTLE_S,
-                    frontal_y: float | None = SHOULDER_LEFT[1], speed_bins=SPEED_BINS) -> dict:
+                    frontal_y: float | None = SHOULDER_LEFT[1], speed_bins=SPEED_BINS, runner=None,
+                    progress: bool = False, desc: str = "shots") -> dict:
     """Run ``shots`` (:func:`warp_vision.sim.cannon.run_shot`) with ``controller_factory(body)`` (a
     controller; its ``ready`` attribute, if any, is ``run_shot``'s ``ready``) or passive arms (None).
     ``frontal_y``: the detector's frontal plane (default the hanging shoulders' y, the same for every
     controller: a raised arm moves the shoulder). Returns ``{"shots": [per shot: seed, speed, flight_time,
     deflected, closest (m), arm_contact, error (a SimulationError's text or None), wall_s], **aggregate,
     "by_speed": {"6-8": aggregate, ...}, "wall_s_per_shot": mean}``; a shot whose simulation fails counts
-    as a miss at 10 m."""
+    as a miss at 10 m. ``runner(shot) -> ShotResult`` (optional) runs each shot instead of ``run_shot``
+    (e.g. :func:`run_vision_shot` in the closed loop); ``progress``: a progress bar named ``desc``."""
+    from tqdm import tqdm
+
     from warp_vision.body import SimulationError
 
-    body = body or Body()
-    ctrl = controller_factory(body) if controller_factory is not None else None
+    if runner is None:
+        body = body or Body()
+        ctrl = controller_factory(body) if controller_factory is not None else None
+        runner = lambda shot: run_shot(body, shot, ctrl, settle, frontal_y, ready=getattr(ctrl, "ready", None))  # noqa: E731
     rows = []
-    for shot in shots:
+    for shot in tqdm(shots, desc=desc, unit="shot", disable=not progress, dynamic_ncols=True):
         t0 = time.perf_counter()
         try:
-            r = run_shot(body, shot, ctrl, settle, frontal_y, ready=getattr(ctrl, "ready", None))
-            row = {"deflected": r.deflected, "closest": r.closest, "arm_contact": r.arm_contact, "error": None}
+            r = runner(shot)
+            row = {"deflected": r.deflected, "closest": r.closest, "arm_contact": r.arm_contact, "error": None,
+                   "direction": [float(x) for x in shot.direction]}
         except SimulationError as e:
-            row = {"deflected": False, "closest": 10.0, "arm_contact": None, "error": str(e)}
+            row = {"deflected": False, "closest": 10.0, "arm_contact": None, "error": str(e),
+                   "direction": [float(x) for x in shot.direction]}
         rows.append({"seed": shot.seed, "speed": shot.speed, "flight_time": shot.flight_time, **row,
                      "wall_s": time.perf_counter() - t0})
     out = {"shots": rows, **_summary(rows)}
@@ -300,3 +337,75 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
                        for lo, hi in zip(edges, edges[1:])}
     out["wall_s_per_shot"] = float(np.mean([r["wall_s"] for r in rows])) if rows else None
     return out
+
+
+# --------------------------------------------------------------------------------------------------
+# the closed loop: eyes and head track the ball, the limb vision nets see it, the arm strikes
+
+#: s: before the launch the ball rests at the muzzle this long while the eyes find and fixate it
+FIXATE_S = 0.4
+
+
+def run_vision_shot(loop, shot, interceptor: ArmInterceptor | None, vision=None, settle: float = SETTLE_S,
+                    fixate: float = FIXATE_S, frontal_y: float | None = SHOULDER_LEFT[1], record=None):
+    """Fire ``shot`` in the closed loop and return the deflection detector's
+    :class:`~warp_vision.sim.cannon.ShotResult`.
+
+    ``loop`` (:class:`warp_vision.sim.loop.VisuomotorLoop`) owns the body, the eyes, their foveation and
+    oculomotor nets and the neck. The body is reset; for ``settle`` s the interceptor's arm goes to its
+    ready posture and is held there (the other arm hangs; ``interceptor`` None: both hang); then for
+    ``fixate`` s the ball is held at the muzzle while the loop runs, so the eyes find it. At the launch
+    the detector starts and every control period (10 ms): the interceptor acts on its perception (its
+    last state: the frame before), then the loop runs one period (renders on its visual frames, tracks,
+    steps MuJoCo with the detector after every step); on a visual frame ``vision``
+    (:class:`warp_vision.sim.limb.LimbVision` or :class:`~warp_vision.sim.limb.FixationVision`, or None
+    when the interceptor's perception is the oracle) observes what the loop just rendered and estimated,
+    with the eye poses and the hand of that moment.
+    ``record(loop, detector)`` (optional) is called after every period. The loop's ``timing`` gains
+    "limb_vision" (the limb nets) and "arm" (the interceptor: aim and motor nets)."""
+    from warp_vision.sim.cannon import TAIL_S, DeflectionDetector
+    from warp_vision.sim.loop import CONTROL_DT
+
+    body = loop.body
+    muzzle = body.data.site_xpos[body.model.site("muzzle").id]
+    if not np.allclose(muzzle, shot.muzzle, atol=1e-6):
+        raise ValueError(f"shot: drawn for a muzzle at {shot.muzzle}, the body's is at {muzzle.round(3).tolist()}")
+    for k in ("limb_vision", "arm"):
+        loop.timing.setdefault(k, 0.0)
+    loop.reset(0.0)
+    dt = body.model.opt.timestep
+    for k in range(int(round(settle / dt))):
+        if interceptor is not None:
+            interceptor.ready(body, k * dt)
+        body.step()
+    for _ in range(int(round(fixate / CONTROL_DT))):
+        body.set_ball(shot.muzzle)
+        if interceptor is not None:
+            interceptor.ready(body, body.time)
+        loop.step()
+    body.fire_cannon(shot.target, shot.flight_time)
+    det = DeflectionDetector(body, frontal_y)
+    if vision is not None:
+        vision.reset()
+    loop.substep = det.update
+    end = shot.flight_time + TAIL_S
+    try:
+        while det.t < end and not det.landed and not det.passed:
+            frame = loop.period % loop.frame_every == 0
+            if frame and vision is not None:
+                poses = {s: body.eye_pose(s) for s in SIDES}
+                hand, t_frame = interceptor.arm.hand(body.data), det.t
+            if interceptor is not None:
+                t0 = time.perf_counter()
+                interceptor(body, det.t)
+                loop.timing["arm"] += time.perf_counter() - t0
+            loop.step()
+            if frame and vision is not None:
+                t0 = time.perf_counter()
+                vision.observe(loop, poses, hand, t_frame)
+                loop.timing["limb_vision"] += time.perf_counter() - t0
+            if record is not None:
+                record(loop, det)
+    finally:
+        loop.substep = None
+    return det.result()

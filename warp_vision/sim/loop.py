@@ -255,6 +255,8 @@ class VisuomotorLoop:
         self.neck_target = np.zeros(3)
         self.last_neck = body.neck_angles()
         self.timing = {"render": 0.0, "nets": 0.0, "mujoco": 0.0, "control": 0.0}
+        #: called after every MuJoCo step of :meth:`step` when set (a callable of no arguments)
+        self.substep = None
         self.scratch = mujoco.MjData(body.model)
         self.neck_dofs = body.model.jnt_dofadr[body.neck_joints]
         self.onv: dict = {}
@@ -393,7 +395,13 @@ class VisuomotorLoop:
         self._intraocular(seen)
         self.timing["control"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        body.step(int(round(CONTROL_DT / body.model.opt.timestep)))
+        n = int(round(CONTROL_DT / body.model.opt.timestep))
+        if self.substep is None:
+            body.step(n)
+        else:  # e.g. the cannon's deflection detector, which reads every MuJoCo step's contacts
+            for _ in range(n):
+                body.step()
+                self.substep()
         self.timing["mujoco"] += time.perf_counter() - t0
 
     def _lens_field(self, s: str) -> np.ndarray:
