@@ -169,6 +169,20 @@ def foveation_net(model: str, in_positions, layers: int = 4, receptive_field: in
     raise ValueError(f"model: expected 'linet' or 'fc', got {model!r}")
 
 
+def limb_vision_net(model: str, in_positions, layers: int = 3, receptive_field: int = 20, reduction: int = 5,
+                    seed: int = 0) -> FoveationNet:
+    """A limb vision net (the paper's nets 3-10, one per eye): ``model`` "linet" or "fc" on inputs at
+    ``in_positions`` [3P, 2], a linear read-out of six values: the hand-to-ball discrepancy of the left and
+    of the right arm (m, eye frame; standardised by the target buffers)."""
+    torch.manual_seed(seed)
+    linet = LiNet(in_positions, layers=layers, receptive_field=receptive_field, reduction=reduction, seed=seed)
+    if model == "linet":
+        return FoveationNet(linet, outputs=6)
+    if model == "fc":
+        return FoveationNet(FullyConnected.like(linet), outputs=6)
+    raise ValueError(f"model: expected 'linet' or 'fc', got {model!r}")
+
+
 class AFRNet(nn.Module):
     """The paper's active-face-recognition net (Section VI.B): a liNet backbone and two single-layer
     fully-connected heads on its last hidden layer, FC1 to identity logits and FC2 to the pose angles

@@ -80,8 +80,17 @@ def _arm(spec: dict):
     return ArmNets(hidden=spec["hidden"])
 
 
+def _limb(spec: dict):
+    from warp_vision.nn.connectivity import onv_positions
+    from warp_vision.nn.heads import limb_vision_net
+
+    return limb_vision_net(spec["model"], onv_positions(_array(spec["photoreceptor_xy"])), spec["layers"],
+                           spec["receptive_field"], spec["reduction"], spec["seed"])
+
+
 #: spec["kind"] -> the function that builds the untrained net from the spec
-BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor, "pupil": _pupil, "lens": _lens, "arm": _arm}
+BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor, "pupil": _pupil, "lens": _lens, "arm": _arm,
+            "limb": _limb}
 
 #: the ONV dtypes a net can read (spec["onv_dtype"]; checkpoints without one read float32)
 ONV_DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}

@@ -64,6 +64,12 @@ TASKS = {
             "net (joint angles and velocities to activations that hold and damp) and the voluntary net (hand "
             "displacement, current activations, joint angles and velocities to the next activations), check both "
             "on the body, and write config, checkpoints, metrics and summary to --out (default runs/arm/<side>)."),
+    "limb": ("limb", "LimbTrainConfig", "LIMB_PRESETS",
+             "An eye's limb vision net (the paper's nets 3-10): synthesise (or reuse) ONVs of the closed loop's world "
+             "with the body's arms at random postures and the cannon's ball near a hand or on a shot's path, the eye "
+             "tracking it; train the liNet from the ONV to each arm's hand-to-ball discrepancy (eye frame, m); "
+             "measure it on rooms and shots training never saw, and write config, checkpoints, metrics, summary and "
+             "figures to --out (default runs/limb/<eye>)."),
     "pupil": ("pupil", "PupilTrainConfig", "PUPIL_PRESETS",
               "An eye's pupil net (the paper's SNNs for the iris): synthesise (or reuse) ONVs of everyday scenes seen "
               "through random pupils at light levels over five decades, train the net from (ONV, current pupil) to "

@@ -523,3 +523,78 @@ ARM_PRESETS: dict[str, dict] = {
     # body checks, about 2 minutes, included)
     "default": {},
 }
+
+
+@dataclass
+class LimbTrainConfig:
+    """Everything a limb vision run depends on (one eye's net: the hand-to-ball discrepancy of both arms;
+    written to RUN_DIR/config.json)."""
+
+    preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
+    task: str = "limb"  # fixed: tells evaluate which kind of run a directory holds
+    out: str = ""  # output directory; default: runs/limb/<eye>
+    data_dir: str = ""  # dataset directory; default: runs/datasets/limb-<config hash>
+    # the dataset (sim/limb.py): the loop's world, arms at random postures, the ball near a hand or on a shot's path
+    samples: int = 10_000  # ONVs (train + validation + test)
+    heldout_samples: int = 1000  # ONVs in rooms and of shots training never sees (the summary's held-out set)
+    photoreceptors: int = 14_400  # P per retina: the foveation net's retina (the loop renders one ONV for both)
+    eye: str = "left"  # left or right
+    samples_per_receptor: int = 4  # S rays per photoreceptor and channel (the loop's)
+    data_seed: int = 0  # seed of the dataset and of the train/val/test split
+    # the model
+    model: str = "linet"  # linet, or fc: the fully-connected twin with the same hidden sizes
+    layers: int = 3  # liNet hidden layers H
+    receptive_field: int = 20  # R, connections per unit
+    reduction: int = 5  # f, each layer has 1/f of the previous layer's units
+    onv_dtype: str = "auto"  # float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for fc)
+    # optimisation
+    near_weight_m: float = 0.25  # m: each arm's error is weighted by 1 / (this + its true hand-ball distance): near balls count most
+    batch: int = 64
+    lr: float = 1e-3  # Adam learning rate (of the first epoch)
+    lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
+    epochs: int = 30  # at most
+    patience: int = 8  # early stopping: epochs without a better validation median error (near balls)
+    val_fraction: float = 0.1
+    test_fraction: float = 0.1
+    seed: int = 0  # initialisation and shuffling
+    device: str = "auto"  # cpu, cuda, or auto
+
+    def data_config(self):
+        from warp_vision.sim.limb import LimbDataConfig
+
+        return LimbDataConfig(eye=self.eye, samples=self.samples, photoreceptors=self.photoreceptors,
+                              samples_per_receptor=self.samples_per_receptor, seed=self.data_seed)
+
+    def heldout_config(self):
+        from warp_vision.sim.limb import LimbDataConfig
+
+        return LimbDataConfig(eye=self.eye, samples=self.heldout_samples, photoreceptors=self.photoreceptors,
+                              samples_per_receptor=self.samples_per_receptor, seed=self.data_seed + 1,
+                              rooms="heldout", shots="heldout")
+
+    def epoch_lr(self, epoch: int) -> float:
+        return epoch_lr(self, epoch)
+
+    def validate(self) -> None:
+        _check_common(self, LIMB_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor"))
+        if self.task != "limb":
+            raise ValueError(f"task: expected 'limb', got {self.task!r}")
+        if not self.near_weight_m > 0:
+            raise ValueError(f"near_weight_m: expected > 0 m, got {self.near_weight_m}")
+        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
+            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
+        if not self.out:
+            self.out = f"runs/limb/{self.eye}"
+        self.data_config().validate()
+        self.heldout_config().validate()
+
+
+LIMB_PRESETS: dict[str, dict] = {
+    # seconds, for tests
+    "smoke": dict(samples=64, heldout_samples=16, photoreceptors=400, samples_per_receptor=1, layers=2,
+                  receptive_field=8, batch=16, epochs=2, patience=2),
+    # a first look: about 4 minutes on a 2-core CPU
+    "quick": dict(samples=2000, heldout_samples=300, epochs=12, patience=12),
+    # one eye in about 15 minutes on a 2-core CPU (rendering 11,000 ONVs, then training)
+    "default": {},
+}

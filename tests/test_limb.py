@@ -1,0 +1,144 @@
+"""The limb vision nets: their samples' geometry, the rendered dataset, the training task, the errors
+they are judged by, and the ballistic fit the interception reads them through."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from warp_vision.sim.cannon import GRAVITY
+from warp_vision.sim.limb import (META, NEAR_M, SIDES, LimbDataConfig, Poser, dataset_fields, fit_ballistic,
+                                  render_samples, sample_params)
+from warp_vision.train.cli import main as train_main
+from warp_vision.train.limb import discrepancy_errors
+
+
+@pytest.fixture(scope="module")
+def poser():
+    return Poser()
+
+
+def test_a_sample_is_reproducible_and_its_target_is_ball_minus_hand_in_the_eye_frame(poser):
+    cfg = LimbDataConfig(samples=8)
+    a, b = sample_params(cfg, 3, poser), sample_params(cfg, 3, poser)
+    assert np.array_equal(a["target"], b["target"]) and np.array_equal(a["eye_pose"], b["eye_pose"])
+    assert not np.array_equal(sample_params(cfg, 4, poser)["target"], a["target"])
+    R, centre = a["eye_pose"][:3, :3], a["eye_pose"][:3, 3]
+    assert np.allclose(R.T @ R, np.eye(3), atol=1e-9)
+    for k, s in enumerate(SIDES):
+        assert np.allclose(a["target"][3 * k:3 * k + 3], R.T @ (a["ball"] - a["hands"][s]), atol=1e-9)
+    # the eye looks at the ball, off by the sample's tracking error
+    ball = R.T @ (a["ball"] - centre)
+    off = np.degrees(np.arccos(ball[2] / np.linalg.norm(ball)))
+    assert off == pytest.approx(a["err_deg"], rel=1e-3, abs=1e-3) and 0 <= a["err_deg"] <= 25  # yaw and pitch of it
+
+
+def test_balls_lie_near_a_hand_or_on_a_shot_and_in_front_of_the_body(poser):
+    from warp_vision.sim.cannon import SHOULDER_LEFT
+
+    cfg = LimbDataConfig(samples=40)
+    ps = [sample_params(cfg, i, poser) for i in range(40)]
+    near = [p for p in ps if not p["on_path"]]
+    assert 0 < len(near) < 40
+    for p in near:
+        assert min(np.linalg.norm(p["ball"] - h) for h in p["hands"].values()) <= NEAR_M + 1e-9
+    for p in ps:
+        assert p["ball"][1] < SHOULDER_LEFT[1] and min(np.linalg.norm(p["ball"] - h) for h in p["hands"].values()) > 0.05
+    assert {round(p["light"], 6) for p in ps}.__len__() > 30 and all(10 ** -0.5 <= p["light"] <= 10 ** 0.5 for p in ps)
+
+
+def test_rendered_samples_fill_the_fields_and_keep_to_one_room(poser):
+    from warp_vision.data.foveation import make_retina
+
+    cfg = LimbDataConfig(samples=8, photoreceptors=400, samples_per_receptor=1, chunk_size=4)
+    retina = make_retina(cfg.foveation_config())
+    out = render_samples(cfg, [0, 1], poser, retina)
+    fields = dataset_fields(cfg)
+    for k, (shape, dtype) in fields.items():
+        assert out[k].shape == (2, *shape) and out[k].dtype == np.dtype(dtype), k
+    assert np.isfinite(out["onv"].astype(np.float32)).all() and out["onv"].astype(np.float32).max() > 0
+    assert np.allclose(out["target"][1], sample_params(cfg, 1, poser)["target"], atol=1e-6)
+    assert out["meta"][0, META.index("ball_hand_left_m")] == pytest.approx(np.linalg.norm(out["target"][0, :3]), rel=1e-5)
+    with pytest.raises(ValueError, match="one chunk"):
+        render_samples(cfg, [3, 4], poser, retina)
+
+
+@pytest.mark.parametrize("bad", [dict(eye="middle"), dict(samples=0), dict(rooms="attic"), dict(shots="test")])
+def test_bad_dataset_configs_are_refused(bad):
+    with pytest.raises(ValueError):
+        LimbDataConfig(**bad).validate()
+
+
+def test_the_errors_count_near_pairs_and_relative_error():
+    true = np.array([[0.1, 0, 0, 2.0, 0, 0], [0, 0.3, 0, 0, 0, 0.5]])
+    pred = true + np.array([[0.01, 0, 0, 0.5, 0, 0], [0, 0.03, 0, 0, 0, 0.1]])
+    e = discrepancy_errors(pred, true)
+    assert e["near_pairs"] == 3  # the 2 m pair is not near
+    assert e["near_median_cm"] == pytest.approx(3.0) and e["near_median_relative"] == pytest.approx(0.1)
+    assert e["by_distance"]["1-2 m"]["pairs"] == 0 and e["by_distance"]["0-0.2 m"]["median_cm"] == pytest.approx(1.0)
+
+
+def test_the_ballistic_fit_recovers_a_thrown_ball_and_weights_its_observations():
+    p0, v0 = np.array([0.3, -2.0, 1.2]), np.array([0.5, 8.0, 2.0])
+    ts = np.linspace(0.0, 0.2, 6)
+    obs = p0 + v0 * ts[:, None] + 0.5 * GRAVITY * ts[:, None] ** 2
+    p, v = fit_ballistic(ts, obs, np.ones(6), 0.25)
+    assert np.allclose(p, p0 + v0 * 0.25 + 0.5 * GRAVITY * 0.25 ** 2, atol=1e-9)
+    assert np.allclose(v, v0 + GRAVITY * 0.25, atol=1e-9)
+    bad = obs.copy()
+    bad[0] += 1.0  # one wild observation, nearly weightless
+    p2, _ = fit_ballistic(ts, bad, np.r_[1e-9, np.ones(5)], 0.25)
+    assert np.allclose(p2, p, atol=1e-6)
+    one = fit_ballistic([0.1], obs[:1], [1.0], 0.3)
+    assert np.array_equal(one[0], obs[0]) and np.array_equal(one[1], np.zeros(3))
+
+
+def test_smoke_run_trains_and_reports_held_out_errors(tmp_path):
+    from warp_vision.nn.trained import load_net
+
+    run = tmp_path / "left"
+    argv = ["limb", "--preset", "smoke", "--out", str(run), "--data-dir", str(tmp_path / "data" / "limb-smoke"),
+            "--no-progress"]
+    assert train_main(argv) == 0
+    s = json.loads((run / "summary.json").read_text())
+    for split in ("test", "heldout"):
+        assert {"near_median_cm", "near_p90_cm", "near_median_relative", "by_distance"} <= set(s[split])
+    assert np.isfinite(s["heldout"]["all_median_cm"]) and (run / "figures" / "limb_errors.png").exists()
+    net, ck = load_net(run)
+    assert ck["net"]["kind"] == "limb" and ck["data"]["eye"] == "left"
+    x = torch.rand(2, 3 * 400, dtype=torch.float16)
+    assert net(x.float() if ck["net"]["onv_dtype"] == "float32" else x).shape == (2, 6)
+    assert train_main(["limb", "--preset", "smoke", "--near-weight-m", "0", "--no-progress"]) == 2  # refused in one line
+
+
+def test_the_gaze_lines_cross_at_the_ball_and_fixation_vision_sees_it_there():
+    from types import SimpleNamespace
+
+    from warp_vision.frames import gaze_angles, look_rotation
+    from warp_vision.sim.limb import MAX_DEPTH_M, FixationVision, nearest_to_rays
+
+    ball = np.array([0.1, -0.8, 1.3])
+    eyes = {"left": np.array([0.032, -0.09, 1.55]), "right": np.array([-0.032, -0.09, 1.55])}
+    u = {s: (ball - o) / np.linalg.norm(ball - o) for s, o in eyes.items()}
+    assert np.allclose(nearest_to_rays(eyes["left"], u["left"], eyes["right"], u["right"]), ball, atol=1e-9)
+    # parallel gaze lines: the depth is capped; a ray pointing away is cut at its origin
+    far = nearest_to_rays(eyes["left"], u["left"], eyes["right"], u["left"])
+    assert np.linalg.norm(far - eyes["left"]) <= MAX_DEPTH_M + 0.1
+    assert np.allclose(nearest_to_rays(eyes["left"], -u["left"], eyes["left"], -u["left"], 2.0), eyes["left"] - 2.0 * u["left"])
+    # each eye off the ball by a few degrees: the foveation nets' estimates say by how much
+    poses, est = {}, {}
+    for s, o in eyes.items():
+        R = look_rotation(u[s] + np.array([0.05, 0.0, 0.03]), up=(0.0, 0.0, 1.0))
+        poses[s] = np.eye(4)
+        poses[s][:3, :3], poses[s][:3, 3] = R, o
+        est[s] = gaze_angles(R.T @ u[s])
+    fx = FixationVision("left")
+    assert fx(None, 0.0) is None  # nothing seen yet: the interceptor holds
+    assert fx.observe(SimpleNamespace(estimate=None), poses, np.zeros(3), 0.0) is None
+    p = fx.observe(SimpleNamespace(estimate=est), poses, ball + [0.0, 0.0, -0.3], 0.01)
+    assert np.allclose(p, ball, atol=1e-6) and np.allclose(fx(None, 0.01)[0], ball, atol=1e-6)
+    fx.reset()
+    assert fx(None, 0.02) is None and len(fx.log) == 1
+    with pytest.raises(ValueError):
+        FixationVision("middle")

@@ -1,0 +1,198 @@
+"""The limb vision task: one eye's liNet from its ONV to each arm's hand-to-ball discrepancy.
+
+``python -m warp_vision.train limb --eye left|right [--preset smoke|quick|default] [--flag value ...]``
+
+The dataset is :mod:`warp_vision.sim.limb` (the closed loop's world: the body's arms at random postures,
+the cannon's ball near a hand or on a shot's path, the eye tracking it). The net
+(:func:`warp_vision.nn.heads.limb_vision_net`) reads the ONV as the foveation net does and outputs six
+values: ``ball - hand`` of the left and of the right arm, in the eye frame (m; the loop turns them into
+the head and world frames with the eye's orientation, which the oculomotor system knows). The loss is a
+Huber loss on the standardised targets, each arm's weighted by ``1 / (near_weight_m + distance)`` so the
+balls near a hand, the ones that matter for striking, count most. The best epoch has the smallest
+validation median error on balls within 0.6 m of the hand; the summary gives that error (median and 90th
+percentile, cm, and relative to the true distance) on the test split and on the held-out set (rooms and
+shots training never saw), and by distance.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
+from warp_vision.train import harness
+from warp_vision.train.config import LimbTrainConfig, onv_dtype_name
+
+#: m: the issue's near range: balls within this distance of the hand
+NEAR_M = 0.6
+#: Huber threshold in standardised target units
+HUBER_DELTA = 0.1
+#: m: the distance bins of the summary
+BINS_M = (0.0, 0.2, 0.4, 0.6, 1.0, 2.0, 4.0)
+
+
+def discrepancy_errors(pred: np.ndarray, true: np.ndarray) -> dict:
+    """Errors of predicted discrepancies [N, 6] (m) against the true ones: per arm-sample pair, |pred -
+    true| and the true distance |true|. The near metrics (``near_*``) take the pairs within
+    :data:`NEAR_M`; ``by_distance`` the median error per bin of :data:`BINS_M`."""
+    p, t = np.asarray(pred, float).reshape(-1, 3), np.asarray(true, float).reshape(-1, 3)
+    err = np.linalg.norm(p - t, axis=1)
+    dist = np.linalg.norm(t, axis=1)
+    near = dist < NEAR_M
+    nan = float("nan")
+    out = {"near_pairs": int(near.sum()),
+           "near_median_cm": float(np.median(err[near]) * 100) if near.any() else nan,
+           "near_p90_cm": float(np.percentile(err[near], 90) * 100) if near.any() else nan,
+           "near_median_relative": float(np.median(err[near] / dist[near])) if near.any() else nan,
+           "all_median_cm": float(np.median(err) * 100) if len(err) else nan,
+           "all_median_relative": float(np.median(err / np.maximum(dist, 1e-6))) if len(err) else nan}
+    out["by_distance"] = {f"{lo:g}-{hi:g} m": {"pairs": int(((dist >= lo) & (dist < hi)).sum()),
+                                               "median_cm": float(np.median(err[(dist >= lo) & (dist < hi)]) * 100)
+                                               if ((dist >= lo) & (dist < hi)).any() else None}
+                          for lo, hi in zip(BINS_M, BINS_M[1:])}
+    return out
+
+
+class LimbTask(harness.OnvTask):
+    name = "limb"
+    config_cls = LimbTrainConfig
+    data_module = "warp_vision.sim.limb"
+    selection = {"near_median_cm": "min"}
+
+    def load(self, shard, progress, synthesize: bool = True):
+        from warp_vision.data.store import ChunkedStore
+        from warp_vision.eye.retina import Retina
+        from warp_vision.sim.limb import synthesize as render
+
+        c = self.cfg
+        self.ddir = Path(c.data_dir)
+        hcfg = c.heldout_config()
+        self.heldout_dir = self.ddir.parent / f"limb-{hcfg.key()}"
+        if synthesize:
+            render(self.ddir, c.data_config(), shard=shard, progress=progress, log=self.log)
+            render(self.heldout_dir, hcfg, shard=shard, progress=progress, log=self.log)
+        fields = ["onv", "target", "meta"]
+        d = ChunkedStore.open(self.ddir).load(fields)
+        self.onv16, self.target, self.meta = (torch.from_numpy(d[k]) for k in fields)
+        h = ChunkedStore.open(self.heldout_dir).load(fields)
+        self.h_onv16, self.h_target, self.h_meta = (torch.from_numpy(h[k]) for k in fields)
+        self.retina = Retina.load(self.ddir / "retina.npz")
+
+    def splits(self):
+        c = self.cfg
+        return harness.splits(len(self.target), c.data_seed, c.val_fraction, c.test_fraction, min_test=2)
+
+    def fit_norm(self, train):
+        t = self.target[torch.as_tensor(train)]
+        return {**fit_input_norm(self.onv16, train, per_sample=True), "target_mean": t.mean(0), "target_std": t.std(0).clamp_min(1e-6)}
+
+    def net_spec(self):
+        c = self.cfg
+        return {"kind": "limb", "model": c.model, "layers": c.layers, "receptive_field": c.receptive_field,
+                "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
+                "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
+
+    def prepare(self, model, norm):
+        model.set_target_norm(norm["target_mean"], norm["target_std"])
+        set_input_standardisation(model, norm)
+
+    def describe(self, model):
+        b = model.backbone
+        return (f"limb vision {self.cfg.model}: {sum(p.numel() for p in model.parameters()):,} parameters, "
+                f"layers {getattr(b, 'layer_sizes', '?')}")
+
+    def _weights(self, y: torch.Tensor) -> torch.Tensor:
+        """[N, 6] loss weights: each arm's three components by 1 / (near_weight_m + its distance), mean 1."""
+        d = y.reshape(len(y), 2, 3).norm(dim=-1)
+        w = 1.0 / (self.cfg.near_weight_m + d)
+        w = w / w.mean()
+        return w.repeat_interleave(3, dim=1)
+
+    def batch_loss(self, net, idx, norm, device):
+        y = self.target[idx]
+        w = self._weights(y).to(device)
+        z = ((y - norm["target_mean"]) / norm["target_std"]).to(device)
+        pred = net(net_input(self.onv16[idx], norm, device, self.onv_dtype))
+        loss = (torch.nn.functional.huber_loss(pred, z, delta=HUBER_DELTA, reduction="none") * w).mean()
+        return loss, {"loss": float(loss.detach())}
+
+    def _predict(self, model, onv16, idx, norm, device, batch: int = 256) -> torch.Tensor:
+        model.eval()
+        out = []
+        with torch.no_grad():
+            for s in range(0, len(idx), batch):
+                z = model(net_input(onv16[torch.as_tensor(idx[s:s + batch])], norm, device, self.onv_dtype)).cpu()
+                out.append(z * norm["target_std"] + norm["target_mean"])
+        model.train()
+        return torch.cat(out) if out else torch.zeros(0, 6)
+
+    def evaluate(self, model, idx, norm, device):
+        self._norm = norm
+        idx = np.asarray(idx)
+        pred = self._predict(model, self.onv16, idx, norm, device)
+        true = self.target[torch.as_tensor(idx)]
+        ev = discrepancy_errors(pred.numpy(), true.numpy())
+        y = true
+        w = self._weights(y)
+        z = (y - norm["target_mean"]) / norm["target_std"]
+        zp = (pred - norm["target_mean"]) / norm["target_std"]
+        ev["loss"] = float((torch.nn.functional.huber_loss(zp, z, delta=HUBER_DELTA, reduction="none") * w).mean()) if len(idx) else float("nan")
+        return {**ev, "pred": pred}
+
+    def epoch_line(self, row):
+        return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.4f}  val loss {row['val_loss']:.4f}  "
+                f"val near-ball error median {row['val_near_median_cm']:.2f} cm, p90 {row['val_near_p90_cm']:.2f} cm")
+
+    def summary(self, test, history, model):
+        norm = self._norm  # the test evaluation's, just before
+        pred = self._predict(model.cpu(), self.h_onv16, np.arange(len(self.h_target)), norm, "cpu")
+        self.heldout_pred = pred.numpy()
+        held = discrepancy_errors(self.heldout_pred, self.h_target.numpy())
+        tracked = self.h_meta[:, 3].numpy() < 2.0  # the ball within 2 deg of the line of sight
+        held["tracked_within_2deg"] = discrepancy_errors(self.heldout_pred[tracked], self.h_target.numpy()[tracked])
+        return {"eye": self.cfg.eye, "frame": "eye (x right, y up, z along the line of sight); m",
+                "test": {k: v for k, v in test.items() if k != "pred"}, "heldout": held,
+                "dataset": str(self.ddir), "heldout_dataset": str(self.heldout_dir)}
+
+    def figures(self, out, history, test, idx):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        true = self.h_target.numpy().reshape(-1, 3)
+        pred = self.heldout_pred.reshape(-1, 3)
+        dist = np.linalg.norm(true, axis=1)
+        err = np.linalg.norm(pred - true, axis=1)
+        fig, axs = plt.subplots(1, 2, figsize=(10, 4))
+        axs[0].scatter(dist, err * 100, s=3, alpha=0.4)
+        axs[0].axvline(NEAR_M, color="k", lw=0.8, ls="--")
+        axs[0].axhline(3.0, color="r", lw=0.8, ls="--")
+        axs[0].set(xlabel="true hand-ball distance (m)", ylabel="error (cm)", yscale="log",
+                   title=f"held-out ({self.cfg.eye} eye): error against distance")
+        near = dist < NEAR_M
+        for k, name in enumerate("xyz"):
+            axs[1].scatter(true[near, k], pred[near, k], s=3, alpha=0.4, label=name)
+        lim = NEAR_M
+        axs[1].plot([-lim, lim], [-lim, lim], "k", lw=0.8)
+        axs[1].set(xlabel="true component (m)", ylabel="estimated (m)", title="held-out, balls within 0.6 m")
+        axs[1].legend()
+        fig.tight_layout()
+        (Path(out) / "figures").mkdir(parents=True, exist_ok=True)
+        fig.savefig(Path(out) / "figures" / "limb_errors.png", dpi=110)
+        plt.close(fig)
+
+    def eval_line(self, run_dir, split, n, ev):
+        return (f"{run_dir} ({split}, {n:,} ONVs): hand-ball error within {NEAR_M} m: median {ev['near_median_cm']:.2f} cm, "
+                f"90th percentile {ev['near_p90_cm']:.2f} cm, relative {ev['near_median_relative']:.3f}")
+
+
+def run(cfg: LimbTrainConfig | None = None, **kw) -> dict:
+    """Train (or resume) a limb vision run: :func:`warp_vision.train.harness.run` for this task."""
+    return harness.run(LimbTask, cfg, **kw)
+
+
+def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
+    return harness.evaluate_run(LimbTask, run_dir, split, log)
