@@ -1,6 +1,8 @@
-"""What the closed loop needs, made on first use: each eye's foveation liNet and oculomotor net.
+"""What the closed loop needs, made on first use: each eye's foveation liNet and oculomotor net (and,
+for ``sim intercept``, the arm's motor nets and each eye's limb vision net).
 
-``python -m warp_vision.sim demo`` (and ``experiments``) call :func:`provide` before they build the loop.
+``python -m warp_vision.sim demo`` (and ``experiments``, ``intraocular``, ``intercept``) call :func:`provide`
+before they build the loop.
 It looks for each net's run directory (``best.pt``), prints the plan for the missing ones with an
 estimate of their wall time, and trains them with the training command (``python -m warp_vision.train
 ...``, a process of its own: the simulation never imports the training code), whose progress bars show.
@@ -8,7 +10,8 @@ A stopped training run (``latest.pt`` without ``best.pt``) is resumed. Later run
 reuse them; the datasets behind them stay cached in ``runs/datasets``.
 
 Two sets: the default nets (``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``,
-the training presets ``default``) and, with ``--quick``, smaller ones (``runs/quick/...``, the presets
+``runs/arm/<side>``, ``runs/limb/<eye>``, the training presets ``default``) and, with ``--quick``, smaller
+ones (``runs/quick/...``, the presets
 ``quick``) for a first look in a few minutes. :func:`manifest` records which nets a simulation used:
 their run directories, training configs and the SHA-256 of their checkpoints.
 """
@@ -28,15 +31,23 @@ from warp_vision.body import SIDES
 #: Wall minutes of each training on the 2-core reference CPU (measured; README has the runs): the
 #: foveation net's dataset synthesis plus its training, the oculomotor net's holding-activation dataset
 #: plus its training, the pupil and lens nets' datasets plus their training (the lens net's first run on
-#: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards).
+#: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards); an arm's
+#: motor nets (holding activations, training, body checks) and an eye's limb vision net (rendering its
+#: ONVs, then training) as their presets' comments in :mod:`warp_vision.train.config` estimate them.
 MINUTES = {("foveation", "default"): 4.5, ("foveation", "quick"): 1.2,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
-           ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 8.0, ("lens", "quick"): 3.0}
+           ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 8.0, ("lens", "quick"): 3.0,
+           ("arm", "default"): 8.0, ("arm", "quick"): 2.0, ("limb", "default"): 15.0, ("limb", "quick"): 4.0}
+
+#: Training commands whose side flag is ``--side`` (the arm's) rather than ``--eye``.
+_SIDE_FLAG = {"arm": "--side"}
 
 
 @dataclass
 class NetSpec:
-    """One net the loop needs: its kind (foveation | oculomotor | pupil | lens), eye, run directory and training preset."""
+    """One net the loop needs: its kind (foveation | oculomotor | pupil | lens | limb | arm), side (``eye``: the
+    eye's, or for kind ``arm`` the arm's: left or right), run directory and training preset. (An ``arm``
+    run holds two nets, posture and voluntary; one spec stands for both.)"""
 
     kind: str
     eye: str
@@ -55,18 +66,26 @@ class NetSpec:
         head = [] if self.kind == "foveation" else [self.kind]  # foveation is the command's default task
         if os.path.isfile(os.path.join(self.run, "latest.pt")):  # a stopped run: carry on
             return head + ["--resume", self.run]
-        return head + ["--preset", self.preset, "--eye", self.eye, "--out", self.run]
+        return head + ["--preset", self.preset, _SIDE_FLAG.get(self.kind, "--eye"), self.eye, "--out", self.run]
+
+    @property
+    def what(self) -> str:
+        """The net in words: "left eye's foveation net", "left eye's limb vision net", "left arm's motor nets"."""
+        if self.kind == "arm":
+            return f"{self.eye} arm's motor nets"
+        return f"{self.eye} eye's {'limb vision' if self.kind == 'limb' else self.kind} net"
 
     def minutes(self) -> float:
         return MINUTES.get((self.kind, self.preset), MINUTES[(self.kind, "default")])
 
 
 def default_runs(quick: bool) -> dict:
-    """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor", "pupil", "lens"}."""
+    """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor", "pupil", "lens",
+    "arm", "limb"} (the last five: directories holding one run per side, ``<dir>/left`` and ``<dir>/right``)."""
     root = os.path.join("runs", "quick") if quick else "runs"
     return {"left": os.path.join(root, "foveation_left"), "right": os.path.join(root, "foveation_right"),
             "oculomotor": os.path.join(root, "oculomotor"), "pupil": os.path.join(root, "pupil"),
-            "lens": os.path.join(root, "lens")}
+            "lens": os.path.join(root, "lens"), "arm": os.path.join(root, "arm"), "limb": os.path.join(root, "limb")}
 
 
 def plan(left: str, right: str, oculomotor: str, quick: bool = False, pupil: str | None = None,
@@ -82,6 +101,17 @@ def plan(left: str, right: str, oculomotor: str, quick: bool = False, pupil: str
                for s in SIDES])
 
 
+def strike_plan(side: str, arm: str, limb: str | None, quick: bool = False) -> list[NetSpec]:
+    """The nets the interception adds to the loop's: ``side``'s arm motor nets in ``arm/<side>`` and (with
+    ``limb``; None when the arm's perception is the true ball) both eyes' limb vision nets in ``limb/<eye>``,
+    in that order; ``quick`` trains missing ones with the ``quick`` presets."""
+    if side not in SIDES:
+        raise ValueError(f"side: expected one of {SIDES}, got {side!r}")
+    preset = "quick" if quick else "default"
+    return ([NetSpec("arm", side, os.path.join(arm, side), preset)]
+            + ([NetSpec("limb", s, os.path.join(limb, s), preset) for s in SIDES] if limb else []))
+
+
 def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None) -> list[NetSpec]:
     """Train every net of ``specs`` that is missing; returns those it trained. Prints the plan and its
     estimated wall time first. ``runner(cmd) -> returncode`` runs a command (default: a subprocess);
@@ -93,15 +123,15 @@ def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None)
     log(f"the closed loop needs {len(todo)} net(s) not trained yet; about {total:.0f} min on a 2-core CPU, "
         "cached for later runs:")
     for k, s in enumerate(todo, 1):
-        log(f"  {k}. {s.eye} eye's {s.kind} net into {s.run} (about {s.minutes():.0f} min): "
+        log(f"  {k}. {s.what} into {s.run} (about {s.minutes():.0f} min): "
             f"python -m warp_vision.train {' '.join(s.command())}")
     runner = runner or (lambda cmd: subprocess.run(cmd).returncode)
     t0 = time.perf_counter()
     for k, s in enumerate(todo, 1):
         cmd = [sys.executable, "-m", "warp_vision.train", *s.command()] + ([] if progress else ["--no-progress"])
-        log(f"[{k}/{len(todo)}] training the {s.eye} eye's {s.kind} net ({(time.perf_counter() - t0) / 60:.1f} min so far)")
+        log(f"[{k}/{len(todo)}] training the {s.what} ({(time.perf_counter() - t0) / 60:.1f} min so far)")
         if runner(cmd) != 0 or not s.ready():
-            raise SystemExit(f"training the {s.eye} eye's {s.kind} net failed (see above); rerun it with\n"
+            raise SystemExit(f"training the {s.what} failed (see above); rerun it with\n"
                              f"  python -m warp_vision.train {' '.join(s.command())}")
     log(f"trained {len(todo)} net(s) in {(time.perf_counter() - t0) / 60:.1f} min")
     return todo

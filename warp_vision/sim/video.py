@@ -35,10 +35,10 @@ from PIL import Image, ImageDraw, ImageFont
 from warp_vision.fileio import fsync_dir, temporary_path
 from warp_vision.viz import tone_map
 
-__all__ = ["RetinaRaster", "label", "compose_frame", "VideoWriter"]
+__all__ = ["RetinaRaster", "label", "compose_frame", "VideoWriter", "check_rgb_u8", "resize_square"]
 
 
-def _check_rgb_u8(name: str, img: Any) -> np.ndarray:
+def check_rgb_u8(name: str, img: Any) -> np.ndarray:
     """``img`` as a uint8 [H, W, 3] ndarray with H, W >= 1, else ValueError naming ``name``."""
     if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3 \
             or img.shape[0] < 1 or img.shape[1] < 1:
@@ -147,7 +147,7 @@ def label(img: np.ndarray, text: str, xy: tuple[int, int] = (6, 4)) -> np.ndarra
     Returns:
         A new uint8 [H, W, 3] array; ``img`` is left as it was.
     """
-    img = _check_rgb_u8("img", img)
+    img = check_rgb_u8("img", img)
     if not isinstance(text, str):
         raise ValueError(f"text: expected a str, got {type(text).__name__}")
     out = Image.fromarray(img)  # copies
@@ -163,9 +163,9 @@ def label(img: np.ndarray, text: str, xy: tuple[int, int] = (6, 4)) -> np.ndarra
     return np.asarray(out).copy()
 
 
-def _resize_square(name: str, img: np.ndarray, side: int) -> np.ndarray:
+def resize_square(name: str, img: np.ndarray, side: int) -> np.ndarray:
     """``img`` (uint8 [s, s, 3]) resized to [side, side, 3] (PIL, Lanczos); unchanged if already that size."""
-    img = _check_rgb_u8(name, img)
+    img = check_rgb_u8(name, img)
     if img.shape[0] != img.shape[1]:
         raise ValueError(f"{name}: expected a square image [s, s, 3], got shape {img.shape}")
     if img.shape[0] == side:
@@ -200,7 +200,7 @@ def compose_frame(
     Returns:
         uint8 [H', W', 3] with H' and W' even.
     """
-    third_person = _check_rgb_u8("third_person", third_person)
+    third_person = check_rgb_u8("third_person", third_person)
     H, W = third_person.shape[:2]
     if H < 2:
         raise ValueError(f"third_person: expected a height >= 2, got shape {third_person.shape}")
@@ -210,7 +210,7 @@ def compose_frame(
     if len(captions) != 2 or not all(isinstance(c, str) for c in captions):
         raise ValueError(f"captions: expected two str, got {captions!r}")
     h = H // 2
-    eyes = [_resize_square(name, img, h) for name, img in (("left", left), ("right", right))]
+    eyes = [resize_square(name, img, h) for name, img in (("left", left), ("right", right))]
     out_h, out_w = H + H % 2, W + h + (W + h) % 2
     frame = np.zeros((out_h, out_w, 3), dtype=np.uint8)
     frame[:H, :W] = label(third_person, f"t = {float(time_s):.3f} s")
@@ -296,7 +296,7 @@ class VideoWriter:
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: the VideoWriter is closed")
-        frame = _check_rgb_u8("frame", frame)
+        frame = check_rgb_u8("frame", frame)
         if self._shape is None:
             if self.suffix == ".mp4" and (frame.shape[0] % 2 or frame.shape[1] % 2):
                 raise ValueError(
