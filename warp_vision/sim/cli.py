@@ -459,6 +459,7 @@ def _intercept_one(args, loop, interceptor, vision, shot) -> dict:
     res = _result_dict(result)
     plot_hand_ball_distance(trace, os.path.join(args.out, "hand_ball_distance.png"), res["arm_contact_t"],
                             result.deflected, result.closest_t,
+                            seen_by="limb vision nets'" if args.perception == "vision" else "the eyes' fixation",
                             title=f"shot {shot.seed}: {shot.speed:.1f} m/s, {'deflected' if result.deflected else 'missed'}; "
                                   f"closest approach {result.closest:.3f} m")
     out = {"shot": _shot_dict(shot), "perception": args.perception, "side": args.side, "result": res,
@@ -469,7 +470,7 @@ def _intercept_one(args, loop, interceptor, vision, shot) -> dict:
           f"{args.perception}: {'DEFLECTED' if result.deflected else 'missed'}; closest approach {result.closest:.3f} m "
           f"at {result.closest_t:.3f} s ({result.closest_part}); first arm contact {result.arm_contact}")
     if limb:
-        print(f"limb vision: {limb['frames']} frames, median ball position error {limb['median_position_error_m']:.3f} m")
+        print(f"{args.perception}: {limb['frames']} frames, median ball position error {limb['median_position_error_m']:.3f} m")
     print(f"wall {wall:.1f} s: " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in out["timing_shares"].items()))
     print(f"wrote {video}, {os.path.join(args.out, 'hand_ball_distance.png')} and {os.path.join(args.out, 'shot.json')}")
     return out

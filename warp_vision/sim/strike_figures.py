@@ -158,10 +158,12 @@ def compose_strike_frame(third_person: np.ndarray, retina: np.ndarray, caption: 
 
 # --- one shot ---------------------------------------------------------------------------------------
 def plot_hand_ball_distance(trace: dict, path: str, contact_t: float | None = None, deflected: bool = False,
-                            closest_t: float | None = None, title: str = "") -> str:
+                            closest_t: float | None = None, title: str = "",
+                            seen_by: str = "limb vision nets'") -> str:
     """Write ``path`` (PNG): the distance from the hand point to the ball's centre over time since the
     launch, ``trace["t"]`` (s) and ``trace["true_m"]`` (m), and, where ``trace`` has them (not None),
-    the limb vision nets' view of it at each visual frame, ``trace["frame_t"]`` and ``trace["estimate_m"]``
+    the perception's view of it at each visual frame (labelled "``seen_by`` estimate"),
+    ``trace["frame_t"]`` and ``trace["estimate_m"]``
     (|estimated ball - hand|). ``contact_t``: the first hand or forearm contact (a solid line, "deflected"
     or "touched" by ``deflected``); ``closest_t``: the closest approach of the ball to a hand or forearm
     (dotted). Returns ``path``."""
@@ -170,7 +172,7 @@ def plot_hand_ball_distance(trace: dict, path: str, contact_t: float | None = No
     ax.plot(trace["t"], trace["true_m"], "k-", lw=1.5, label="true")
     if trace.get("estimate_m") is not None and len(trace["estimate_m"]):
         ax.plot(trace["frame_t"], trace["estimate_m"], "o-", color="C0", ms=4, lw=0.8,
-                label="limb vision nets' estimate (each visual frame)")
+                label=f"{seen_by} estimate (each visual frame)")
     if contact_t is not None:
         ax.axvline(contact_t, color="C3", lw=1.2, label=f"{'deflected' if deflected else 'touched'} at {contact_t:.3f} s")
     if closest_t is not None and np.isfinite(closest_t):
