@@ -128,6 +128,9 @@ def test_the_loop_renders_every_nth_period_and_still_saccades(bare_body, frame_e
     err = np.maximum(tr["error_left"], tr["error_right"])
     assert err[0] > 10  # the ball starts in the periphery
     assert err[-5:].max() < 1.0, err  # and ends on both foveas
+    assert loop._optics and loop.estimate and loop.onv
+    loop.reset()  # forgets what the run saw, so the next run does not depend on this one
+    assert loop.period == 0 and not loop._optics and not loop.estimate and not loop.onv
 
 
 def test_the_loop_rejects_a_bad_frame_rate(bare_body):

@@ -273,6 +273,11 @@ class VisuomotorLoop:
         self.period = 0
         self._pupil_command = {}
         self._lens_command = {}
+        # and what the last run saw: a run's result must not depend on the runs before it (the optics'
+        # quantisation keeps a hysteresis, so a state left over changes which ray set the next run renders with)
+        self._optics = {}
+        self.onv, self.lens_onv, self.estimate = {}, {}, {}
+        self.lens_teacher, self.pupil_teacher, self.defocus_estimate = {}, {}, {}
         self.eyes = {s: EyeState() for s in SIDES}
         self.neck_target = np.zeros(3)
         self._neck_hold()
