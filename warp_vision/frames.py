@@ -128,6 +128,19 @@ def eye_look_at(eye_centre, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 _MORTON_BITS = 31
 
 
+def line_crossing(o1, u1, o2, u2, parallel: float = 1e-12) -> tuple[float, float] | None:
+    """(s1, s2): the parameters of the closest points ``o1 + s1 u1`` and ``o2 + s2 u2`` of two lines with
+    unit directions ``u1``, ``u2`` (where two gaze lines cross, or nearly); None when they are parallel
+    (1 - (u1 . u2)^2 below ``parallel``)."""
+    o1, u1, o2, u2 = (np.asarray(x, float) for x in (o1, u1, o2, u2))
+    w = o1 - o2
+    b = float(u1 @ u2)
+    den = 1.0 - b * b
+    if den < parallel:
+        return None
+    return float((b * (u2 @ w) - (u1 @ w)) / den), float(((u2 @ w) - b * (u1 @ w)) / den)
+
+
 def _spread_bits(v: np.ndarray) -> np.ndarray:
     """Insert a zero bit above each of the low 32 bits of uint64 ``v`` (bit i moves to bit 2i)."""
     v = v & np.uint64(0x00000000FFFFFFFF)

@@ -146,8 +146,9 @@ class FoveationNet(nn.Module):
 
 
 def foveation_net(model: str, in_positions, layers: int = 4, receptive_field: int = 20, reduction: int = 5,
-                  seed: int = 0, head: str = "linear", input_angles=None) -> FoveationNet:
-    """``model`` "linet" or "fc" (same hidden sizes as the liNet), on inputs at ``in_positions`` [3P, 2].
+                  seed: int = 0, head: str = "linear", input_angles=None, outputs: int = 2) -> FoveationNet:
+    """``model`` "linet" or "fc" (same hidden sizes as the liNet), on inputs at ``in_positions`` [3P, 2],
+    ``outputs`` values read out (the linear head; 2: yaw and pitch).
 
     ``head`` "softargmax" (liNet only) needs ``input_angles`` [3P, 2], each input's visual direction
     (yaw, pitch) in radians (e.g. ``Retina.visual_angles`` repeated per channel).
@@ -160,27 +161,21 @@ def foveation_net(model: str, in_positions, layers: int = 4, receptive_field: in
         if head == "softargmax":
             if input_angles is None:
                 raise ValueError("input_angles: the softargmax head needs each input's visual direction")
-            return FoveationNet(linet, head=head, directions=unit_directions(linet, input_angles))
-        return FoveationNet(linet)
+            return FoveationNet(linet, outputs, head=head, directions=unit_directions(linet, input_angles))
+        return FoveationNet(linet, outputs)
     if model == "fc":
         if head != "linear":
             raise ValueError(f"head: the fc baseline has only the linear head, got {head!r}")
-        return FoveationNet(FullyConnected.like(linet))
+        return FoveationNet(FullyConnected.like(linet), outputs)
     raise ValueError(f"model: expected 'linet' or 'fc', got {model!r}")
 
 
 def limb_vision_net(model: str, in_positions, layers: int = 3, receptive_field: int = 20, reduction: int = 5,
                     seed: int = 0) -> FoveationNet:
-    """A limb vision net (the paper's nets 3-10, one per eye): ``model`` "linet" or "fc" on inputs at
-    ``in_positions`` [3P, 2], a linear read-out of six values: the hand-to-ball discrepancy of the left and
-    of the right arm (m, eye frame; standardised by the target buffers)."""
-    torch.manual_seed(seed)
-    linet = LiNet(in_positions, layers=layers, receptive_field=receptive_field, reduction=reduction, seed=seed)
-    if model == "linet":
-        return FoveationNet(linet, outputs=6)
-    if model == "fc":
-        return FoveationNet(FullyConnected.like(linet), outputs=6)
-    raise ValueError(f"model: expected 'linet' or 'fc', got {model!r}")
+    """A limb vision net (the paper's nets 3-10, one per eye): :func:`foveation_net` with a linear read-out
+    of six values, the hand-to-ball discrepancy of the left and of the right arm (m, eye frame;
+    standardised by the target buffers)."""
+    return foveation_net(model, in_positions, layers, receptive_field, reduction, seed, outputs=6)
 
 
 class AFRNet(nn.Module):

@@ -324,13 +324,11 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
         t0 = time.perf_counter()
         try:
             r = runner(shot)
-            row = {"deflected": r.deflected, "closest": r.closest, "arm_contact": r.arm_contact, "error": None,
-                   "direction": [float(x) for x in shot.direction]}
+            row = {"deflected": r.deflected, "closest": r.closest, "arm_contact": r.arm_contact, "error": None}
         except SimulationError as e:
-            row = {"deflected": False, "closest": 10.0, "arm_contact": None, "error": str(e),
-                   "direction": [float(x) for x in shot.direction]}
+            row = {"deflected": False, "closest": 10.0, "arm_contact": None, "error": str(e)}
         rows.append({"seed": shot.seed, "speed": shot.speed, "flight_time": shot.flight_time, **row,
-                     "wall_s": time.perf_counter() - t0})
+                     "direction": [float(x) for x in shot.direction], "wall_s": time.perf_counter() - t0})
     out = {"shots": rows, **_summary(rows)}
     edges = list(speed_bins)
     out["by_speed"] = {f"{lo:g}-{hi:g}": _summary([r for r in rows if lo <= r["speed"] < hi or (hi == edges[-1] and r["speed"] == hi)])

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from warp_vision.data.store import ChunkedStore
-from warp_vision.frames import gaze_direction, look_rotation
+from warp_vision.frames import gaze_direction, line_crossing, look_rotation
 
 #: The generator's version: bump it when the samples change.
 LIMB_DATA_VERSION = 1
@@ -228,7 +228,7 @@ def sample_params(cfg: LimbDataConfig, index: int, poser: Poser) -> dict:
     target = np.concatenate([R.T @ (ball - hands[s]) for s in SIDES])
     return {"angles": angles, "neck": share * g, "ball": ball, "eye_pose": eye_pose, "target": target,
             "eye_in_head": (poser.head_rotation().T @ R).ravel(),
-            "hands": hands, "bodies": None, "on_path": on_path, "err_deg": err_deg,
+            "hands": hands, "on_path": on_path, "err_deg": err_deg,
             "light": 10 ** rng.uniform(-0.5, 0.5), "ball_eye": float(np.linalg.norm(los))}
 
 
@@ -429,14 +429,8 @@ def nearest_to_rays(o1, u1, o2, u2, max_depth: float = MAX_DEPTH_M) -> np.ndarra
     """The point midway between the closest points of rays ``o + s u`` (s >= 0, unit ``u``; depth capped at
     ``max_depth`` m): where two gaze lines cross, or nearly."""
     o1, u1, o2, u2 = (np.asarray(x, float) for x in (o1, u1, o2, u2))
-    w = o1 - o2
-    b = float(u1 @ u2)
-    den = 1.0 - b * b
-    if den < 1e-12:  # parallel: as far as allowed
-        s1 = s2 = max_depth
-    else:
-        s1 = (b * (u2 @ w) - (u1 @ w)) / den
-        s2 = ((u2 @ w) - b * (u1 @ w)) / den
+    st = line_crossing(o1, u1, o2, u2)
+    s1, s2 = (max_depth, max_depth) if st is None else st  # parallel: as far as allowed
     s1, s2 = float(np.clip(s1, 0, max_depth)), float(np.clip(s2, 0, max_depth))
     return 0.5 * (o1 + s1 * u1 + o2 + s2 * u2)
 

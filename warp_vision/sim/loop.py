@@ -39,7 +39,7 @@ import mujoco
 import numpy as np
 import torch
 
-from warp_vision.frames import gaze_direction
+from warp_vision.frames import gaze_direction, line_crossing
 from warp_vision.body import ARM_PARTS, HIDDEN_FROM_EYES, SIDES, Body, visible_parts
 from warp_vision.sim.oculomotor import holding_activations
 
@@ -470,15 +470,10 @@ def vergence_distance(body: Body) -> float:
     """Distance (m) from the eyes' midpoint to where the two gaze lines pass closest (inf if parallel or
     diverging)."""
     (p1, d1), (p2, d2) = gaze_line(body, "left"), gaze_line(body, "right")
-    w = p1 - p2
-    b = d1 @ d2
-    denom = 1 - b * b
-    if denom < 1e-9:
+    st = line_crossing(p1, d1, p2, d2, parallel=1e-9)
+    if st is None or st[0] <= 0 or st[1] <= 0:
         return np.inf
-    t1 = (b * (d2 @ w) - (d1 @ w)) / denom
-    t2 = ((d2 @ w) - b * (d1 @ w)) / denom
-    if t1 <= 0 or t2 <= 0:
-        return np.inf
+    t1, t2 = st
     return float(np.linalg.norm(0.5 * (p1 + t1 * d1 + p2 + t2 * d2) - 0.5 * (p1 + p2)))
 
 
