@@ -39,19 +39,19 @@ def parsed(monkeypatch, tmp_path):
 
 # --- arguments ---------------------------------------------------------------------------------------
 def test_defaults_and_the_shots_they_pick(parsed):
-    from warp_vision.sim.cli import _pick_shots
+    from warp_vision.sim.strike import pick_shots
 
     a = parsed()
     assert (a.side, a.shots, a.shot_seed, a.perception, a.seed) == ("left", None, None, "vision", 0)
     assert a.out == os.path.join("runs", "sim_intercept") and a.video_format == "gif"
     assert a.intraocular == "analytic" and a.ball == "glowing" and a.no_arms is False and a.perception_error_cm == []
-    assert [s.seed for s in _pick_shots(a)] == [1_000_000]  # the first held-out shot
+    assert [s.seed for s in pick_shots(a)] == [1_000_000]  # the first held-out shot
     a = parsed("--quick", "--shots", "3", "--seed", "5", "--side", "right", "--frame-every", "2")
     assert a.out == os.path.join("runs", "quick", "sim_intercept") and a.frame_every == 2
-    shots = _pick_shots(a)
+    shots = pick_shots(a)
     assert [s.seed for s in shots] == [1_000_005, 1_000_006, 1_000_007] and {s.side for s in shots} == {"right"}
     a = parsed("--shot-seed", "42", "--out", "elsewhere", "--video-format", "mp4")
-    assert [s.seed for s in _pick_shots(a)] == [42] and a.out == "elsewhere"
+    assert [s.seed for s in pick_shots(a)] == [42] and a.out == "elsewhere"
 
 
 @pytest.mark.parametrize("argv, words", [
@@ -93,20 +93,21 @@ def test_unknown_choices_are_refused_by_the_parser(tmp_path, monkeypatch, capsys
 
 # --- the nets ----------------------------------------------------------------------------------------
 def test_the_plan_adds_the_arm_and_both_limb_vision_nets(parsed):
-    from warp_vision.sim.cli import _specs, _strike_runs
+    from warp_vision.sim.build import net_specs
+    from warp_vision.sim.strike import strike_runs
 
-    specs = _specs(parsed())
+    specs = net_specs(parsed())
     assert [(s.kind, s.eye) for s in specs] == [("foveation", "left"), ("foveation", "right"), ("oculomotor", "left"),
                                                 ("oculomotor", "right"), ("arm", "left"), ("limb", "left"), ("limb", "right")]
     assert [s.run for s in specs[4:]] == [os.path.join("runs", "arm", "left"), os.path.join("runs", "limb", "left"),
                                           os.path.join("runs", "limb", "right")]
-    quick = _specs(parsed("--quick", "--side", "right", "--perception", "oracle"))
+    quick = net_specs(parsed("--quick", "--side", "right", "--perception", "oracle"))
     assert [(s.kind, s.eye, s.preset) for s in quick[4:]] == [("arm", "right", "quick")]  # no limb nets with the oracle
     assert quick[4].run == os.path.join("runs", "quick", "arm", "right")
     a = parsed("--quick", "--limb", "L", "--arm", "A")
-    assert [s.run for s in _specs(a)[4:]] == [os.path.join("A", "left"), os.path.join("L", "left"), os.path.join("L", "right")]
-    assert _strike_runs(a) == (os.path.join("A", "left"), {s: os.path.join("L", s) for s in SIDES})
-    nets = _specs(parsed("--intraocular", "nets"))
+    assert [s.run for s in net_specs(a)[4:]] == [os.path.join("A", "left"), os.path.join("L", "left"), os.path.join("L", "right")]
+    assert strike_runs(a) == (os.path.join("A", "left"), {s: os.path.join("L", s) for s in SIDES})
+    nets = net_specs(parsed("--intraocular", "nets"))
     assert [s.kind for s in nets] == ["foveation"] * 2 + ["oculomotor"] * 2 + ["pupil"] * 2 + ["lens"] * 2 + ["arm"] + ["limb"] * 2
 
 
@@ -212,7 +213,8 @@ def test_the_hand_ball_distance_figure_is_written(tmp_path):
 
 def test_projection_and_the_strike_frame():
     from warp_vision.frames import look_at
-    from warp_vision.sim.strike_figures import compose_strike_frame, draw_strike, project
+    from warp_vision.sim.strike_figures import compose_strike_frame, draw_strike
+    from warp_vision.sim.video import project
 
     cam = look_at([0.0, 2.0, 1.0], [0.0, 0.0, 1.0])
     (c, behind, plus_x) = project(cam, 320, 240, 50.0, [[0, 0, 1], [0, 3, 1], [0.2, 0, 1]])
@@ -231,17 +233,17 @@ def test_projection_and_the_strike_frame():
 
 def test_a_shot_result_and_the_time_shares_are_json_ready():
     from warp_vision.sim.cannon import Contact, ShotResult, make_shot, shoulder
-    from warp_vision.sim.cli import _result_dict, _shares, _shot_dict
+    from warp_vision.sim.strike import result_dict, shot_dict, time_shares
 
     r = ShotResult(np.bool_(True), {"hand_left": Contact(0.21, "g", (0.1, -0.2, 1.0), 9.5)}, "hand_left", True,
                    np.array([1.0, -2.0, 0.5]), np.float64(-0.003), 0.21, "hand_left", False, False, 0.101, 1.0, 0.3)
-    d = json.loads(json.dumps(_result_dict(r)))
+    d = json.loads(json.dumps(result_dict(r)))
     assert d["deflected"] is True and d["arm_contact_t"] == 0.21 and d["first_contacts"]["hand_left"]["geom"] == "g"
     assert np.isclose(d["speed_change_m_s"], np.linalg.norm([1.0, -2.0, 0.5]))
-    s = _shot_dict(make_shot(shoulder("left") + [0.0, -0.3, 0.0], 8.0, seed=1_000_001))
+    s = shot_dict(make_shot(shoulder("left") + [0.0, -0.3, 0.0], 8.0, seed=1_000_001))
     assert s["split"] == "heldout" and np.allclose(s["target_offset_outward_forward_up_m"], [0, 0.3, 0])
     json.dumps(s)
-    sh = _shares({"render": 2.0, "nets": 1.0, "limb_vision": 0.5, "arm": 0.25, "mujoco": 1.0, "control": 0.25}, 6.0)
+    sh = time_shares({"render": 2.0, "nets": 1.0, "limb_vision": 0.5, "arm": 0.25, "mujoco": 1.0, "control": 0.25}, 6.0)
     assert np.isclose(sum(sh.values()), 1.0) and np.isclose(sh["other"], 1 / 6)
 
 

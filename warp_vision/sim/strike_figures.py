@@ -2,8 +2,7 @@
 
 The video's frames:
 
-- :func:`project`: world points onto the third-person camera's image (the pinhole of
-  :func:`warp_vision.kernels.render.render_camera`, as the demo's gaze lines are drawn);
+- :func:`warp_vision.sim.video.project` puts world points onto the third-person camera's image;
 - :func:`draw_strike`: the hand's path so far (cyan), the ball's (yellow) and the interceptor's current
   aim point (a magenta cross) drawn onto a third-person image;
 - :func:`compose_strike_frame`: that image beside the left retina's image, with a caption (time,
@@ -37,6 +36,8 @@ import os
 
 import numpy as np
 
+from warp_vision.sim.video import project
+
 #: Each mode's name in the figures and tables, and its colour.
 MODE_LABELS = {"vision": "limb vision (closed loop)", "fixation": "eyes' fixation (closed loop)",
                "loop_oracle": "true ball (closed loop)",
@@ -67,19 +68,6 @@ def _colour(mode: str, k: int) -> str:
 
 
 # --- the video's frames -----------------------------------------------------------------------------
-def project(cam: np.ndarray, width: int, height: int, fov_deg: float, points) -> list:
-    """Each world point of ``points`` [N, 3] (m) on the image of the camera ``cam`` ([4, 4] world from
-    camera, looking along its -z, +y up; ``fov_deg`` the vertical field of view): (x, y) pixels, or None
-    for a point behind the camera."""
-    f = 0.5 * height / np.tan(np.radians(fov_deg) / 2)
-    inv = np.linalg.inv(np.asarray(cam, float))
-    out = []
-    for p in np.asarray(points, float).reshape(-1, 3):
-        q = inv[:3, :3] @ p + inv[:3, 3]
-        out.append((width / 2 + f * q[0] / -q[2], height / 2 - f * q[1] / -q[2]) if q[2] < -1e-3 else None)
-    return out
-
-
 def _polyline(draw, pts: list, fill, width: int) -> None:
     """Draw the runs of consecutive visible points as lines (a point behind the camera breaks the line)."""
     run: list = []

@@ -35,7 +35,8 @@ from PIL import Image, ImageDraw, ImageFont
 from warp_vision.fileio import fsync_dir, temporary_path
 from warp_vision.viz import tone_map
 
-__all__ = ["RetinaRaster", "label", "compose_frame", "VideoWriter", "check_rgb_u8", "resize_square"]
+__all__ = ["RetinaRaster", "label", "compose_frame", "VideoWriter", "check_rgb_u8", "resize_square", "project",
+           "draw_gaze"]
 
 
 def check_rgb_u8(name: str, img: Any) -> np.ndarray:
@@ -360,3 +361,29 @@ class VideoWriter:
                 pass
         if os.path.lexists(self._tmp):
             os.unlink(self._tmp)
+
+
+def project(cam: np.ndarray, width: int, height: int, fov_deg: float, points) -> list:
+    """Each world point of ``points`` [N, 3] (m) on the image of the camera ``cam`` ([4, 4] world from
+    camera, looking along its -z, +y up; ``fov_deg`` the vertical field of view): (x, y) pixels, or None
+    for a point behind the camera."""
+    f = 0.5 * height / np.tan(np.radians(fov_deg) / 2)
+    inv = np.linalg.inv(np.asarray(cam, float))
+    out = []
+    for p in np.asarray(points, float).reshape(-1, 3):
+        q = inv[:3, :3] @ p + inv[:3, 3]
+        out.append((width / 2 + f * q[0] / -q[2], height / 2 - f * q[1] / -q[2]) if q[2] < -1e-3 else None)
+    return out
+
+
+def draw_gaze(img: np.ndarray, body, cam: np.ndarray, w: int, h: int, fov_deg: float) -> np.ndarray:
+    """Each eye of ``body`` its gaze line (1.5 m, red) drawn onto a tone-mapped image [h, w, 3] (floats in
+    [0, 1]) of the camera ``cam`` (as :func:`project`); uint8 out."""
+    im = Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8))
+    dr = ImageDraw.Draw(im)
+    for s in ("left", "right"):
+        T = body.eye_pose(s)
+        a, b = project(cam, w, h, fov_deg, [T[:3, 3], T[:3, 3] + 1.5 * T[:3, 2]])
+        if a and b:
+            dr.line([a, b], fill=(230, 40, 40), width=2)
+    return np.asarray(im)

@@ -1,0 +1,58 @@
+"""What a ``python -m warp_vision.sim`` command runs on: the nets it needs, provided (trained where
+missing, :mod:`warp_vision.sim.provision`), and the body and closed loop built from them. Used by the
+commands of :mod:`warp_vision.sim.cli` and by ``intercept`` (:mod:`warp_vision.sim.strike`)."""
+
+from __future__ import annotations
+
+import os
+
+from warp_vision.body import SIDES, Body, BodyConfig
+from warp_vision.fileio import write_json
+from warp_vision.sim.scenarios import SETTLE_S
+
+
+def net_specs(args) -> list:
+    """The nets a command's loop needs (:class:`warp_vision.sim.provision.NetSpec`, in
+    :func:`warp_vision.sim.provision.plan`'s order, then for ``intercept`` the arm's and the limb vision
+    nets), from its parsed arguments: the run directories given, or the default (or ``--quick``) ones."""
+    from warp_vision.sim.provision import default_runs, plan
+
+    runs = default_runs(args.quick)
+    left = getattr(args, "left", None) or runs["left"]
+    right = getattr(args, "right", None) or runs["right"]
+    nets = getattr(args, "intraocular", "analytic") == "nets"
+    specs = plan(left, right, args.oculomotor or runs["oculomotor"], quick=args.quick,
+                 pupil=(getattr(args, "pupil", None) or runs["pupil"]) if nets else None,
+                 lens=(getattr(args, "lens", None) or runs["lens"]) if nets else None)
+    if args.command == "intercept":
+        from warp_vision.sim.provision import strike_plan
+
+        specs += strike_plan(args.side, args.arm or runs["arm"],
+                             (args.limb or runs["limb"]) if args.perception == "vision" else None, quick=args.quick)
+    return specs
+
+
+def setup_loop(args):
+    """Provide the nets (training missing ones), build the body and the loop; writes nets.json to --out.
+    Returns (body, loop)."""
+    from warp_vision.sim.loop import Foveator, VisuomotorLoop, load_lens, load_pupil
+    from warp_vision.sim.oculomotor import load_oculomotor
+    from warp_vision.sim.provision import manifest, provide
+
+    specs = net_specs(args)
+    provide(specs, progress=not args.no_progress)
+    os.makedirs(args.out, exist_ok=True)
+    write_json(os.path.join(args.out, "nets.json"), manifest(specs))
+    body = Body(BodyConfig(arms=not args.no_arms))
+    body.step(int(SETTLE_S / body.model.opt.timestep))
+    fov = {s: Foveator(spec.run) for s, spec in zip(SIDES, specs[:2])}
+    old = [spec.run for s, spec in zip(SIDES, specs[:2]) if fov[s].generator < 8]
+    if old and args.ball == "ordinary":
+        print(f"note: {', '.join(old)} learnt on generator v7 (a glowing ball in a dim room); with --ball ordinary "
+              "it will not find the ball. Retrain it (python -m warp_vision.train --eye EYE --overwrite) or use --ball glowing.")
+    ocu_root = os.path.dirname(specs[2].run)
+    runs = {(spec.kind, spec.eye): spec.run for spec in specs}
+    pupil = {s: load_pupil(runs["pupil", s]) for s in SIDES} if ("pupil", "left") in runs else None
+    lens = {s: load_lens(runs["lens", s]) for s in SIDES} if ("lens", "left") in runs else None
+    return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
+                                ball=args.ball, pupil_nets=pupil, lens_nets=lens)
