@@ -249,10 +249,13 @@ def test_lens_samples_fill_the_central_field_with_a_card_at_the_stated_defocus()
     np.testing.assert_array_equal(again["onv"][0], d["onv"][1])
 
 
-def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path):
+def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path, monkeypatch):
     from warp_vision.sim.loop import load_lens
+    from warp_vision.train import lens
     from warp_vision.train.config import LENS_PRESETS, LensTrainConfig, resolve
     from warp_vision.train.lens import run
+
+    monkeypatch.setattr(lens, "CALIBRATE_MIN_SAMPLES", 1)  # the smoke set is too small for the real threshold
 
     cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, LensTrainConfig, LENS_PRESETS)
     summary = run(cfg, progress=False, log=lambda *_a, **_k: None)
@@ -260,6 +263,53 @@ def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path):
     assert (tmp_path / "run" / "figures" / "lens.png").exists()
     net = load_lens(str(tmp_path / "run"))
     assert net(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0, 5.0])).shape == (2,)
+    # the bias table fitted after training travels in best.pt, and the summary scores the calibrated estimate
+    assert summary["bias_D"] == pytest.approx(net.bias_D.tolist()) and any(b != 0 for b in summary["bias_D"])
+    assert {"median_error_D", "sign_correct_above_0.5D"} <= set(summary["heldout_calibrated"])
+
+
+def test_the_lens_bias_table_is_the_median_error_near_focus():
+    from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
+    from warp_vision.train.lens import fit_bias
+
+    rng = np.random.default_rng(0)
+    acc = rng.uniform(0, 4, 20000)
+    true = rng.uniform(-2, 2, len(acc))
+    bias = 0.05 * acc - 0.1  # the net reads 0.1 D short at the far point, 0.1 D long at 4 D
+    pred = true + bias + rng.normal(0, 0.02, len(acc))
+    pred[np.abs(true) > 0.6] += 1.0  # errors far from focus do not enter the table
+    table = fit_bias(pred, true, acc)
+    inside = LENS_BIAS_KNOTS_D <= 4.0
+    np.testing.assert_allclose(table[inside], 0.05 * LENS_BIAS_KNOTS_D[inside] - 0.1, atol=0.01)
+    np.testing.assert_allclose(table[LENS_BIAS_KNOTS_D > 4.5], table[LENS_BIAS_KNOTS_D == 4.0][0], atol=1e-12)  # held flat
+    assert np.all(fit_bias(pred, true + 5.0, acc) == 0.0)  # nothing near focus: no correction
+    with pytest.raises(ValueError, match="as many"):
+        fit_bias(pred, true[:-1], acc)
+
+
+def test_the_lens_net_subtracts_its_bias_at_the_lens_state():
+    from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D, LensNet
+
+    net = LensNet(_retina_xy(300), np.arange(100), 300, hidden=4)
+    old = {k: v for k, v in net.state_dict().items() if k != "bias_D"}
+    net.load_state_dict(old)  # a checkpoint from before the calibration: no correction
+    assert torch.equal(net.calibrated(torch.tensor([0.3]), 2.0), torch.tensor([0.3]))
+    net.bias_D.copy_(torch.as_tensor(0.1 * LENS_BIAS_KNOTS_D))
+    out = net.calibrated(torch.tensor([0.3, 0.3]), [2.0, 2.25])
+    np.testing.assert_allclose(out.numpy(), [0.3 - 0.2, 0.3 - 0.225], atol=1e-6)
+    with pytest.raises(ValueError, match="accommodation_D"):
+        net.calibrated(torch.tensor([0.3]), float("nan"))
+
+
+def test_focus_summary_counts_the_steps_in_focus_by_the_goal():
+    from warp_vision.sim.scenarios import focus_summary
+
+    step = lambda to, t, end: {"from_m": 2.0 if to < 1 else 0.33, "to_m": to, "in_focus_s": t, "end_defocus_D": end}
+    runs = [[step(0.33, 1.0, -0.1), step(2.0, 0.8, 0.05)], [step(0.33, None, -0.3), step(2.0, 1.3, 0.2)]]
+    f = focus_summary(runs, goal_s=1.2)
+    assert f["near"]["steps"] == 2 and f["near"]["in_focus_within_goal"] == 1 and f["near"]["median_in_focus_s"] is None
+    assert f["far"]["in_focus_within_goal"] == 1 and f["far"]["median_in_focus_s"] == pytest.approx(1.05)
+    assert f["near"]["median_abs_end_defocus_D"] == pytest.approx(0.2)
 
 
 class _OracleLensNet:
@@ -281,6 +331,9 @@ class _OracleLensNet:
 
     def contrast(self, raw):
         return torch.zeros(len(raw))
+
+    def calibrated(self, defocus, accommodation_D):
+        return defocus
 
     def head(self, raw):
         loop, s = self.loop, self.side

@@ -1,4 +1,8 @@
-"""Command line of ``python -m warp_vision.bench``: kernel microbenchmarks written as JSON."""
+"""Command line of ``python -m warp_vision.bench``: kernel microbenchmarks written as JSON.
+
+``linet`` and ``raytrace`` take ``--device`` (``cpu``, ``cuda`` or ``cuda:N``); a device that Warp and
+torch cannot run on here is refused in one ``error:`` line (exit code 2) before any work is done.
+"""
 
 from __future__ import annotations
 
@@ -26,6 +30,11 @@ def _parser() -> argparse.ArgumentParser:
     lin.add_argument("--reduction", type=int, default=5, help="N = N_in // reduction (default 5)")
     lin.add_argument("--receptive-field", type=int, default=20, help="R (default 20)")
     lin.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
+    lin.add_argument("--device", default="cpu",
+                     help="cpu (default), cuda or cuda:N. On cuda the layer's tensors (drawn as on the CPU) move to "
+                          "the GPU and the Warp op and the torch baselines are timed there; the CPU-only parts (the "
+                          "1-thread Warp variant, the Warp kernels timed alone) are skipped and named under "
+                          "\"skipped\" in the JSON")
     lin.add_argument("--out", default="bench_results/linet.json", help="JSON output path")
 
     mem = sub.add_parser("memory", help="Fig. 4: parameters and peak training-step memory vs ONV size")
@@ -41,6 +50,11 @@ def _parser() -> argparse.ArgumentParser:
     rtp.add_argument("--samples", type=int, default=16, help="S rays per photoreceptor and channel (default 16)")
     rtp.add_argument("--batch", type=int, default=4, help="ONVs rendered per launch (default 4)")
     rtp.add_argument("--repeats", type=int, default=5, help="timed repeats per measurement (median reported)")
+    rtp.add_argument("--device", default="cpu",
+                     help="cpu (default), cuda or cuda:N. On cuda the eye rays, the Warp packet and wp.Mesh "
+                          "closest-hit kernels (one launch each: no thread variants) and the ONV render run on the "
+                          "GPU; Embree (CPU) is not timed, its hits only checking agreement when embreex is "
+                          "installed; the JSON names what was skipped under \"skipped\"")
     rtp.add_argument("--out", default="bench_results/raytrace.json", help="JSON output path")
     lop = sub.add_parser("loop", help="the closed loop: simulated/wall, time shares and accuracy per visual frame rate")
     lop.add_argument("--frame-every", type=int, nargs="+", default=None,
@@ -59,12 +73,41 @@ def main(argv: list[str] | None = None) -> int:
     return guarded(lambda: _bench(args), args.debug)
 
 
+def _device(name: str) -> str:
+    """``--device`` as a torch device name ("cpu", "cuda:N"), or a one-line ValueError when it is not
+    one, Warp and torch see no such GPU here, or (cpu) Warp cannot compile CPU kernels here."""
+    import torch
+
+    from warp_vision.kernels.launch import require_device
+
+    dev = "cuda:0" if name == "cuda" else str(name)
+    n = torch.cuda.device_count()
+    if dev.startswith("cuda:") and dev[5:].isdigit() and int(dev[5:]) >= n:
+        # asked of torch first: initialising Warp on a machine without a driver prints a warning of its own
+        raise ValueError(f"--device: {name} requested, but torch sees {n} CUDA device(s) on this machine; use --device cpu")
+    try:
+        dev = require_device(name)
+    except ValueError as e:
+        raise ValueError(f"--{e}") from None
+    if dev == "cpu":
+        import warp as wp
+
+        from warp_vision.kernels.launch import init
+
+        init()
+        if not wp.is_cpu_available():
+            raise ValueError("--device: cpu requested, but this Warp cannot compile CPU kernels (no warp-clang); "
+                             "use --device cuda")
+    return dev
+
+
 def _bench(args) -> int:
     if args.bench == "memory" and args.worker:
         from warp_vision.bench.memory import worker
 
         print(json.dumps(worker(args.worker[0], int(args.worker[1]), args.batch, input_dtype=args.worker[2])))
         return 0
+    device = _device(args.device) if hasattr(args, "device") else "cpu"  # before any work
     t0 = time.time()
     info = machine_info()
     print(f"machine: {info['cpu']}, {info['cores']} cores, torch {info['torch']} ({info['torch_threads']} threads), warp {info['warp']}")
@@ -73,14 +116,15 @@ def _bench(args) -> int:
 
         if any(v < 1 for v in args.photoreceptors):
             raise ValueError(f"--photoreceptors: expected positive integers, got {args.photoreceptors}")
-        result = linet.run(args.photoreceptors, args.batch, args.reduction, args.receptive_field, args.repeats)
+        result = linet.run(args.photoreceptors, args.batch, args.reduction, args.receptive_field, args.repeats,
+                           device=device)
     elif args.bench == "raytrace":
         from warp_vision.bench import raytrace
 
         for name in ("photoreceptors", "samples", "batch", "repeats"):
             if getattr(args, name) < 1:
                 raise ValueError(f"--{name}: expected a positive integer, got {getattr(args, name)}")
-        result = raytrace.run(args.repeats, args.photoreceptors, args.samples, args.batch)
+        result = raytrace.run(args.repeats, args.photoreceptors, args.samples, args.batch, device=device)
     elif args.bench == "loop":
         from warp_vision.bench import loop
 

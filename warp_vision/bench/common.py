@@ -12,20 +12,25 @@ import numpy as np
 import torch
 
 
-def median_ms(fn: Callable[[], object], repeats: int = 15, warmup: int = 3, setup: Callable[[], object] | None = None) -> dict:
+def median_ms(fn: Callable[[], object], repeats: int = 15, warmup: int = 3, setup: Callable[[], object] | None = None,
+              device: str | None = None) -> dict:
     """Time ``fn`` ``repeats`` times after ``warmup`` calls; ``setup`` (untimed) runs before each call.
+    ``device``: the CUDA device (torch or Warp name) whose outstanding work each timing waits for
+    (:func:`sync`); None or "cpu" for CPU work.
 
     Returns {"median_ms", "min_ms", "max_ms", "repeats"}.
     """
-    return interleaved_ms({"fn": (fn, setup)}, repeats, warmup)["fn"]
+    return interleaved_ms({"fn": (fn, setup)}, repeats, warmup, device)["fn"]
 
 
 def interleaved_ms(
-    cases: dict[str, tuple[Callable[[], object], Callable[[], object] | None]], repeats: int = 15, warmup: int = 3
+    cases: dict[str, tuple[Callable[[], object], Callable[[], object] | None]], repeats: int = 15, warmup: int = 3,
+    device: str | None = None,
 ) -> dict[str, dict]:
     """Time several ``(fn, setup)`` cases in interleaved rounds: each round times every case once,
     starting from a rotating position, so drift in the machine's speed (other tenants, clocks,
-    caches) falls on all cases alike. Returns {name: median_ms's dict} per case.
+    caches) falls on all cases alike. Each timing starts and ends with :func:`sync` of ``device``.
+    Returns {name: median_ms's dict} per case.
     """
     names = list(cases)
     for name in names:
@@ -41,10 +46,10 @@ def interleaved_ms(
             fn, setup = cases[name]
             if setup:
                 setup()
-            sync()
+            sync(device)
             t0 = time.perf_counter()
             fn()
-            sync()
+            sync(device)
             times[name].append((time.perf_counter() - t0) * 1e3)
     return {
         k: {"median_ms": float(np.median(v)), "min_ms": float(np.min(v)), "max_ms": float(np.max(v)), "repeats": repeats}
@@ -52,8 +57,17 @@ def interleaved_ms(
     }
 
 
-def sync() -> None:
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
+def sync(device: str | None = None) -> None:
+    """Wait for outstanding GPU work: torch's (when CUDA is initialised) and, for a CUDA ``device``
+    ("cuda", "cuda:N"), everything on that device, Warp's launches on Warp's own stream included."""
+    if device is not None and torch.device(device).type == "cuda":
+        import warp as wp
+
+        from warp_vision.kernels.launch import warp_device
+
+        torch.cuda.synchronize(device)
+        wp.synchronize_device(warp_device(device))
+    elif torch.cuda.is_available() and torch.cuda.is_initialized():
         torch.cuda.synchronize()
 
 

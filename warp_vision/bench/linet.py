@@ -19,6 +19,14 @@ load) against float32, forward and forward+backward, with the bytes each moves a
 floor. Last, the op's three feature-major kernels are timed alone on preallocated outputs
 (``warp_kernels_only_ms``): how much of the op is kernel time, and the best torch time over that sum,
 the speed-up these kernels would give with no overhead at all.
+
+``--device cuda`` (or ``cuda:N``) runs the same layer on the GPU: the seeded tensors are made on the CPU
+as above and moved there (so the values match a CPU run), and the Warp op (all four phases, both
+layouts, the float16 first layer) and the torch baselines are timed on the device, every timing
+synchronised with the device (:func:`warp_vision.bench.common.sync`). The CPU-only parts are skipped and
+named, with the reason, under ``"skipped"`` in the JSON (:data:`CUDA_SKIPPED`): ``warp_1thread`` (a CPU
+thread count) and the kernels-alone timing (CPU launches). The JSON then also holds ``"device"`` and
+``"device_name"``.
 """
 
 from __future__ import annotations
@@ -37,6 +45,12 @@ from warp_vision.kernels.linet.kernels import linet_forward_fm, linet_grad_weigh
 from warp_vision.kernels.linet.layout import LANES, flat_vectors, warp_array
 from warp_vision.kernels.linet.op import launch_kernel, plan_for
 from warp_vision.nn.connectivity import build_connectivity, onv_positions
+
+#: What a run on a CUDA device leaves out, and why (its JSON's ``"skipped"``).
+CUDA_SKIPPED = {
+    "warp_1thread": "a CPU thread count (WARP_VISION_THREADS): a CUDA launch is not split across CPU threads",
+    "warp_kernels_only_ms": "kernel_calls launches the op's feature-major kernels on the CPU only",
+}
 
 
 @contextmanager
@@ -141,41 +155,47 @@ def kernels_only(x_bm: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, i
     return out
 
 
-def layer_inputs(B: int, P: int, reduction: int, R: int, seed: int = 0) -> dict:
+def layer_inputs(B: int, P: int, reduction: int, R: int, seed: int = 0, device: str = "cpu") -> dict:
     """One layer's connectivity and seeded tensors: the ONV of a log-polar retina of P photoreceptors
     (N_in = 3P) -> N = N_in // reduction units of R connections. Returns {"n_in", "N", "index" [N, R],
-    "x_bm" [B, N_in] (batch-major), "weight" [N, R] and "bias" [N] (requiring grad), "grad_y_bm" [B, N]}."""
+    "x_bm" [B, N_in] (batch-major), "weight" [N, R] and "bias" [N] (requiring grad), "grad_y_bm" [B, N]},
+    the tensors on ``device`` (drawn on the CPU and moved there: the same values on every device)."""
     pos = onv_positions(Retina.log_polar(P, seed=seed).domain_xy)
     conn = build_connectivity(pos, layers=1, receptive_field=R, reduction=reduction, seed=seed)[0]
     N = conn.index.shape[0]
     g = torch.Generator().manual_seed(seed)
-    inputs = {"n_in": pos.shape[0], "N": N, "index": torch.from_numpy(conn.index)}
-    inputs["x_bm"] = torch.rand(B, inputs["n_in"], generator=g)
-    inputs["weight"] = (torch.randn(N, R, generator=g) * (2.0 / R) ** 0.5).requires_grad_(True)
-    inputs["bias"] = torch.zeros(N).requires_grad_(True)
-    inputs["grad_y_bm"] = torch.randn(B, N, generator=g)
+    inputs = {"n_in": pos.shape[0], "N": N, "index": torch.from_numpy(conn.index).to(device)}
+    inputs["x_bm"] = torch.rand(B, inputs["n_in"], generator=g).to(device)
+    inputs["weight"] = (torch.randn(N, R, generator=g) * (2.0 / R) ** 0.5).to(device).requires_grad_(True)
+    inputs["bias"] = torch.zeros(N).to(device).requires_grad_(True)
+    inputs["grad_y_bm"] = torch.randn(B, N, generator=g).to(device)
     return inputs
 
 
 def _implementations(weight: torch.Tensor, bias: torch.Tensor, index: torch.Tensor, n_in: int) -> dict:
     """name -> (fn(x) -> y, CPU threads or None for all): the Warp op and the torch baselines, each
-    with its per-index preparation done here (outside the timed region)."""
+    with its per-index preparation done here (outside the timed region), on ``index``'s device
+    (``warp_1thread`` on the CPU only)."""
     csr_plan = tb.CsrPlan(index, n_in)
     flat = index.reshape(-1).long().contiguous()
     plan_for(index, n_in)  # the Warp op's per-index plan, cached like the torch variants' preparation
-    return {
+    impls = {
         "warp_1thread": (lambda xx: locally_connected(xx, weight, bias, index), 1),
         "warp": (lambda xx: locally_connected(xx, weight, bias, index), None),
         "torch_gather": (lambda xx: tb.gather_sum(xx, weight, bias, index), None),
         "torch_index_add": (lambda xx: tb.index_add(xx, weight, bias, flat), None),
         "torch_csr": (lambda xx: tb.csr_matmul(xx, weight, bias, csr_plan), None),
     }
+    if index.device.type != "cpu":
+        del impls["warp_1thread"]
+    return impls
 
 
 def _time_layout(impls: dict, inp: dict, feature_major: bool, repeats: int, log) -> dict:
     """Every implementation on x in one layout: its largest relative error against the Warp op, then
     its four phases timed in interleaved rounds. Returns {name: {"max_rel_err_vs_warp", "times"}}."""
     weight, bias, grad_y_bm = inp["weight"], inp["bias"], inp["grad_y_bm"]
+    device = str(grad_y_bm.device)
     grad_y_fm = _layout(grad_y_bm, True)
     x = _layout(inp["x_bm"], feature_major)
     x_req = _layout(inp["x_bm"], feature_major).requires_grad_(True)
@@ -193,7 +213,7 @@ def _time_layout(impls: dict, inp: dict, feature_major: bool, repeats: int, log)
         cases[name] = _phases(fn, threads, x, x_req, weight, bias, gy)
     # Each phase interleaves the implementations round by round (drift falls on all alike).
     for phase in ("forward", "backward", "forward_backward", "forward_backward_no_grad_x"):
-        timed = interleaved_ms({name: cases[name][phase] for name in impls}, repeats)
+        timed = interleaved_ms({name: cases[name][phase] for name in impls}, repeats, device=device)
         for name in impls:
             per_layout[name].setdefault("times", {})[phase] = timed[name]
     for name in impls:
@@ -266,7 +286,7 @@ def half_onv(inp: dict, repeats: int, log) -> dict:
             torch.autograd.grad(y, (w, b), gy if y.is_contiguous() else _layout(gy, True))
 
         cases[f"{name}/forward"], cases[f"{name}/forward_backward"] = (fwd, None), (fwd_bwd, None)
-    timed = interleaved_ms(cases, repeats)
+    timed = interleaved_ms(cases, repeats, device=str(gy.device))
     out = {"ratio_float32_over_float16": {}, "GBps_vs_min_bytes": {}, "min_bytes": {}, "median_ms": {}}
     for name, x in xs.items():
         mb = min_bytes(B, n_in, N, R, grad_x=False, x_itemsize=x.element_size())
@@ -286,15 +306,18 @@ def half_onv(inp: dict, repeats: int, log) -> dict:
     return out
 
 
-def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int = 0, log=print) -> dict:
+def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int = 0, log=print,
+               device: str = "cpu") -> dict:
     """Benchmark one layer: ONV of P photoreceptors (N_in = 3P) -> N = N_in // reduction units.
 
     Both input layouts are timed, every implementation getting the same tensors: ``batch_major``
     (x contiguous [B, N_in], as an ONV batch arrives) and ``feature_major`` (x a view of a contiguous
     [N_in, B] buffer, as the Warp op hands its output to the next liNet layer). In backward each
     implementation receives grad_y in the layout of its own output, as the next layer would return it.
+
+    On a CUDA ``device`` the result also holds ``"device"`` and ``"skipped"`` (:data:`CUDA_SKIPPED`).
     """
-    inp = layer_inputs(B, P, reduction, R, seed)
+    inp = layer_inputs(B, P, reduction, R, seed, device)
     n_in, N = inp["n_in"], inp["N"]
     impls = _implementations(inp["weight"], inp["bias"], inp["index"], n_in)
     result = {
@@ -308,14 +331,22 @@ def run_config(B: int, P: int, reduction: int, R: int, repeats: int, seed: int =
     result["half_onv"] = half_onv(inp, repeats, log)
     if inp["x_bm"].device.type == "cpu":
         _add_kernels_only(result, inp, repeats, log)
-    sync()
+    else:
+        result["device"] = device
+        result["skipped"] = dict(CUDA_SKIPPED)
+    sync(device)
     return result
 
 
-def run(sizes: list[int], batch: int = 64, reduction: int = 5, receptive_field: int = 20, repeats: int = 10, log=print) -> dict:
-    """Benchmark each photoreceptor count in ``sizes`` (N_in = 3P)."""
+def run(sizes: list[int], batch: int = 64, reduction: int = 5, receptive_field: int = 20, repeats: int = 10, log=print,
+        device: str = "cpu") -> dict:
+    """Benchmark each photoreceptor count in ``sizes`` (N_in = 3P) on ``device`` ("cpu", "cuda:N")."""
+    head = {}
+    if torch.device(device).type != "cpu":
+        head = {"device": device, "device_name": torch.cuda.get_device_name(device), "skipped": dict(CUDA_SKIPPED)}
+        log(f"device: {device} ({head['device_name']}); skipped: {', '.join(CUDA_SKIPPED)} (CPU only)")
     out = []
     for P in sizes:
         log(f"linet layer: B={batch}, N_in={3 * P} -> N={3 * P // reduction}, R={receptive_field}")
-        out.append(run_config(batch, P, reduction, receptive_field, repeats, log=log))
-    return {"configs": out}
+        out.append(run_config(batch, P, reduction, receptive_field, repeats, log=log, device=device))
+    return {**head, "configs": out}

@@ -11,11 +11,21 @@ incoherent rays from random points of the room in random directions (the worst c
 
 Then ONVs per second for P=14,400, S=16 in the furnished room with the ball (Phong, shadows,
 reflections to depth 2), and the time to build the eye rays.
+
+``--device cuda`` (or ``cuda:N``) runs the Warp paths on the GPU: the eye rays, the packet kernel and
+the ``wp.mesh_query_ray`` kernel (each one launch over all rays, keys ``warp_packet`` and ``warp_mesh``:
+thread counts mean nothing there) and the ONV render, every timing synchronised with the device.
+``agree_with_warp_mesh`` still compares the packet kernel's hit distances with ``wp.Mesh``'s (both on
+the GPU). Embree, a CPU library, is not timed there: with ``embreex`` installed its hits (one untimed
+CPU run per ray set) remain the CPU reference of ``agree_with_embree``. The JSON names what was
+skipped under ``"skipped"`` (:data:`CUDA_SKIPPED`) and holds ``"device"`` and ``"device_name"``
+instead of ``"threads"``.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 import warp as wp
 
 from warp_vision.bench.common import median_ms
@@ -30,6 +40,19 @@ from warp_vision.scene.room import make_room
 
 EYE_CENTRE = np.array([0.0, -1.5, 1.2])
 EYE_TARGET = np.array([0.0, 1.0, 1.1])
+
+#: What a run on a CUDA device leaves out, and why (its JSON's ``"skipped"``).
+_ONE_LAUNCH = "a CPU thread count: on cuda each kernel is one launch over all rays (warp_packet, warp_mesh)"
+_EMBREE = ("Embree is a CPU library: not timed on cuda (its hits still give agree_with_embree when embreex is "
+           "installed)")
+CUDA_SKIPPED = {
+    "warp_packet_1thread": _ONE_LAUNCH,
+    "warp_packet_2thread": _ONE_LAUNCH,
+    "warp_mesh_1thread": _ONE_LAUNCH,
+    "packet_2threads_over_1": _ONE_LAUNCH,
+    "embree_1thread": _EMBREE,
+    "packet_1thread_over_embree": _EMBREE,
+}
 
 
 @wp.kernel
@@ -61,10 +84,10 @@ def big_scene(seed: int = 0, detail: int = 6):
     return sc
 
 
-def _eye_world_rays(P: int, S: int, seed: int):
+def _eye_world_rays(P: int, S: int, seed: int, device: str = "cpu"):
     retina = Retina.log_polar(P, seed=seed)
     eye = NavarroEye()
-    rays = rt.eye_rays(retina, eye, S, seed)
+    rays = rt.eye_rays(retina, eye, S, seed, device)
     T = eye_look_at(EYE_CENTRE, EYE_TARGET)
     o = rays.origins.numpy().astype(np.float64) @ T[:3, :3].T + T[:3, 3]
     d = rays.directions.numpy().astype(np.float64) @ T[:3, :3].T
@@ -93,50 +116,76 @@ def _embree(V, F):
     return scene
 
 
-def closest_hit_rates(repeats: int = 5, P: int = 14_400, S: int = 16, seed: int = 0, detail: int = 6, log=print) -> dict:
+def _embree_t(embree, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Embree's closest-hit distances (inf on a miss)."""
+    hit = embree.run(o, d, output=1)
+    return np.where(np.asarray(hit["geomID"]) >= 0, np.asarray(hit["tfar"]), np.inf)
+
+
+def closest_hit_rates(repeats: int = 5, P: int = 14_400, S: int = 16, seed: int = 0, detail: int = 6, log=print,
+                      device: str = "cpu") -> dict:
+    """Closest-hit rates per ray set and path, on ``device`` ("cpu": the thread variants and Embree;
+    "cuda:N": one launch per path, Embree untimed; see the module doc)."""
+    cpu = device == "cpu"
     sc = big_scene(seed, detail)
     world = sc.world_mesh()
     V = np.asarray(world.vertices, dtype=np.float32)
     F = np.asarray(world.faces, dtype=np.int32)
     log(f"scene: {len(F):,} triangles")
-    sd = rt.scene_data(sc, "cpu", 0)
-    mesh = wp.Mesh(points=wp.array(V, dtype=wp.vec3), indices=wp.array(F.ravel(), dtype=wp.int32))
+    sd = rt.scene_data(sc, device, 0)
+    mesh = wp.Mesh(points=wp.array(V, dtype=wp.vec3, device=device),
+                   indices=wp.array(F.ravel(), dtype=wp.int32, device=device))
     embree = _embree(V, F)
-    o_eye, d_eye, *_ = _eye_world_rays(P, S, seed)
+    o_eye, d_eye, *_ = _eye_world_rays(P, S, seed, device)
     sets = {"eye": (o_eye, d_eye), "random": _random_rays(len(o_eye), seed + 1)}
     out = {"triangles": int(len(F)), "rays": {}}
+    if not cpu:
+        out["device"] = device
     for name, (o, d) in sets.items():
         n = len(o)
-        oa, da = wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3)
-        t = wp.empty(n, dtype=wp.float32)
-        obj = wp.empty(n, dtype=wp.int32)
-        face = wp.empty(n, dtype=wp.int32)
-        t_mesh = wp.empty(n, dtype=wp.float32)
+        oa, da = wp.array(o, dtype=wp.vec3, device=device), wp.array(d, dtype=wp.vec3, device=device)
+        t = wp.empty(n, dtype=wp.float32, device=device)
+        obj = wp.empty(n, dtype=wp.int32, device=device)
+        face = wp.empty(n, dtype=wp.int32, device=device)
+        t_mesh = wp.empty(n, dtype=wp.float32, device=device)
         res = {"rays": n}
 
+        # launch_split is one ordinary launch (offset 0) on a CUDA device, whatever ``threads`` says
         def packet(threads):
-            _launch.launch_split(closest_hit_kernel, (n + 7) // 8, [sd, oa, da, 0], [t, obj, face], "cpu", threads=threads,
+            _launch.launch_split(closest_hit_kernel, (n + 7) // 8, [sd, oa, da, 0], [t, obj, face], device, threads=threads,
                                  **rt.TRACE_SPLIT)
 
-        for th in (1, 2):
-            m = median_ms(lambda: packet(th), repeats, warmup=1)
-            res[f"warp_packet_{th}thread"] = {**m, "mrays_per_s": n / m["median_ms"] / 1e3}
-        m = median_ms(lambda: _launch.launch_split(mesh_query_kernel, n, [mesh.id, oa, da], [t_mesh], "cpu", threads=1), repeats, warmup=1)
-        res["warp_mesh_1thread"] = {**m, "mrays_per_s": n / m["median_ms"] / 1e3}
+        def mesh_query():
+            _launch.launch_split(mesh_query_kernel, n, [mesh.id, oa, da], [t_mesh], device, threads=1)
+
+        if cpu:
+            for th in (1, 2):
+                m = median_ms(lambda: packet(th), repeats, warmup=1)
+                res[f"warp_packet_{th}thread"] = {**m, "mrays_per_s": n / m["median_ms"] / 1e3}
+            m = median_ms(mesh_query, repeats, warmup=1)
+            res["warp_mesh_1thread"] = {**m, "mrays_per_s": n / m["median_ms"] / 1e3}
+            packet_key, mesh_key = "warp_packet_1thread", "warp_mesh_1thread"
+        else:
+            packet_key, mesh_key = "warp_packet", "warp_mesh"
+            for key, fn in ((packet_key, lambda: packet(None)), (mesh_key, mesh_query)):
+                m = median_ms(fn, repeats, warmup=1, device=device)
+                res[key] = {**m, "mrays_per_s": n / m["median_ms"] / 1e3}
         # agreement on the hit distance (faces may differ legitimately where a ray meets a shared edge)
         tp = t.numpy()
         res["agree_with_warp_mesh"] = _agree(tp, t_mesh.numpy())
-        if embree is not None:
+        if embree is not None and cpu:
             m = median_ms(lambda: embree.run(o, d, output=0), repeats, warmup=1)
             res["embree_1thread"] = {**m, "mrays_per_s": n / m["median_ms"] / 1e3}
-            hit = embree.run(o, d, output=1)
-            t_emb = np.where(np.asarray(hit["geomID"]) >= 0, np.asarray(hit["tfar"]), np.inf)
-            res["agree_with_embree"] = _agree(tp, t_emb)
+            res["agree_with_embree"] = _agree(tp, _embree_t(embree, o, d))
             res["packet_1thread_over_embree"] = res["warp_packet_1thread"]["mrays_per_s"] / res["embree_1thread"]["mrays_per_s"]
+        elif embree is not None:
+            res["embree_1thread"] = CUDA_SKIPPED["embree_1thread"]
+            res["agree_with_embree"] = _agree(tp, _embree_t(embree, o, d))
         else:
             res["embree_1thread"] = "embreex not installed (pip install -e '.[bench]')"
-        res["packet_2threads_over_1"] = res["warp_packet_2thread"]["mrays_per_s"] / res["warp_packet_1thread"]["mrays_per_s"]
-        res["packet_over_warp_mesh"] = res["warp_packet_1thread"]["mrays_per_s"] / res["warp_mesh_1thread"]["mrays_per_s"]
+        if cpu:
+            res["packet_2threads_over_1"] = res["warp_packet_2thread"]["mrays_per_s"] / res["warp_packet_1thread"]["mrays_per_s"]
+        res["packet_over_warp_mesh"] = res[packet_key]["mrays_per_s"] / res[mesh_key]["mrays_per_s"]
         res["hit_fraction"] = float(np.isfinite(t.numpy()).mean())
         line = ", ".join(f"{k} {v['mrays_per_s']:.2f}" for k, v in res.items() if isinstance(v, dict))
         log(f"{name} rays ({n:,}, {res['hit_fraction']:.0%} hit), Mrays/s: {line}")
@@ -152,13 +201,17 @@ def _agree(t: np.ndarray, t_ref: np.ndarray) -> float:
     return float(np.mean(both_miss | close))
 
 
-def onv_rate(P: int = 14_400, S: int = 16, batch: int = 4, repeats: int = 5, seed: int = 0, log=print) -> dict:
+def onv_rate(P: int = 14_400, S: int = 16, batch: int = 4, repeats: int = 5, seed: int = 0, log=print,
+             device: str = "cpu") -> dict:
+    """ONVs per second rendered on ``device`` by :func:`warp_vision.kernels.render.render_onv`, and
+    the time to build the eye rays there."""
     retina = Retina.log_polar(P, seed=seed)
     eye = NavarroEye()
     sc = make_room(seed=seed)
     poses = np.repeat(eye_look_at(EYE_CENTRE, EYE_TARGET)[None], batch, axis=0)
-    m_eye = median_ms(lambda: rt.eye_rays(retina, eye, S, seed), repeats, warmup=1, setup=rt.clear_eye_ray_cache)
-    m = median_ms(lambda: rt.render_onv(sc, retina, eye, poses, S, seed), repeats, warmup=1)
+    m_eye = median_ms(lambda: rt.eye_rays(retina, eye, S, seed, device), repeats, warmup=1, setup=rt.clear_eye_ray_cache,
+                      device=device)
+    m = median_ms(lambda: rt.render_onv(sc, retina, eye, poses, S, seed, device), repeats, warmup=1, device=device)
     res = {
         "P": P,
         "S": S,
@@ -175,10 +228,18 @@ def onv_rate(P: int = 14_400, S: int = 16, batch: int = 4, repeats: int = 5, see
     return res
 
 
-def run(repeats: int = 5, P: int = 14_400, S: int = 16, batch: int = 4, log=print) -> dict:
+def run(repeats: int = 5, P: int = 14_400, S: int = 16, batch: int = 4, log=print, device: str = "cpu") -> dict:
+    """Closest-hit rates and the ONV rate on ``device`` ("cpu", "cuda:N")."""
     _launch.init()
-    return {
-        "closest_hit": closest_hit_rates(repeats, P, S, log=log),
-        "onv": onv_rate(P, S, batch, repeats, log=log),
-        "threads": _launch.cpu_threads(),
+    if device != "cpu":
+        name = torch.cuda.get_device_name(device)
+        log(f"device: {device} ({name}); Embree untimed, no CPU thread variants")
+    out = {
+        "closest_hit": closest_hit_rates(repeats, P, S, log=log, device=device),
+        "onv": onv_rate(P, S, batch, repeats, log=log, device=device),
     }
+    if device == "cpu":
+        out["threads"] = _launch.cpu_threads()
+    else:
+        out.update(device=device, device_name=name, skipped=dict(CUDA_SKIPPED))
+    return out

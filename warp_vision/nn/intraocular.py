@@ -15,6 +15,8 @@ import numpy as np
 import torch
 
 PUPIL_MM = (2.0, 8.0)
+#: the accommodations (D) at which a lens net's calibration (:meth:`LensNet.calibrated`) is tabulated
+LENS_BIAS_KNOTS_D = np.arange(0.0, 10.01, 0.5)
 LOG_FLOOR = 1e-9  # irradiance floor under the log10 (far below any lit scene's)
 
 
@@ -210,8 +212,25 @@ class LensNet(torch.nn.Module):
         self.register_buffer("feature_std", torch.ones(n))
         #: below this :meth:`contrast` the image holds no defocus cue (set from the training data)
         self.register_buffer("contrast_floor", torch.tensor(-np.inf))
+        #: the net's median error near focus at each accommodation of LENS_BIAS_KNOTS_D (D), fitted on the
+        #: training split after training (:meth:`warp_vision.train.lens.LensTask.calibrate`); zeros: none
+        self.register_buffer("bias_D", torch.zeros(len(LENS_BIAS_KNOTS_D)))
+        self._register_load_state_dict_pre_hook(_no_bias_is_zero_bias)
         self.mlp = torch.nn.Sequential(torch.nn.Linear(n, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, hidden),
                                        torch.nn.Tanh(), torch.nn.Linear(hidden, 1))
+
+    def calibrated(self, defocus: torch.Tensor, accommodation_D) -> torch.Tensor:
+        """The estimate ``defocus`` [B] of ONVs seen with the lens at ``accommodation_D`` (the efference copy
+        of the lens command; a float or [B]) less the net's bias at that accommodation (``bias_D``,
+        interpolated): near focus, where the loop's lens settles, the estimate reads the defocus without
+        the net's systematic offset (near cards read as slightly less defocused than they are). The bias is
+        a smooth function of the lens state alone, a few hundredths of a dioptre, so it cannot carry the
+        defocus itself."""
+        acc = torch.as_tensor(accommodation_D, dtype=torch.float64).reshape(-1).cpu().numpy()
+        if not np.isfinite(acc).all():
+            raise ValueError(f"accommodation_D: expected finite dioptres, got {acc.tolist()[:5]}")
+        b = np.interp(acc, LENS_BIAS_KNOTS_D, self.bias_D.detach().cpu().double().numpy())
+        return defocus - torch.as_tensor(b, dtype=defocus.dtype, device=defocus.device)
 
     def raw_features(self, onv: torch.Tensor, pupil_mm: torch.Tensor, central_only: bool = False) -> torch.Tensor:
         """The fixed first layer's outputs [B, features] (the energies and the log pupil), before
@@ -243,3 +262,8 @@ class LensNet(torch.nn.Module):
                 raise ValueError("LensNet: expected onv and pupil_mm, or raw features")
             raw = self.raw_features(onv, pupil_mm, central_only)
         return self.head(raw)
+
+
+def _no_bias_is_zero_bias(state_dict, prefix, *args) -> None:
+    """Checkpoints of lens nets written before the calibration existed load with none (zeros)."""
+    state_dict.setdefault(prefix + "bias_D", torch.zeros(len(LENS_BIAS_KNOTS_D)))

@@ -8,7 +8,8 @@
                ball moving at 15 and 30 deg/s both ways round, the loop's time shares. Writes experiments.json.
   intraocular  light steps of +2 and -2 log units, and focus steps (a textured card from 2 m to 0.33 m and
                back, fixated): the pupils and lenses under their nets and, in the same run, under the
-               analytic laws (their teachers). Writes intraocular.json and figures/light_steps.png,
+               analytic laws (their teachers); --cards N repeats the focus steps with the lens nets on N textures.
+               Writes intraocular.json and figures/light_steps.png,
                focus_steps.png and focus_retina.png.
   oculomotor   both eyes' oculomotor nets only: trains the missing ones.
   intercept    the paper's Fig. 8: the cannon shoots a held-out shot, the eyes and head track the ball, both eyes'
@@ -153,6 +154,18 @@ def demo(args) -> dict:
             "timing_s": dict(loop.timing)}
 
 
+def _secs(t) -> str:
+    """A measured time for the command's lines: "0.34 s", or "never" (None or infinite)."""
+    return "never" if t is None or not np.isfinite(t) else f"{t:.2f} s"
+
+
+def _positive_int(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return n
+
+
 def intraocular(args) -> dict:
     """Light steps of +2 and -2 log units and focus steps (a textured card from 2 m to 0.33 m and back),
     with the pupil and lens nets and, in the same run, with their teachers (the analytic laws): the
@@ -164,7 +177,7 @@ def intraocular(args) -> dict:
     import matplotlib.pyplot as plt
 
     from warp_vision.sim.loop import VisuomotorLoop
-    from warp_vision.sim.scenarios import FOCUS_PHASES, LIGHT_PHASES, focus_steps, light_steps
+    from warp_vision.sim.scenarios import FOCUS_CARD_SEED, FOCUS_PHASES, LIGHT_PHASES, focus_steps, focus_summary, light_steps
 
     args.intraocular = "nets"
     _body, nets_loop = setup_loop(args)
@@ -175,6 +188,9 @@ def intraocular(args) -> dict:
     loops = {"nets": nets_loop, "analytic": analytic_loop}
     light = {m: light_steps(lp, progress=not args.no_progress) for m, lp in loops.items()}
     focus = {m: focus_steps(lp, progress=not args.no_progress) for m, lp in loops.items()}
+    # the nets on more cards (the vergence law does not look at the card): how often the near and far steps focus
+    more = [{"card_seed": c, "steps": focus_steps(nets_loop, progress=not args.no_progress, snapshots=False, card_seed=c)["steps"]}
+            for c in range(FOCUS_CARD_SEED + 1, FOCUS_CARD_SEED + args.cards)]
     fig_dir = os.path.join(args.out, "figures")
     os.makedirs(fig_dir, exist_ok=True)
     labels = {"nets": "nets in the loop", "analytic": "analytic law in the loop"}
@@ -205,6 +221,9 @@ def intraocular(args) -> dict:
         out[mode] = {"light_steps": light[mode]["steps"], "focus_steps": focus[mode]["steps"],
                      "light_traces": {k: v.tolist() for k, v in light[mode]["traces"].items()},
                      "focus_traces": {k: v.tolist() for k, v in focus[mode]["traces"].items()}}
+    out["nets"]["more_cards"] = more
+    for mode in loops:
+        out[mode]["focus_summary"] = focus_summary([focus[mode]["steps"]] + ([m["steps"] for m in more] if mode == "nets" else []))
     return out
 
 
@@ -279,6 +298,11 @@ def main(argv=None) -> int:
                        help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
                             f"(default {FRAME_EVERY}: 25 frames a second; 1 renders every period)")
         p.add_argument("--out", default=None, help=f"output directory (default runs/sim_{name}, or runs/quick/sim_{name} with --quick)")
+        if name == "intraocular":
+            p.add_argument("--cards", type=_positive_int, default=1,
+                           help="the focus steps with the lens nets on N cards of different textures (default 1; the "
+                                "vergence law, blind to the texture, runs on the first): how often each step comes into "
+                                "focus within 1.2 s")
         if name == "intercept":
             p.add_argument("--side", default="left", help="the striking arm: left (default) or right (the other hangs)")
             p.add_argument("--shots", type=int, default=None,
@@ -359,12 +383,16 @@ def _run(args) -> None:
             for st in result[mode]["light_steps"]:
                 print(f"{mode:8s} {st['eye']:5s} eye, {st['log_units']:+.0f} log units at {st['at_s']:.1f} s ({st['direction']}): "
                       f"{st['from_mm']:.2f} -> {st['end_mm']:.2f} mm (steady state {st['steady_state_mm']:.2f}, off by "
-                      f"{100 * st['end_relative_error']:.1f}%), latency {st['latency_s']} s, 10-90% {st['rise_10_90_s']} s, "
-                      f"settled within 5% after {st['settle_s']} s")
+                      f"{100 * st['end_relative_error']:.1f}%), latency {_secs(st['latency_s'])}, 10-90% {_secs(st['rise_10_90_s'])}, "
+                      f"settled within 5% after {_secs(st['settle_s'])}")
             for st in result[mode]["focus_steps"]:
                 print(f"{mode:8s} {st['eye']:5s} eye, card {st['from_m']:.2f} -> {st['to_m']:.2f} m at {st['at_s']:.1f} s: "
-                      f"{st['from_D']:.2f} -> {st['to_D']:.2f} D, latency {st['latency_s']} s, in focus (0.25 D) after "
-                      f"{st['in_focus_s']} s, defocus at the end {st['end_defocus_D']:+.3f} D")
+                      f"{st['from_D']:.2f} -> {st['to_D']:.2f} D, latency {_secs(st['latency_s'])}, in focus (0.25 D) after "
+                      f"{_secs(st['in_focus_s'])}, defocus at the end {st['end_defocus_D']:+.3f} D")
+            for direction, f in result[mode]["focus_summary"].items():
+                print(f"{mode:8s} {direction} steps ({f['steps']} eye-steps): in focus within {f['goal_s']} s: "
+                      f"{f['in_focus_within_goal']}/{f['steps']}, median time to focus {_secs(f['median_in_focus_s'])}, "
+                      f"median |defocus| at the end {f['median_abs_end_defocus_D']:.3f} D")
         write_json(os.path.join(args.out, "intraocular.json"), result)
         print(f"wrote {os.path.join(args.out, 'intraocular.json')} and figures in {os.path.join(args.out, 'figures')}")
         return

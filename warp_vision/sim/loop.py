@@ -451,12 +451,13 @@ def _lens_command(net, onv: torch.Tensor, acc_looked: float, pupil: float, hold:
     photoreceptors ``net.central`` only) rendered at ``acc_looked`` through ``pupil``. The defocus is the accommodation minus the object's vergence, so the
     command is the vergence the net sees: an absolute target (the plant's latency winds nothing up). An
     image without fine contrast (``net.contrast`` under its floor: a uniform glowing ball filling the
-    fovea) carries no defocus cue: the lens holds ``hold``, its last command."""
+    fovea) carries no defocus cue: the lens holds ``hold``, its last command. The estimate is calibrated by
+    the accommodation it was seen with (:meth:`~warp_vision.nn.intraocular.LensNet.calibrated`)."""
     with torch.no_grad():
         raw = net.raw_features(onv.float(), torch.tensor([pupil]), central_only=True)
         if float(net.contrast(raw)[0]) < float(net.contrast_floor):
             return hold, None
-        d = float(net.head(raw)[0])
+        d = float(net.calibrated(net.head(raw), acc_looked)[0])
     return acc_looked - d, d
 
 

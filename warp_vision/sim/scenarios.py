@@ -226,6 +226,8 @@ FOCUS_PHASES = ((1.5, 2.0), (2.0, 1.0 / 3.0), (2.0, 2.0))
 FOCUS_TOLERANCE_D = 0.25
 #: The cards' texture seed: none of the lens datasets' (their seeds are 0 and 1000).
 FOCUS_CARD_SEED = 2024
+#: Issue 19's goal: a focus step is in focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
+FOCUS_GOAL_S = 1.2
 
 
 class FixationOracle:
@@ -247,14 +249,15 @@ class FixationOracle:
         return np.asarray(gaze_angles(d / np.linalg.norm(d)))[None]
 
 
-def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True, card_vertices: int | None = None) -> dict:
+def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True, card_vertices: int | None = None,
+                card_seed: int = FOCUS_CARD_SEED) -> dict:
     """The eyes fixate a textured card straight ahead while it steps through the distances of
     ``phases`` (a card per distance, sized as the lens data size theirs: :func:`warp_vision.data.intraocular.card_size_for`); per period each eye's accommodation, its command, the card's vergence from the eye (D)
     and the defocus (accommodation minus that vergence). Per step and eye: the latency (until the
     accommodation has moved 5% of the way), the time until it is within ``FOCUS_TOLERANCE_D`` of the
     card's vergence for good, and the defocus at the phase's end. With ``snapshots``, the left eye's ONV
     just after each step and at the phase's end (blurred, then sharp). ``card_vertices``: the cards' grid
-    (default the lens data's)."""
+    (default the lens data's); ``card_seed``: their textures' seed."""
     from tqdm import tqdm
 
     from warp_vision.scene import Material
@@ -269,11 +272,11 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
     # so the pattern's angular scale is theirs) but with a texture of its own
     cards = {}
     for _dur, dist in phases:
-        name = f"focus_card_{dist:.3f}"
+        name = f"focus_card_{card_seed}_{dist:.3f}"
         cards[dist] = name
         if name not in [o.name for o in loop.scene.objects]:
             loop.scene.add(name, textured_card(card_size_for(dist), card_vertices or CARD_VERTICES,
-                                               [FOCUS_CARD_SEED, int(dist * 1000)]),
+                                               [card_seed, int(dist * 1000)]),
                            Material(vertex_colors=True), np.eye(4))
             loop.scene.set_visible(name, False)
     loop.reset(SETTLE_S)
@@ -329,6 +332,25 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
             steps.append({"eye": s, "at_s": float(a), "from_m": phases[i - 1][1], "to_m": phases[i][1],
                           **focus_step_metrics(tr["t"], tr[f"accommodation_{s}"], tr[f"vergence_{s}"], a, b)})
     return {"traces": tr, "steps": steps, "snapshots": shots}
+
+
+def focus_summary(runs: list[list[dict]], goal_s: float = FOCUS_GOAL_S) -> dict:
+    """Over the steps of several focus-step runs (``runs``: each a :func:`focus_steps` result's "steps"),
+    per direction ("near": to the nearer card, "far"): how many eye-steps came into focus within
+    ``goal_s``, the median time to focus (a step never in focus counts as infinitely slow; None if the
+    median is such a step) and the median
+    absolute defocus at the phases' ends."""
+    out = {}
+    for direction in ("near", "far"):
+        steps = [st for run in runs for st in run if (st["to_m"] < st["from_m"]) == (direction == "near")]
+        if not steps:
+            continue
+        t = np.array([np.inf if st["in_focus_s"] is None else st["in_focus_s"] for st in steps])
+        median = float(np.median(t))
+        out[direction] = {"steps": len(steps), "in_focus_within_goal": int((t <= goal_s).sum()), "goal_s": goal_s,
+                          "median_in_focus_s": median if np.isfinite(median) else None,
+                          "median_abs_end_defocus_D": float(np.median([abs(st["end_defocus_D"]) for st in steps]))}
+    return out
 
 
 def focus_step_metrics(t: np.ndarray, acc: np.ndarray, vergence: np.ndarray, start: float, end: float) -> dict:

@@ -41,7 +41,7 @@ from warp_vision.fileio import write_json
 from warp_vision.nn.trained import ONV_DTYPES, build_net, read_checkpoint
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
-                                      preflight, record_epoch, run_config, sync_metrics)
+                                      preflight, record_epoch, run_config, save_checkpoint, sync_metrics)
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
 #: without a better validation metric.
@@ -124,6 +124,12 @@ class Task:
 
     def epoch_line(self, row: dict) -> str:
         raise NotImplementedError
+
+    def calibrate(self, model, train_ids: np.ndarray, device: str) -> bool:
+        """After training: fit whatever the task calibrates on the trained net (``model`` holds the best
+        weights) from the training split into the net's buffers; True if it changed them (best.pt is then
+        rewritten with them, and the summary and figures see them)."""
+        return False
 
     def summary(self, test: dict, history: list, model) -> dict:
         """The task's own entries of summary.json (test metrics; ``model`` holds the best weights)."""
@@ -345,6 +351,8 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
     if dd.rank == 0:
         best = read_checkpoint(out / "best.pt", map_location=device)
         model.load_state_dict(best["model"])
+        if task.calibrate(model, ids[0], device):
+            save_checkpoint({**best, "model": model.state_dict()}, out / "best.pt")
         test_ids = ids[2] if len(ids[2]) else ids[1]
         test = task.evaluate(model, test_ids, norm, device)
         n_params = sum(p.numel() for p in model.parameters())

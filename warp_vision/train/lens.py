@@ -8,7 +8,11 @@ The dataset is :func:`warp_vision.data.intraocular.synthesize_lens`: textured ca
 the central field, the lens at random states within ``defocus_range_D`` of them (half the samples near
 focus). The loss is Huber (1 D) on the defocus. The best epoch has the smallest validation median error;
 the summary reports the test split's and a held-out set's (new textures, lamps and distances) median and
-90th percentile absolute error (D) and the share of samples beyond 0.5 D whose sign is right.
+90th percentile absolute error (D) and the share of samples beyond 0.5 D whose sign is right. After
+training the net's bias near focus is tabulated against the lens state on the training split
+(:func:`fit_bias`, :meth:`LensTask.calibrate`, stored in best.pt); the loop subtracts it
+(:meth:`warp_vision.nn.intraocular.LensNet.calibrated`), and the summary's ``heldout_calibrated`` scores
+the held-out set so.
 """
 
 from __future__ import annotations
@@ -18,10 +22,36 @@ import torch
 
 from warp_vision.train import harness
 from warp_vision.train.config import LensTrainConfig
+from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
 from warp_vision.train.intraocular import ShallowNetTask
+
 
 #: The sign of the defocus is scored on samples whose defocus exceeds this (D).
 SIGN_ABOVE_D = 0.5
+#: The calibration's median error is taken over training samples this near focus (D) ...
+CALIBRATE_WITHIN_D = 0.6
+#: ... at least this many of them within a quarter dioptre of an accommodation knot (else interpolated).
+CALIBRATE_MIN_SAMPLES = 20
+
+
+def fit_bias(pred: np.ndarray, defocus: np.ndarray, accommodation: np.ndarray) -> np.ndarray:
+    """The lens net's bias table (:attr:`warp_vision.nn.intraocular.LensNet.bias_D`): at each accommodation
+    knot the median of estimate minus truth over samples near focus (where the loop's lens comes to rest)
+    whose accommodation is within 0.25 D of it. Knots with too few samples take their nearest fitted
+    neighbours' values (linear interpolation, held flat beyond the ends); none fitted: zeros."""
+    pred, defocus, accommodation = (np.asarray(a, np.float64).reshape(-1) for a in (pred, defocus, accommodation))
+    if not (len(pred) == len(defocus) == len(accommodation)):
+        raise ValueError("fit_bias: expected as many estimates, defocuses and accommodations")
+    near = np.abs(defocus) < CALIBRATE_WITHIN_D
+    fitted, values = [], []
+    for k in LENS_BIAS_KNOTS_D:
+        m = near & (np.abs(accommodation - k) <= 0.25)
+        if m.sum() >= CALIBRATE_MIN_SAMPLES:
+            fitted.append(k)
+            values.append(np.median(pred[m] - defocus[m]))
+    if not fitted:
+        return np.zeros(len(LENS_BIAS_KNOTS_D))
+    return np.interp(LENS_BIAS_KNOTS_D, fitted, values)
 
 
 def _errors(pred: torch.Tensor, true: torch.Tensor) -> dict:
@@ -65,6 +95,25 @@ class LensTask(ShallowNetTask):
 
     def loss(self, pred, true):
         return torch.nn.functional.huber_loss(pred, true)
+
+    def calibrate(self, model, train_ids, device):
+        with torch.no_grad():
+            pred, true = self._predict(model, self.data, train_ids, device)
+        acc = self.data["accommodation"][torch.as_tensor(np.asarray(train_ids))]
+        bias = fit_bias(pred.cpu().numpy(), true.cpu().numpy(), acc.numpy())
+        with torch.no_grad():
+            model.bias_D.copy_(torch.as_tensor(bias, dtype=model.bias_D.dtype))
+        self.log("lens net's bias near focus (D) at accommodations "
+                 + ", ".join(f"{k:g}: {b:+.3f}" for k, b in zip(LENS_BIAS_KNOTS_D[::2], bias[::2])))
+        return True
+
+    def summary(self, test, history, model):
+        out = super().summary(test, history, model)
+        # the same held-out ONVs, the estimate calibrated by the lens state it was seen with (what the loop uses)
+        pred, true = (torch.as_tensor(a) for a in self.heldout_pred)
+        out["heldout_calibrated"] = self.errors(model.calibrated(pred, self.heldout["accommodation"]), true)
+        out["bias_D"] = model.bias_D.tolist()
+        return out
 
     def errors(self, pred, true):
         return _errors(pred, true)
