@@ -357,3 +357,30 @@ def test_a_focus_step_in_the_loop_comes_into_focus(bare_body):
             assert abs(st["end_defocus_D"]) < FOCUS_TOLERANCE_D
             assert st["latency_s"] >= LENS_LATENCY_S - 0.01  # the lens waits its latency
         assert len(res["snapshots"]) >= 1 and sum(o.name.startswith("focus_card") for o in loop.scene.objects) == 2
+
+
+class _ConstantLensNet(_OracleLensNet):
+    """Reads the same defocus whatever the image."""
+
+    def __init__(self, loop, side, defocus):
+        super().__init__(loop, side)
+        self.defocus = defocus
+
+    def head(self, raw):
+        return torch.tensor([self.defocus])
+
+
+def test_accommodation_is_yoked_to_the_mean_of_both_eyes_readings(bare_body):
+    """Both lenses take one command, the mean of the vergences the two eyes' nets read (the consensual
+    response); unyoked, each eye follows its own net."""
+    for yoked in (True, False):
+        loop = _loop(bare_body)
+        loop.lens_nets = {"left": _ConstantLensNet(loop, "left", 0.3), "right": _ConstantLensNet(loop, "right", -0.1)}
+        loop.yoked_lens = yoked
+        loop.reset()
+        loop.step()  # the first period is a frame
+        acc = {s: loop._optics[s][0] for s in SIDES}
+        read = {"left": acc["left"] - 0.3, "right": acc["right"] + 0.1}
+        for s in SIDES:
+            want = (read["left"] + read["right"]) / 2 if yoked else read[s]
+            assert loop._lens_command[s] == pytest.approx(want), (yoked, s)

@@ -24,10 +24,12 @@ turns the latest estimate into a change of the commanded gaze:
 The oculomotor net maps (change of commanded gaze, current activations) to the next activations. The
 neck controller moves the head's target a fraction ``NECK_GAIN`` per period toward the eyes' mean gaze
 (the eye-head synergy: the eyes return toward centre as the head takes over), held by least-effort neck
-activations (:func:`warp_vision.sim.oculomotor.holding_activations`). Accommodation is commanded to
-the distance where the two gaze lines converge; the pupil by each eye's pupil net from its ONV (or, with
-no nets, by their teacher: Watson & Yellott's diameter for the adapting luminance); the iris and lens
-plants (:mod:`warp_vision.eye.plants`) answer after their latencies.
+activations (:func:`warp_vision.sim.oculomotor.holding_activations`). Accommodation is commanded by
+the lens nets from each eye's central field, both lenses taking the mean of the two eyes' readings
+(yoked, as human accommodation is), or with no nets to the distance where the two gaze lines converge;
+the pupil by each eye's pupil net from its ONV (or, with no nets, by their teacher: Watson & Yellott's
+diameter for the adapting luminance); the iris and lens plants (:mod:`warp_vision.eye.plants`) answer
+after their latencies.
 """
 
 from __future__ import annotations
@@ -235,6 +237,8 @@ class VisuomotorLoop:
         self.lens_nets = lens_nets
         #: the accommodation steps the eyes render at: a lens net needs finer ones than its 0.25 D goal
         self.optics_step_d = LENS_OPTICS_STEP_D if lens_nets is not None else OPTICS_STEP_D
+        #: with lens nets: both lenses take the mean of the two eyes' readings (False: each eye its own)
+        self.yoked_lens = True
         #: per eye, the vergence law's accommodation command (D) and, with lens nets, the defocus they read
         self.lens_teacher: dict = {}
         self.defocus_estimate: dict = {}
@@ -442,6 +446,15 @@ class VisuomotorLoop:
                     if self.lens_nets is not None:
                         self._lens_command[s], self.defocus_estimate[s] = _lens_command(
                             self.lens_nets[s], self.lens_onv[s], acc_looked, looked, self._lens_command.get(s, acc_looked))
+        if self.lens_nets is not None and self.yoked_lens and seen:
+            # accommodation is yoked: one command drives both lenses (the consensual response; Campbell
+            # 1960, Ball 1952), the mean of the vergences the two eyes' nets read. Their errors are in part
+            # the eye's own (each retina samples the object differently), so the mean is steadier.
+            read = [self._lens_command[s] for s in SIDES if self.defocus_estimate.get(s) is not None]
+            if read:
+                for s in SIDES:
+                    self._lens_command[s] = float(np.mean(read))
+        for s in SIDES:
             acc = self._lens_command[s] if self.lens_nets is not None else self.lens_teacher[s]
             self.body.set_intraocular(s, pupil_mm=self._pupil_command[s], accommodation_D=acc)
 
