@@ -181,7 +181,7 @@ EYE_RAY_SEED = 0
 #: covers the central field the lens net reads, each sample sees its own patch of the pattern (so the
 #: net cannot learn a few textures by heart), and the pattern's angular scale varies with the card. A new
 #: set of textures (same geometry, so the cards' BVHs are built once) every TEXTURE_SET_BLOCKS blocks of
-#: 16 samples: 6,000 samples see 150 textures. The texel's angular size (card size / CARD_VERTICES / d)
+#: 16 samples: the default 16,000 samples see 400 textures. The texel's angular size (card size / CARD_VERTICES / d)
 #: tells the distance within a size bin; the nets are therefore not given the accommodation, which with
 #: the distance would give the defocus away (README: measured).
 CARD_SIZES_M = tuple(float(s) for s in 3 * 0.021 * 1.58 ** np.arange(8))

@@ -36,7 +36,7 @@ from warp_vision.body import SIDES
 #: ONVs, then training) as their presets' comments in :mod:`warp_vision.train.config` estimate them.
 MINUTES = {("foveation", "default"): 4.5, ("foveation", "quick"): 1.2,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
-           ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 8.0, ("lens", "quick"): 3.0,
+           ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 13.0, ("lens", "quick"): 3.0,
            ("arm", "default"): 8.0, ("arm", "quick"): 2.0, ("limb", "default"): 15.0, ("limb", "quick"): 4.0}
 
 #: Training commands whose side flag is ``--side`` (the arm's) rather than ``--eye``.
