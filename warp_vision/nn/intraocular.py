@@ -215,7 +215,7 @@ class LensNet(torch.nn.Module):
         #: the net's median error near focus at each accommodation of LENS_BIAS_KNOTS_D (D), fitted on the
         #: training split after training (:meth:`warp_vision.train.lens.LensTask.calibrate`); zeros: none
         self.register_buffer("bias_D", torch.zeros(len(LENS_BIAS_KNOTS_D)))
-        self._register_load_state_dict_pre_hook(_no_bias_is_zero_bias)
+        self.register_load_state_dict_pre_hook(_no_bias_is_zero_bias)
         self.mlp = torch.nn.Sequential(torch.nn.Linear(n, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, hidden),
                                        torch.nn.Tanh(), torch.nn.Linear(hidden, 1))
 
@@ -264,6 +264,6 @@ class LensNet(torch.nn.Module):
         return self.head(raw)
 
 
-def _no_bias_is_zero_bias(state_dict, prefix, *args) -> None:
+def _no_bias_is_zero_bias(module, state_dict, prefix, *args) -> None:
     """Checkpoints of lens nets written before the calibration existed load with none (zeros)."""
     state_dict.setdefault(prefix + "bias_D", torch.zeros(len(LENS_BIAS_KNOTS_D)))

@@ -226,7 +226,7 @@ FOCUS_PHASES = ((1.5, 2.0), (2.0, 1.0 / 3.0), (2.0, 2.0))
 FOCUS_TOLERANCE_D = 0.25
 #: The cards' texture seed: none of the lens datasets' (their seeds are 0 and 1000).
 FOCUS_CARD_SEED = 2024
-#: Issue 19's goal: a focus step is in focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
+#: The goal a focus step is measured against (README): in focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
 FOCUS_GOAL_S = 1.2
 
 
@@ -338,8 +338,7 @@ def focus_summary(runs: list[list[dict]], goal_s: float = FOCUS_GOAL_S) -> dict:
     """Over the steps of several focus-step runs (``runs``: each a :func:`focus_steps` result's "steps"),
     per direction ("near": to the nearer card, "far"): how many eye-steps came into focus within
     ``goal_s``, the median time to focus (a step never in focus counts as infinitely slow; None if the
-    median is such a step) and the median
-    absolute defocus at the phases' ends."""
+    median is such a step) and the median absolute defocus at the phases' ends."""
     out = {}
     for direction in ("near", "far"):
         steps = [st for run in runs for st in run if (st["to_m"] < st["from_m"]) == (direction == "near")]

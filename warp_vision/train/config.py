@@ -387,8 +387,7 @@ LENS_PRESETS: dict[str, dict] = {
                   epochs=2, patience=2),
     # a first look (``python -m warp_vision.sim demo --quick``)
     "quick": dict(samples=2000, heldout_samples=400, epochs=80, patience=80),
-    # about 13 minutes per eye on a 2-core CPU (16,000 ONVs: in the loop the near focus step came into focus
-    # on 14 of 20 eye-steps, against 9 of 20 with 6,000; README)
+    # about 13 minutes per eye on a 2-core CPU (README: why 16,000 ONVs rather than 6,000)
     "default": {},
 }
 

@@ -30,22 +30,23 @@ from warp_vision.train.intraocular import ShallowNetTask
 SIGN_ABOVE_D = 0.5
 #: The calibration's median error is taken over training samples this near focus (D) ...
 CALIBRATE_WITHIN_D = 0.6
-#: ... at least this many of them within a quarter dioptre of an accommodation knot (else interpolated).
+#: ... at least this many of them within half a knot spacing of an accommodation knot (else interpolated).
 CALIBRATE_MIN_SAMPLES = 20
 
 
 def fit_bias(pred: np.ndarray, defocus: np.ndarray, accommodation: np.ndarray) -> np.ndarray:
     """The lens net's bias table (:attr:`warp_vision.nn.intraocular.LensNet.bias_D`): at each accommodation
     knot the median of estimate minus truth over samples near focus (where the loop's lens comes to rest)
-    whose accommodation is within 0.25 D of it. Knots with too few samples take their nearest fitted
+    whose accommodation is within half a knot spacing of it. Knots with too few samples take their nearest fitted
     neighbours' values (linear interpolation, held flat beyond the ends); none fitted: zeros."""
     pred, defocus, accommodation = (np.asarray(a, np.float64).reshape(-1) for a in (pred, defocus, accommodation))
     if not (len(pred) == len(defocus) == len(accommodation)):
         raise ValueError("fit_bias: expected as many estimates, defocuses and accommodations")
     near = np.abs(defocus) < CALIBRATE_WITHIN_D
+    half = (LENS_BIAS_KNOTS_D[1] - LENS_BIAS_KNOTS_D[0]) / 2
     fitted, values = [], []
     for k in LENS_BIAS_KNOTS_D:
-        m = near & (np.abs(accommodation - k) <= 0.25)
+        m = near & (np.abs(accommodation - k) <= half)
         if m.sum() >= CALIBRATE_MIN_SAMPLES:
             fitted.append(k)
             values.append(np.median(pred[m] - defocus[m]))
