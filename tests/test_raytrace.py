@@ -143,6 +143,19 @@ def test_reflections_add_light():
     assert not torch.allclose(a, b)
 
 
+def test_a_scene_packed_once_renders_as_packed_per_call():
+    q = retina_points(np.linspace(0, 40, 30), np.linspace(0, 330, 30))
+    sc, eye = small_scene(), NavarroEye()
+    packed = rt.scene_data(sc)
+    for pose in (EYE_POSE, eye_look_at([0.2, -0.6, 1.1], [0.0, 1.0, 1.0])):
+        np.testing.assert_array_equal(rt.render_onv(sc, q, eye, pose, 2, packed=packed).numpy(),
+                                      rt.render_onv(sc, q, eye, pose, 2).numpy())
+    with pytest.raises(ValueError, match="max_depth=0"):
+        rt.render_onv(sc, q, eye, EYE_POSE, 2, max_depth=0, packed=packed)
+    with pytest.raises(ValueError, match="packed"):
+        rt.render_onv(sc, q, eye, EYE_POSE, 2, packed=sc)
+
+
 def test_per_batch_transforms_equal_separate_renders():
     centres = np.array([[0.0, 1.0, 1.2], [0.3, 1.2, 0.9], [-0.4, 0.8, 1.4]])
     q = retina_points(np.linspace(0, 40, 50), np.linspace(0, 720, 50))

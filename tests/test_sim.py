@@ -110,6 +110,15 @@ def test_deep_penetration_is_reported():
         b.step()
 
 
+def test_set_ball_moves_its_pose_and_the_next_step_sees_it():
+    b = Body(BodyConfig(arms=False))
+    ball = b.model.jnt_bodyid[b.ball_joint]
+    b.set_ball([0.2, -0.8, 1.1], velocity=(0.0, 1.0, 0.0))
+    np.testing.assert_allclose(b.data.xpos[ball], [0.2, -0.8, 1.1])  # the poses, before any step
+    b.step(10)
+    assert b.ball_position()[1] > -0.8  # it flies on from there
+
+
 def test_fick_torsion_roundtrip():
     R = fick_rotation(0.3, -0.2)
     assert np.allclose(gaze_angles(R[:, 2]), [0.3, -0.2])

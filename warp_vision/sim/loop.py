@@ -54,7 +54,7 @@ FRAME_EVERY = 4
 SACCADE_DEG = 2.0
 EYE_MODEL_TAU = 0.03  # s
 LEAD = 0.03  # s
-BIAS_GAIN = 0.05
+BIAS_GAIN = 0.02
 VELOCITY_SMOOTHING = 0.15  # weight of the newest velocity sample in its running estimate
 MAX_TARGET_SPEED = np.radians(90.0)  # rad/s: the velocity estimate is clipped to this
 POST_SACCADE = 0.08  # s after a saccade's command during which the eye is still moving: no velocity or bias learning
@@ -296,11 +296,12 @@ class VisuomotorLoop:
 
     def render(self) -> dict:
         from warp_vision.eye.optics import NavarroEye
-        from warp_vision.kernels.render import render_onv
+        from warp_vision.kernels.render import render_onv, scene_data
 
         t0 = time.perf_counter()
         sync_scene(self.scene, self.body)
         set_eye_view(self.scene, True)
+        packed = scene_data(self.scene)  # once for every view of this state
         out = {}
         for s in SIDES:
             pupil, acc = self.body.intraocular(s)
@@ -315,10 +316,10 @@ class VisuomotorLoop:
             self._optics[s] = q
             eye = NavarroEye(*q)
             out[s] = render_onv(self.scene, self.fov[s].retina, eye, self.body.eye_pose(s)[None],
-                                self.fov[s].samples_per_receptor, seed=0) * self.light_scale
+                                self.fov[s].samples_per_receptor, seed=0, packed=packed) * self.light_scale
             if self.lens_nets is not None:  # the lens net's central field, at the S it was trained with
                 self.lens_onv[s] = render_onv(self.scene, self._lens_field(s), eye, self.body.eye_pose(s)[None],
-                                              self.lens_nets[s].samples_per_receptor, seed=0) * self.light_scale
+                                              self.lens_nets[s].samples_per_receptor, seed=0, packed=packed) * self.light_scale
         self.timing["render"] += time.perf_counter() - t0
         self.onv = out
         return out

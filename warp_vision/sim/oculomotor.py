@@ -54,7 +54,11 @@ def muscle_torques(body: Body, actuators, dofs, qpos, data: mujoco.MjData | None
     d.qpos[:] = qpos
     d.qvel[:] = 0
     d.act[:] = 0
-    mujoco.mj_forward(m, d)
+    # what the torques need of mj_forward (positions, tendons and moment arms; passive and bias forces;
+    # the actuators'), without its constraint solve and accelerations
+    mujoco.mj_fwdPosition(m, d)
+    mujoco.mj_fwdVelocity(m, d)
+    mujoco.mj_fwdActuation(m, d)
     adr = m.actuator_actadr[np.asarray(actuators)]
     tau0 = d.qfrc_actuator[dofs].copy()
     rest = d.qfrc_passive[dofs] - d.qfrc_bias[dofs]

@@ -26,7 +26,7 @@ from warp_vision.eye.optics import NavarroEye
 from warp_vision.kernels import launch as _launch
 from warp_vision.kernels.render.eye_rays import _check_samples, _retina_positions, eye_rays, eye_rays_bytes
 from warp_vision.kernels.render.scene_data import scene_data, to_warp_transforms
-from warp_vision.kernels.render.shade import camera_kernel, closest_hit_kernel, photoreceptors_per_thread, radiance_kernel, render_onv_kernel
+from warp_vision.kernels.render.shade import SceneData, camera_kernel, closest_hit_kernel, photoreceptors_per_thread, radiance_kernel, render_onv_kernel
 from warp_vision.resources import require_memory
 
 #: CPU launch splitting for tracing kernels (``launch_split`` keywords): threads are heavy and unequal
@@ -82,6 +82,7 @@ def render_onv(
     seed: int = 0,
     device: str = "cpu",
     max_depth: int = 2,
+    packed=None,
 ) -> torch.Tensor:
     """Render the Optic Nerve Vector of B eye poses: a float32 tensor [B, 3P] (linear irradiance).
 
@@ -92,6 +93,9 @@ def render_onv(
     eye_poses: [B, 4, 4] world-from-eye rigid transforms (m).
     samples_per_receptor: S rays per photoreceptor and channel through stratified pupil points.
     seed: the pupil sampling's seed; max_depth: mirror bounces followed (>= 0).
+    packed: ``scene_data(scene, device, max_depth)`` made for the scene as it is now, when several eyes
+        render one state of it (packing its transforms and lights costs about 1.5 ms a call in the loop's
+        scene); by default the scene is packed here.
     """
     T = _poses("eye_poses", eye_poses)
     B = T.shape[0]
@@ -105,7 +109,13 @@ def render_onv(
     onv = torch.zeros((B, 3 * rays.P), dtype=torch.float32, device=device)
     if B == 0:
         return onv
-    sc = scene_data(scene, device, max_depth)
+    if packed is None:
+        sc = scene_data(scene, device, max_depth)
+    elif getattr(packed, "_cls", None) is not SceneData or packed.max_depth != max_depth:
+        what = f"max_depth={packed.max_depth}" if getattr(packed, "_cls", None) is SceneData else type(packed).__name__
+        raise ValueError(f"packed: expected scene_data(scene, device, max_depth={max_depth}), got {what}")
+    else:
+        sc = packed
     G = photoreceptors_per_thread(rays.S)
     _launch.launch_split(
         render_onv_kernel,
