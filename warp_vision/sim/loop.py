@@ -54,6 +54,10 @@ FRAME_EVERY = 4
 SACCADE_DEG = 2.0
 EYE_MODEL_TAU = 0.03  # s
 LEAD = 0.03  # s
+#: The bias integrator's gain per period: a time constant of 0.5 s. It takes out the muscles' static error,
+#: which changes slowly with the gaze; at 0.05 (0.2 s) it also integrated the foveation nets' frame-to-frame
+#: error, and at 25 frames a second (a gain of 0.2 a frame) set the gaze oscillating about the ball at about
+#: 5 Hz (``python -m warp_vision.bench loop``; README has the numbers).
 BIAS_GAIN = 0.02
 VELOCITY_SMOOTHING = 0.15  # weight of the newest velocity sample in its running estimate
 MAX_TARGET_SPEED = np.radians(90.0)  # rad/s: the velocity estimate is clipped to this
