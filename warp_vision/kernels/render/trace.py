@@ -109,13 +109,11 @@ def render_onv(
     onv = torch.zeros((B, 3 * rays.P), dtype=torch.float32, device=device)
     if B == 0:
         return onv
-    if packed is None:
-        sc = scene_data(scene, device, max_depth)
-    elif getattr(packed, "_cls", None) is not SceneData or packed.max_depth != max_depth:
-        what = f"max_depth={packed.max_depth}" if getattr(packed, "_cls", None) is SceneData else type(packed).__name__
-        raise ValueError(f"packed: expected scene_data(scene, device, max_depth={max_depth}), got {what}")
-    else:
-        sc = packed
+    sc = scene_data(scene, device, max_depth) if packed is None else packed
+    if getattr(sc, "_cls", None) is not SceneData:
+        raise ValueError(f"packed: expected scene_data(scene, device, max_depth={max_depth}), got {type(sc).__name__}")
+    if sc.max_depth != max_depth:
+        raise ValueError(f"packed: expected scene_data(scene, device, max_depth={max_depth}), got max_depth={sc.max_depth}")
     G = photoreceptors_per_thread(rays.S)
     _launch.launch_split(
         render_onv_kernel,
