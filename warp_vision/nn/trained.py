@@ -38,6 +38,11 @@ def _foveation(spec: dict):
         torch.manual_seed(spec["seed"])
         backbone = RetinaConv(_array(spec["photoreceptor_xy"]), spec["layers"], spec["reduction"], spec["channels"], spec["seed"])
         return RetinaConvFoveationNet(backbone, angles)
+    if spec["model"] == "cnn":
+        from warp_vision.nn.retina_cnn import RetinaCNNFoveationNet
+
+        torch.manual_seed(spec["seed"])
+        return RetinaCNNFoveationNet(angles, spec["image_size"], spec["channels"])
     return foveation_net(spec["model"], onv_positions(_array(spec["photoreceptor_xy"])), spec["layers"],
                          spec["receptive_field"], spec["reduction"], spec["seed"], head=spec["head"],
                          input_angles=None if angles is None else np.repeat(angles, 3, axis=0))
@@ -81,6 +86,11 @@ def _arm(spec: dict):
 
 
 def _limb(spec: dict):
+    if spec["model"] == "cnn":
+        from warp_vision.nn.retina_cnn import RetinaCNNLimbNet
+
+        torch.manual_seed(spec["seed"])
+        return RetinaCNNLimbNet(_array(spec["photoreceptor_angles"]), spec["image_size"], spec["channels"])
     from warp_vision.nn.connectivity import onv_positions
     from warp_vision.nn.heads import limb_vision_net
 

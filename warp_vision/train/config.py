@@ -11,7 +11,7 @@ from warp_vision.data.foveation import FoveationDataConfig
 
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
-CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv"], "eye": ["left", "right"],
+CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn"], "eye": ["left", "right"],
            "onv_dtype": ["auto", "float16", "bfloat16", "float32"],
            "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"],
            "input_norm": ["auto", "sample", "dataset"], "generator": [7, 8]}
@@ -46,7 +46,7 @@ def onv_dtype_name(cfg) -> str:
     store's) for a liNet and float32 for the fc baseline."""
     if cfg.onv_dtype != "auto":
         return cfg.onv_dtype
-    return "float32" if cfg.model in ("fc", "conv") else "float16"
+    return "float32" if cfg.model in ("fc", "conv", "cnn") else "float16"
 
 
 def epoch_lr(cfg, epoch: int) -> float:
@@ -78,13 +78,14 @@ class TrainConfig:
     generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room) or 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms; README has why 7 is still the default)
     # the model
     input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset); auto: sample for generator 8, dataset for 7
-    model: str = "linet"  # linet; fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel)
+    model: str = "linet"  # linet; fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the ball-finder for generator 8)
     head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig. 5), or auto (softargmax for a liNet, linear for fc)
     layers: int = 4  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units (conv: of its sites)
-    channels: int = 16  # conv only: channels of the first layer, doubling per layer up to 64
+    channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
     # optimisation
+    init: str = ""  # a foveation run directory whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
     loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls too small or hidden to localise) or mse (the paper's)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
@@ -129,10 +130,10 @@ class TrainConfig:
         _check_common(self, PRESETS, ("samples", "photoreceptors", "samples_per_receptor"))
         if self.model == "fc" and self.head == "softargmax":
             raise ValueError("head: the fc baseline has no unit positions to vote with; use --head linear")
-        if self.model == "conv" and self.head == "linear":
-            raise ValueError("head: the conv net reads out by its saliency soft-argmax; use --head auto or softargmax")
-        if self.model == "conv" and self.onv_dtype not in ("auto", "float32"):
-            raise ValueError(f"onv_dtype: the conv net reads float32 ONVs, got {self.onv_dtype!r}")
+        if self.model in ("conv", "cnn") and self.head == "linear":
+            raise ValueError(f"head: the {self.model} net reads out by a soft-argmax of its heat map; use --head auto or softargmax")
+        if self.model in ("conv", "cnn") and self.onv_dtype not in ("auto", "float32"):
+            raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
         if self.channels < 1:
             raise ValueError(f"channels: expected a positive integer, got {self.channels}")
         if not (0 < self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
@@ -542,7 +543,8 @@ class LimbTrainConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel (the loop's)
     data_seed: int = 0  # seed of the dataset and of the train/val/test split
     # the model
-    model: str = "linet"  # linet, or fc: the fully-connected twin with the same hidden sizes
+    model: str = "linet"  # linet, fc: the fully-connected twin with the same hidden sizes, or cnn: a CNN on the ONV binned to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py)
+    channels: int = 16  # cnn only: channels of its first stage (x1, 2, 4, 6 over its four stages)
     layers: int = 3  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units
@@ -581,6 +583,8 @@ class LimbTrainConfig:
             raise ValueError(f"task: expected 'limb', got {self.task!r}")
         if not self.near_weight_m > 0:
             raise ValueError(f"near_weight_m: expected > 0 m, got {self.near_weight_m}")
+        if self.model not in ("linet", "fc", "cnn"):
+            raise ValueError(f"model: expected linet, fc or cnn for limb vision, got {self.model!r}")
         if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
             raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
         if not self.out:

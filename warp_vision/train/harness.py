@@ -94,9 +94,12 @@ class Task:
     @classmethod
     def resolve_paths(cls, cfg) -> None:
         """Make ``cfg``'s paths absolute (a new run, before anything is written): ``out`` and the dataset
-        directory (the cache directory when ``data_dir`` is empty). Tasks with more paths extend this."""
+        directory (the cache directory when ``data_dir`` is empty), and a warm start's ``init``. Tasks with
+        more paths extend this."""
         cfg.out = str(Path(cfg.out).resolve())
         cfg.data_dir = str(dataset_dir(cfg, cls.name, cfg.data_config()).resolve())
+        if getattr(cfg, "init", ""):
+            cfg.init = str(Path(cfg.init).resolve())
 
     def dataset_bytes(self) -> int:
         """An estimate of the dataset's size (on disk, and in memory once loaded), for the preflight."""
@@ -283,6 +286,17 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     return {k: dd.all_mean(v / max(count, 1)) for k, v in sums.items()}
 
 
+def warm_start(model: torch.nn.Module, run_dir) -> None:
+    """Start ``model`` from the best weights of the run in ``run_dir`` (a net of the same model and sizes,
+    e.g. the other eye's; the normalisation is this run's own, set after). A mismatch is a ValueError."""
+    best = Path(run_dir) / "best.pt"
+    state = read_checkpoint(best)["model"]
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValueError(f"init: {best} holds another net than this run builds ({str(e).splitlines()[0]})") from None
+
+
 def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, progress: bool):
     """Load the data, fit the normalisation, build the net and optimiser, restore a resumed run from
     checkpoint ``ck``."""
@@ -291,6 +305,8 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
     tr, va, te = task.splits()
     norm = task.fit_norm(tr)
     model = build_net(task.net_spec(), device)
+    if ck is None and getattr(cfg, "init", ""):
+        warm_start(model, cfg.init)
     task.prepare(model, norm)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
     state = _State(task.selection)

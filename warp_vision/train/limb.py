@@ -89,16 +89,25 @@ class LimbTask(harness.OnvTask):
         return {**fit_input_norm(self.onv16, train, per_sample=True), "target_mean": t.mean(0), "target_std": t.std(0).clamp_min(1e-6)}
 
     def net_spec(self):
+        from warp_vision.eye.optics import NavarroEye
+        from warp_vision.train.foveation import CNN_IMAGE_SIZE
+
         c = self.cfg
-        return {"kind": "limb", "model": c.model, "layers": c.layers, "receptive_field": c.receptive_field,
+        spec = {"kind": "limb", "model": c.model, "layers": c.layers, "receptive_field": c.receptive_field,
                 "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
+        if c.model == "cnn":  # its image's warp: the directions the photoreceptors see at the default optics
+            spec.update(channels=c.channels, image_size=CNN_IMAGE_SIZE,
+                        photoreceptor_angles=torch.from_numpy(np.asarray(self.retina.visual_angles(NavarroEye()), np.float64)))
+        return spec
 
     def prepare(self, model, norm):
         model.set_target_norm(norm["target_mean"], norm["target_std"])
         set_input_standardisation(model, norm)
 
     def describe(self, model):
+        if self.cfg.model == "cnn":
+            return f"limb vision cnn ({model.warp.size} x {model.warp.size} foveated image): {sum(p.numel() for p in model.parameters()):,} parameters"
         b = model.backbone
         return (f"limb vision {self.cfg.model}: {sum(p.numel() for p in model.parameters()):,} parameters, "
                 f"layers {getattr(b, 'layer_sizes', '?')}")
@@ -112,9 +121,17 @@ class LimbTask(harness.OnvTask):
 
     def batch_loss(self, net, idx, norm, device):
         y = self.target[idx]
+        x = net_input(self.onv16[idx], norm, device, self.onv_dtype)
+        if self.cfg.model == "cnn":  # a turned and mirrored copy of the world, its discrepancies turned alike
+            from warp_vision.nn.retina_cnn import ROTATIONS, RetinaCNNLimbNet
+
+            k = int(torch.randint(2 * ROTATIONS, ()))
+            y = RetinaCNNLimbNet.transform_targets(y, k)
+            pred = net(x, transform=k)
+        else:
+            pred = net(x)
         w = self._weights(y).to(device)
         z = ((y - norm["target_mean"]) / norm["target_std"]).to(device)
-        pred = net(net_input(self.onv16[idx], norm, device, self.onv_dtype))
         loss = (torch.nn.functional.huber_loss(pred, z, delta=HUBER_DELTA, reduction="none") * w).mean()
         return loss, {"loss": float(loss.detach())}
 

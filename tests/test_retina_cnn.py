@@ -1,0 +1,156 @@
+"""The CNN on the foveated image: the binning against a dense reference, the augmentations' geometry, the
+local read-out, bad inputs, and a training run the simulation can load."""
+
+import numpy as np
+import pytest
+import torch
+
+from warp_vision.eye.retina import Retina
+from warp_vision.frames import gaze_angles, gaze_directions
+from warp_vision.nn.retina_cnn import ROTATIONS, RetinaCNNFoveationNet, transform_matrix
+
+
+@pytest.fixture(scope="module")
+def net():
+    angles = Retina.log_polar(3000, seed=1).visual_angles()
+    torch.manual_seed(0)
+    return RetinaCNNFoveationNet(angles, size=32, channels=4)
+
+
+def dense_binning(net, k):
+    pix, pr, w = net.binning(k)
+    m = torch.zeros(net.warp.size ** 2, net.P)
+    m.index_put_((pix, pr), w, accumulate=True)
+    return m
+
+
+def test_the_image_is_the_dense_binning_matrix_applied_to_each_channel(net):
+    x = torch.randn(3, 3 * net.P)
+    for k in (0, 5):
+        m = dense_binning(net, k)
+        ref = torch.einsum("qp,bpc->bcq", m, x.reshape(3, net.P, 3)).reshape(3, 3, net.warp.size, net.warp.size)
+        assert torch.allclose(net.image(x, k), ref, atol=1e-5)
+        rows = m.sum(1)
+        inside = rows > 0
+        assert torch.allclose(rows[inside], torch.ones(int(inside.sum())), atol=1e-5)  # each pixel a weighted mean
+        assert inside.float().mean() > 0.6  # black only beyond the retina's rim
+
+
+@pytest.mark.parametrize("k", [0, 1, 6, 10, 2 * ROTATIONS - 1])
+def test_a_spot_appears_where_its_transformed_direction_says(net, k):
+    target = torch.tensor([[0.35, -0.2]], dtype=torch.float64)
+    spot = (net._dirs @ gaze_directions(target.numpy())[0]) > np.cos(np.radians(4.0))
+    x = torch.zeros(1, net.P, 3)
+    x[0, torch.as_tensor(spot)] = 1.0
+    img = net.image(x.reshape(1, -1), k)[0, 0]
+    seen = net.transform_targets(target, k)[0]
+    uv = net.warp.dirs_to_uv(gaze_directions(seen.numpy()))
+    n = net.warp.size
+    col, row = (uv[0] + 1) / 2 * n - 0.5, (1 - uv[1]) / 2 * n - 0.5
+    rr, cc = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    w = img.numpy()
+    centroid = (float((w * rr).sum() / w.sum()), float((w * cc).sum() / w.sum()))
+    assert abs(centroid[0] - row) < 1.0 and abs(centroid[1] - col) < 1.0
+
+
+def test_transforms_are_rotations_about_the_axis_and_mirrors():
+    assert np.allclose(transform_matrix(0), np.eye(3))
+    for k in range(2 * ROTATIONS):
+        m = transform_matrix(k)
+        assert np.allclose(m @ m.T, np.eye(3)) and np.isclose(np.linalg.det(m), -1.0 if k % 2 else 1.0)
+        assert np.allclose(m[:, 2], [0, 0, 1])  # the optical axis stays put
+
+
+def test_the_read_out_is_the_local_soft_argmax_around_the_peak(net):
+    m = net.warp.size // 2
+    logits = torch.full((1, m * m), -20.0)
+    peak, far = 5 * m + 6, 12 * m + 13
+    logits[0, peak] = 10.0
+    logits[0, far] = 9.9  # a near-equal peak elsewhere (a lamp) does not pull the estimate
+    out = net.read_out(logits)[0].double()
+    assert torch.allclose(out, gaze_angles(net.cell_dirs[peak].double()), atol=1e-3)
+    logits[0, peak + 1] = 10.0  # two equal neighbours: halfway between them
+    mid = gaze_angles((net.cell_dirs[peak] + net.cell_dirs[peak + 1]).double())
+    assert torch.allclose(net.read_out(logits)[0].double(), mid, atol=1e-3)
+
+
+def test_the_heatmap_loss_targets_the_cell_of_the_true_direction(net):
+    cell = 9 * (net.warp.size // 2) + 4
+    target = gaze_angles(net.cell_dirs[cell : cell + 1].double()).float()
+    logits = torch.zeros(1, net.cell_dirs.shape[0])
+    uniform = float(net.heatmap_loss(logits, target))
+    logits[0, cell] = 20.0
+    assert float(net.heatmap_loss(logits, target)) < 1e-6 < uniform
+
+
+def test_bad_inputs_are_refused(net):
+    with pytest.raises(ValueError, match="onv"):
+        net(torch.zeros(2, 3 * net.P + 3))
+    with pytest.raises(ValueError, match="size"):
+        RetinaCNNFoveationNet(gaze_angles(net._dirs), size=40)
+    with pytest.raises(ValueError, match="photoreceptor_angles"):
+        RetinaCNNFoveationNet(np.full((100, 2), np.nan))
+    with pytest.raises(ValueError, match="window"):
+        RetinaCNNFoveationNet(gaze_angles(net._dirs), size=32, window=4)
+
+
+def test_forward_gives_standardised_angles_with_gradients(net):
+    x = torch.randn(2, 3 * net.P, requires_grad=True)
+    out, logits = net(x, transform=3, with_logits=True)
+    assert out.shape == (2, 2) and logits.shape == (2, (net.warp.size // 2) ** 2)
+    (out.sum() + logits.logsumexp(1).sum()).backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path):
+    from warp_vision.nn.trained import load_net
+    from warp_vision.train import foveation
+    from warp_vision.train.config import resolve
+
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data"), "model": "cnn",
+                            "channels": 4, "epochs": 2})
+    summary = foveation.run(cfg, progress=False, log=lambda *a: None)
+    assert np.isfinite(summary["test_median_deg"])
+    model, ck = load_net(tmp_path / "run")
+    assert isinstance(model, RetinaCNNFoveationNet) and ck["net"]["onv_dtype"] == "float32"
+    with pytest.raises(ValueError, match="head"):
+        resolve("smoke", {"model": "cnn", "head": "linear"}).validate()
+
+    # --init: another run (the other eye) starts from these weights; a net of other sizes is refused
+    from warp_vision.nn.trained import build_net
+    from warp_vision.train.harness import warm_start
+
+    other = build_net({**ck["net"], "seed": 5})
+    assert not torch.equal(other.heat.weight, model.heat.weight)
+    warm_start(other, tmp_path / "run")
+    assert all(torch.equal(a, b) for a, b in zip(other.state_dict().values(), model.state_dict().values()))
+    with pytest.raises(ValueError, match="init"):
+        warm_start(build_net({**ck["net"], "channels": 8}), tmp_path / "run")
+
+
+def test_limb_targets_turn_with_the_image_and_mirrors_swap_the_arms():
+    from warp_vision.nn.retina_cnn import RetinaCNNLimbNet
+
+    t = torch.tensor([[0.1, 0.2, 0.3, -0.4, 0.05, 0.6]], dtype=torch.float64)
+    assert torch.equal(RetinaCNNLimbNet.transform_targets(t, 0), t)
+    turned = RetinaCNNLimbNet.transform_targets(t, 2)  # a turn, no mirror: each arm's vector turned, lengths kept
+    assert torch.allclose(turned.reshape(2, 3).norm(dim=1), t.reshape(2, 3).norm(dim=1))
+    assert torch.allclose(turned[0, [2, 5]], t[0, [2, 5]]) and not torch.allclose(turned, t)
+    mirrored = RetinaCNNLimbNet.transform_targets(t, 1)  # x flipped, and the left arm is now the right one
+    assert torch.allclose(mirrored, torch.tensor([[0.4, 0.05, 0.6, -0.1, 0.2, 0.3]], dtype=torch.float64))
+
+
+def test_a_cnn_limb_run_saves_a_net_the_simulation_can_load(tmp_path):
+    from warp_vision.nn.retina_cnn import RetinaCNNLimbNet
+    from warp_vision.nn.trained import load_net
+    from warp_vision.train import limb
+    from warp_vision.train.config import LIMB_PRESETS, LimbTrainConfig, resolve
+
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data"), "model": "cnn", "channels": 4},
+                  LimbTrainConfig, LIMB_PRESETS)
+    summary = limb.run(cfg, progress=False, log=lambda *a: None)
+    assert np.isfinite(summary["test"]["near_median_cm"]) or summary["test"]["near_pairs"] == 0
+    model, ck = load_net(tmp_path / "run")
+    assert isinstance(model, RetinaCNNLimbNet) and model(torch.zeros(2, 3 * model.P)).shape == (2, 6)
+    with pytest.raises(ValueError, match="model"):
+        resolve("smoke", {"model": "conv"}, LimbTrainConfig, LIMB_PRESETS).validate()

@@ -1,0 +1,254 @@
+"""A standard CNN on the retina resampled to a foveated image: the ball-finder for ordinary scenes.
+
+The liNet (:mod:`warp_vision.nn.linet`) gives every connection its own weight and, on generator v8's
+ordinary balls among furniture, lamps and arms, memorises its training set; the stencil convolution on
+the irregular layout (:mod:`warp_vision.nn.retina_conv`) shares its weights but stays shallow and coarse
+(README has both measurements). This module takes the route of image detectors instead:
+
+- **Resampling** (fixed, no weights). The ONV is binned onto a ``size`` x ``size`` image whose pixel at
+  (u, v) in [-1, 1]^2 shows the direction at eccentricity ``max_ecc * |(u, v)| ** power`` and polar
+  angle ``atan2(v, u)`` in the eye frame (x right, y up, z the optical axis). ``power`` > 1 magnifies the
+  centre as the retina does (about 0.55 deg a pixel at 2 deg, 1.5 deg at 45 deg for the defaults, where
+  the photoreceptor spacing is 0.15 and 2.4 deg). Each pixel is the mean of the photoreceptors that fall
+  in it; a pixel that none falls in takes the inverse-distance mean of its 4 nearest. Beyond the retina's
+  rim the image is 0. The map is a sparse [pixels, P] matrix, applied with one ``index_add_`` per batch.
+- **Augmentation** (training only). The same binning with the pixel directions turned about the optical
+  axis and mirrored (``transform``): the image of a rotated, mirrored world, whose target is turned the
+  same way (:meth:`transform_targets`). A sphere stays a sphere, so the net sees every ball position,
+  orientation and handedness from one rendered ONV.
+- **Backbone**: a 4-stage CNN (3 x 3 convolutions, batch norm, ReLU; strides 2, 2, 2, 2) with a feature
+  pyramid back up to half resolution: a heat map of the ball on a (size/2)^2 grid of cells, each cell
+  with its visual direction.
+- **Read-out**: the arg-max cell's ``window`` x ``window`` neighbourhood, with every cell within
+  ``window_deg`` of it, soft-arg-maxed over the cells' unit direction vectors, gives the ball's direction
+  as (yaw, pitch), standardised as the targets are. Local, not global: a lamp elsewhere on the map cannot
+  pull the estimate toward it; the angular part covers a near ball at the magnified centre, whose heat
+  is a plateau many cells wide (in the loop a fixated ball's estimate otherwise wandered over its disc). Training adds a
+  cross-entropy of the heat map against the cell of the true direction (:meth:`heatmap_loss`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor, nn
+
+from warp_vision.frames import gaze_angles, gaze_directions
+
+#: deg: the read-out's soft-arg-max also takes every cell within this angle of the heat map's peak
+WINDOW_DEG = 6.0
+#: transforms for augmentation: ROTATIONS angles about the optical axis, each plain and mirrored
+ROTATIONS = 24
+
+
+def transform_matrix(k: int) -> np.ndarray:
+    """The 3 x 3 map of augmentation ``k`` in [0, 2 * ROTATIONS): a turn of 2 pi (k // 2) / ROTATIONS about
+    the optical axis, mirrored in x when k is odd. k = 0 is the identity."""
+    a = 2 * math.pi * (k // 2) / ROTATIONS
+    c, s = math.cos(a), math.sin(a)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return rot @ np.diag([-1.0 if k % 2 else 1.0, 1.0, 1.0])
+
+
+class FoveatedImage:
+    """The warp between image coordinates (u, v) in [-1, 1]^2 and eye-frame directions."""
+
+    def __init__(self, size: int, max_ecc_deg: float, power: float):
+        if not (isinstance(size, int) and size >= 16 and size % 16 == 0):
+            raise ValueError(f"size: expected a multiple of 16, at least 16, got {size!r}")
+        if not (0 < max_ecc_deg < 90 and power >= 1):
+            raise ValueError(f"max_ecc_deg in (0, 90) and power >= 1 expected, got {max_ecc_deg!r}, {power!r}")
+        self.size, self.max_ecc, self.power = size, math.radians(max_ecc_deg), float(power)
+
+    def uv_to_dirs(self, uv: np.ndarray) -> np.ndarray:
+        rho = np.hypot(uv[..., 0], uv[..., 1])
+        ecc = self.max_ecc * rho ** self.power
+        phi = np.arctan2(uv[..., 1], uv[..., 0])
+        s = np.sin(ecc)
+        return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(ecc)], -1)
+
+    def dirs_to_uv(self, d: np.ndarray) -> np.ndarray:
+        ecc = np.arccos(np.clip(d[..., 2], -1.0, 1.0))
+        rho = (ecc / self.max_ecc) ** (1.0 / self.power)
+        phi = np.arctan2(d[..., 1], d[..., 0])
+        return np.stack([rho * np.cos(phi), rho * np.sin(phi)], -1)
+
+    def grid_uv(self, n: int) -> np.ndarray:
+        """[n * n, 2] centres of an n x n grid over [-1, 1]^2, row-major with v falling down the rows."""
+        c = (np.arange(n) + 0.5) / n * 2 - 1
+        u, v = np.meshgrid(c, -c)
+        return np.stack([u.ravel(), v.ravel()], -1)
+
+    def binning(self, photoreceptor_dirs: np.ndarray, m: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
+        """(pixel, photoreceptor, weight), the entries of the sparse [size^2, P] matrix that bins the ONV of photoreceptors at ``photoreceptor_dirs``
+        into the image whose pixel directions are mapped by ``m`` (3 x 3) before looking them up."""
+        n = self.size
+        # photoreceptor p lands in the pixel of m^-1 d_p (the pixel whose turned direction is d_p)
+        uv = self.dirs_to_uv(photoreceptor_dirs @ m)  # rows: (m^T d)^T, m orthogonal
+        col = np.floor((uv[:, 0] + 1) / 2 * n).astype(np.int64)
+        row = np.floor((1 - uv[:, 1]) / 2 * n).astype(np.int64)
+        inside = (col >= 0) & (col < n) & (row >= 0) & (row < n)
+        pix, pr = row[inside] * n + col[inside], np.flatnonzero(inside)
+        counts = np.bincount(pix, minlength=n * n)
+        rows, cols, vals = [pix], [pr], [1.0 / counts[pix]]
+        empty = np.flatnonzero(counts == 0)
+        if len(empty):
+            want = self.uv_to_dirs(self.grid_uv(n)[empty]) @ m.T
+            dist, nn_idx = cKDTree(photoreceptor_dirs).query(want, k=4)
+            spacing = np.median(cKDTree(photoreceptor_dirs).query(photoreceptor_dirs[:: max(1, len(photoreceptor_dirs) // 500)], k=2)[0][:, 1])
+            w = 1.0 / np.maximum(dist, 1e-9)
+            w /= w.sum(1, keepdims=True)
+            # beyond the rim (nearest photoreceptor far beyond the local spacing there): black
+            rim = dist[:, 0] > max(0.1, 20 * spacing)
+            w[rim] = 0.0
+            rows.append(np.repeat(empty, 4))
+            cols.append(nn_idx.ravel())
+            vals.append(w.ravel())
+        return (torch.as_tensor(np.concatenate(rows)), torch.as_tensor(np.concatenate(cols)),
+                torch.as_tensor(np.concatenate(vals), dtype=torch.float32))
+
+
+def _cbr(i: int, o: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(i, o, 3, stride, 1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True))
+
+
+class RetinaImageCNN(nn.Module):
+    """What the foveation and limb vision CNNs share: the ONV's foveated image (and its augmentations),
+    a 4-stage CNN over it, and the targets' standardisation buffers (``outputs`` values)."""
+
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int, channels: int, max_ecc_deg: float, power: float,
+                 outputs: int):
+        super().__init__()
+        a = np.asarray(photoreceptor_angles, dtype=np.float64)
+        if a.ndim != 2 or a.shape[1] != 2 or len(a) < 16 or not np.isfinite(a).all():
+            raise ValueError(f"photoreceptor_angles: expected finite values of shape (P >= 16, 2), got {a.shape}")
+        if not (isinstance(channels, int) and channels >= 1):
+            raise ValueError(f"channels: expected a positive int, got {channels!r}")
+        self.warp = FoveatedImage(size, max_ecc_deg, power)
+        self.P = len(a)
+        self._dirs = gaze_directions(a)
+        self._binnings: dict[int, tuple] = {0: self.warp.binning(self._dirs, np.eye(3))}
+        self.stage_channels = [channels, 2 * channels, 4 * channels, 6 * channels]
+        c = self.stage_channels
+        self.stem = nn.Sequential(_cbr(3, c[0], 2), _cbr(c[0], c[0]))
+        self.down = nn.ModuleList([nn.Sequential(_cbr(c[i], c[i + 1], 2), _cbr(c[i + 1], c[i + 1])) for i in range(3)])
+        self.register_buffer("target_mean", torch.zeros(outputs))
+        self.register_buffer("target_std", torch.ones(outputs))
+
+    def set_target_norm(self, mean: Tensor, std: Tensor) -> None:
+        with torch.no_grad():
+            self.target_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+            self.target_std.copy_(torch.as_tensor(std, dtype=torch.float32))
+
+    def binning(self, k: int) -> tuple[Tensor, Tensor, Tensor]:
+        if k not in self._binnings:
+            self._binnings[k] = self.warp.binning(self._dirs, transform_matrix(k))
+        return self._binnings[k]
+
+    def image(self, x: Tensor, k: int = 0) -> Tensor:
+        """ONV inputs [B, 3P] -> the foveated image [B, 3, size, size] of augmentation ``k``."""
+        if x.ndim != 2 or x.shape[1] != 3 * self.P:
+            raise ValueError(f"onv: expected [B, {3 * self.P}], got {tuple(x.shape)}")
+        b, n = x.shape[0], self.warp.size
+        cols = x.reshape(b, self.P, 3).permute(1, 0, 2).reshape(self.P, b * 3).float()
+        pix, pr, w = (t.to(x.device) for t in self.binning(k))
+        img = cols.new_zeros(n * n, b * 3).index_add_(0, pix, cols[pr] * w[:, None])  # [n^2, B*3]
+        return img.reshape(n, n, b, 3).permute(2, 3, 0, 1).contiguous(memory_format=torch.channels_last)
+
+    def features(self, img: Tensor) -> list[Tensor]:
+        """The four stages' feature maps (1/2, 1/4, 1/8, 1/16 of the image's size)."""
+        feats = [self.stem(img)]
+        for d in self.down:
+            feats.append(d(feats[-1]))
+        return feats
+
+
+class RetinaCNNFoveationNet(RetinaImageCNN):
+    """ONV [B, 3P] (standardised log responses, :func:`warp_vision.nn.trained.net_input`) -> standardised
+    (yaw, pitch) [B, 2] of the ball: resampling to a foveated image, a CNN with a feature pyramid, a
+    heat map and a local soft-arg-max (module docstring)."""
+
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = 96, channels: int = 16, max_ecc_deg: float = 50.0,
+                 power: float = 1.5, window: int = 5, window_deg: float = WINDOW_DEG):
+        if not (isinstance(window, int) and window >= 1 and window % 2 == 1):
+            raise ValueError(f"window: expected an odd positive int, got {window!r}")
+        if not 0 <= window_deg < 90:
+            raise ValueError(f"window_deg: expected degrees in [0, 90), got {window_deg!r}")
+        super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=2)
+        self.window, self.window_deg = window, float(window_deg)
+        lat = 2 * channels
+        self.lateral = nn.ModuleList(nn.Conv2d(ch, lat, 1) for ch in self.stage_channels)
+        self.smooth = _cbr(lat, lat)
+        self.heat = nn.Conv2d(lat, 1, 1)
+        cells = size // 2
+        self.register_buffer("cell_dirs", torch.as_tensor(self.warp.uv_to_dirs(self.warp.grid_uv(cells)), dtype=torch.float32),
+                             persistent=False)
+
+    def logits(self, img: Tensor) -> Tensor:
+        """Heat-map logits [B, cells^2] of a foveated image."""
+        feats = self.features(img)
+        p = self.lateral[-1](feats[-1])
+        for i in range(len(feats) - 2, -1, -1):
+            p = self.lateral[i](feats[i]) + nn.functional.interpolate(p, size=feats[i].shape[-2:], mode="nearest")
+        return self.heat(self.smooth(p)).flatten(1)
+
+    def read_out(self, logits: Tensor) -> Tensor:
+        """(yaw, pitch) [B, 2] rad: the soft-arg-max of the heat map over the cells near its peak: within
+        ``window`` cells of it (the coarse periphery) or within ``window_deg`` degrees of its direction
+        (the magnified centre, where a near ball spans many cells and its heat is a plateau)."""
+        m = self.warp.size // 2
+        peak = logits.detach().argmax(1)
+        r = self.window // 2
+        cell = torch.arange(m * m, device=logits.device)
+        near_cells = ((cell[None] // m - (peak // m)[:, None]).abs() <= r) & ((cell[None] % m - (peak % m)[:, None]).abs() <= r)
+        near_angle = self.cell_dirs[peak] @ self.cell_dirs.T >= math.cos(math.radians(self.window_deg))
+        w = logits.masked_fill(~(near_cells | near_angle), float("-inf")).softmax(1)
+        return gaze_angles(w @ self.cell_dirs)
+
+    def forward(self, x: Tensor, transform: int = 0, with_logits: bool = False):
+        """Standardised (yaw, pitch) [B, 2] of the ball in the image of augmentation ``transform``; with
+        ``with_logits`` also the heat map's logits (for :meth:`heatmap_loss`)."""
+        logits = self.logits(self.image(x, transform))
+        out = (self.read_out(logits) - self.target_mean) / self.target_std
+        return (out, logits) if with_logits else out
+
+    def transform_targets(self, target: Tensor, k: int) -> Tensor:
+        """(yaw, pitch) [B, 2] rad as seen in the image of augmentation ``k`` (the world mapped by m^-1)."""
+        m = torch.as_tensor(transform_matrix(k), dtype=torch.float64)
+        d = torch.as_tensor(gaze_directions(target.double().cpu().numpy())) @ m  # rows (m^T d)^T
+        return gaze_angles(d).to(target)
+
+    def heatmap_loss(self, logits: Tensor, target: Tensor) -> Tensor:
+        """Cross-entropy of the heat map against the cell nearest each true direction ``target`` [B, 2] rad."""
+        d = torch.as_tensor(gaze_directions(target.double().cpu().numpy()), dtype=torch.float32, device=logits.device)
+        nearest = (d @ self.cell_dirs.T).argmax(1)
+        return nn.functional.cross_entropy(logits, nearest)
+
+
+class RetinaCNNLimbNet(RetinaImageCNN):
+    """ONV [B, 3P] -> standardised hand-to-ball discrepancies [B, 6] (``ball - hand`` of the left and of
+    the right arm, eye frame; the limb vision task, :mod:`warp_vision.train.limb`): the foveated image
+    and CNN of :class:`RetinaImageCNN`, its last stage's map flattened (where things are matters) into a
+    hidden layer of ``hidden`` units and a linear read-out."""
+
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = 96, channels: int = 16, max_ecc_deg: float = 50.0,
+                 power: float = 1.5, hidden: int = 128):
+        super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=6)
+        last = self.stage_channels[-1] * (size // 16) ** 2
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 6))
+
+    def forward(self, x: Tensor, transform: int = 0) -> Tensor:
+        return self.head(self.features(self.image(x, transform))[-1])
+
+    @staticmethod
+    def transform_targets(target: Tensor, k: int) -> Tensor:
+        """Discrepancies [B, 6] as seen in the image of augmentation ``k``: each arm's vector mapped by
+        m^-1; a mirrored image shows the left arm where the right one was, so the arms swap."""
+        m = torch.as_tensor(transform_matrix(k), dtype=target.dtype, device=target.device)
+        t = target.reshape(-1, 2, 3) @ m  # rows (m^T t)^T
+        if k % 2:
+            t = t.flip(1)
+        return t.reshape(-1, 6)
