@@ -154,3 +154,22 @@ def test_a_cnn_limb_run_saves_a_net_the_simulation_can_load(tmp_path):
     assert isinstance(model, RetinaCNNLimbNet) and model(torch.zeros(2, 3 * model.P)).shape == (2, 6)
     with pytest.raises(ValueError, match="model"):
         resolve("smoke", {"model": "conv"}, LimbTrainConfig, LIMB_PRESETS).validate()
+
+
+def test_a_plateau_at_the_magnified_centre_reads_out_at_its_middle(net):
+    """A near ball at the centre spans many cells of equal heat: the angular window takes them all, so
+    the estimate is the plateau's middle, not whichever of its cells peaks by a hair."""
+    wide = RetinaCNNFoveationNet(gaze_angles(net._dirs), size=32, channels=4, window=1, window_deg=12.0)  # wider than the plateau
+    target = torch.tensor([0.02, -0.03], dtype=torch.float64)  # rad, near the axis
+    ang = torch.rad2deg(torch.arccos((wide.cell_dirs.double() @ gaze_directions(target)).clamp(-1, 1)))
+    plateau = ang < 5.0
+    assert plateau.sum() >= 6
+    logits = torch.where(plateau, 5.0, -20.0)[None].float()
+    edge = int(torch.where(plateau, ang, -1.0).argmax())  # the plateau's cell farthest from its middle
+    logits[0, edge] += 0.01
+    out = wide.read_out(logits)[0].double()
+    middle = gaze_angles(wide.cell_dirs[plateau].double().sum(0))
+    assert torch.allclose(out, middle, atol=1e-3)
+    assert torch.rad2deg((out - target).norm()) < 1.5  # about the ball's centre, not its edge cell
+    wide.window_deg = 0.0  # the cell window alone: the edge cell wins
+    assert torch.allclose(wide.read_out(logits)[0].double(), gaze_angles(wide.cell_dirs[edge].double()), atol=1e-3)

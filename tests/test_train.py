@@ -150,7 +150,7 @@ def test_shards_build_one_dataset(tmp_path):
 
 def test_bad_config_is_refused():
     with pytest.raises(ValueError, match="model"):
-        resolve("smoke", {"model": "cnn"})
+        resolve("smoke", {"model": "transformer"})
     with pytest.raises(ValueError, match="val_fraction"):
         resolve("smoke", {"val_fraction": 0.95})
     with pytest.raises(ValueError, match="head"):

@@ -292,8 +292,8 @@ def main(argv=None) -> int:
             p.add_argument("--ball", choices=BALLS, default="glowing",
                            help="glowing (default): a white ball that glows, in the room dimmed (generator v7's scene, what "
                                 "the default foveation nets learn); ordinary: a grey-white ball lit by the room's lamps, in a "
-                                "room at its everyday albedos (generator v8's kind of scene; no net trained so far finds it "
-                                "reliably: README)")
+                                "room at its everyday albedos (generator v8's kind of scene: use it with v8 nets, e.g. the "
+                                "--model cnn runs of README's 'Ordinary objects')")
         p.add_argument("--frame-every", type=int, default=FRAME_EVERY,
                        help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
                             f"(default {FRAME_EVERY}: 25 frames a second; 1 renders every period)")
