@@ -27,6 +27,7 @@ import torch
 from torch import Tensor, nn
 
 from warp_vision.nn.linet import FullyConnected, LiNet
+from warp_vision.nn.standardise import StandardisedTargets
 
 HEADS = ("linear", "softargmax")
 
@@ -57,7 +58,7 @@ def log_solid_angle_share(directions: Tensor, k: int = 4) -> Tensor:
     return torch.from_numpy(np.log(area / area.mean()).astype(np.float32))
 
 
-class FoveationNet(nn.Module):
+class FoveationNet(StandardisedTargets):
     """A backbone (liNet or its fully-connected twin) and a fully-connected output layer to (yaw, pitch).
 
     forward: onv [B, 3P] float32 -> [B, outputs] (standardised targets: ``(angle - target_mean) /
@@ -78,8 +79,7 @@ class FoveationNet(nn.Module):
             raise ValueError(f"head: expected one of {HEADS}, got {head!r}")
         self.backbone = backbone
         self.head_kind = head
-        self.register_buffer("target_mean", torch.zeros(outputs))
-        self.register_buffer("target_std", torch.ones(outputs))
+        self.init_target_norm(outputs)
         extra = 0
         if head == "softargmax":
             if not isinstance(backbone, LiNet):
@@ -103,12 +103,6 @@ class FoveationNet(nn.Module):
                 self.head.weight.zero_()
                 self.head.bias.zero_()
                 self.head.weight[:, backbone.out_features : backbone.out_features + 2] = torch.eye(2)
-
-    def set_target_norm(self, mean: Tensor, std: Tensor) -> None:
-        """The targets' mean and std (the training set's): the net's outputs are standardised with them."""
-        with torch.no_grad():
-            self.target_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
-            self.target_std.copy_(torch.as_tensor(std, dtype=torch.float32))
 
     def _vote(self, h: int, x: Tensor, scale: Tensor | None = None) -> Tensor:
         t = self.log_temperature[h].exp()

@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from warp_vision.frames import gaze_angles, gaze_directions
+from warp_vision.nn.standardise import StandardisedTargets
 
 #: deg: the read-out's soft-arg-max also takes every cell within this angle of the heat map's peak
 WINDOW_DEG = 6.0
@@ -115,7 +116,7 @@ def _cbr(i: int, o: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(i, o, 3, stride, 1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True))
 
 
-class RetinaImageCNN(nn.Module):
+class RetinaImageCNN(StandardisedTargets):
     """What the foveation and limb vision CNNs share: the ONV's foveated image (and its augmentations),
     a 4-stage CNN over it, and the targets' standardisation buffers (``outputs`` values)."""
 
@@ -135,13 +136,7 @@ class RetinaImageCNN(nn.Module):
         c = self.stage_channels
         self.stem = nn.Sequential(_cbr(3, c[0], 2), _cbr(c[0], c[0]))
         self.down = nn.ModuleList([nn.Sequential(_cbr(c[i], c[i + 1], 2), _cbr(c[i + 1], c[i + 1])) for i in range(3)])
-        self.register_buffer("target_mean", torch.zeros(outputs))
-        self.register_buffer("target_std", torch.ones(outputs))
-
-    def set_target_norm(self, mean: Tensor, std: Tensor) -> None:
-        with torch.no_grad():
-            self.target_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
-            self.target_std.copy_(torch.as_tensor(std, dtype=torch.float32))
+        self.init_target_norm(outputs)
 
     def binning(self, k: int) -> tuple[Tensor, Tensor, Tensor]:
         if k not in self._binnings:

@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from warp_vision.frames import check_positions
+from warp_vision.nn.standardise import StandardisedTargets
 
 STENCIL = 9  # the site itself and 8 compass points
 
@@ -115,7 +116,7 @@ class RetinaConv(nn.Module):
         return maps
 
 
-class RetinaConvFoveationNet(nn.Module):
+class RetinaConvFoveationNet(StandardisedTargets):
     """ONV [B, 3P] -> standardised (yaw, pitch): a :class:`RetinaConv` backbone whose layers h >= 2 each
     have a saliency channel (a learnt 1 x 1 mix of their channels); each layer's soft-argmax of its
     saliency over its sites' visual directions is a vote, and a linear layer (starting as the votes'
@@ -128,8 +129,7 @@ class RetinaConvFoveationNet(nn.Module):
             raise ValueError(f"photoreceptor_angles: expected finite values of shape ({backbone.sites}, 2), got {tuple(a.shape)}")
         self.backbone = backbone
         self.voting = list(range(max(1, first_vote), backbone.num_layers + 1))
-        self.register_buffer("target_mean", torch.zeros(2))
-        self.register_buffer("target_std", torch.ones(2))
+        self.init_target_norm(2)
         self.saliency = nn.ModuleList(nn.Linear(backbone.channels[h - 1], 1) for h in self.voting)
         self.log_temperature = nn.Parameter(torch.zeros(len(self.voting)))
         for k, h in enumerate(self.voting):
@@ -140,11 +140,6 @@ class RetinaConvFoveationNet(nn.Module):
             self.head.bias.zero_()
             for k in range(len(self.voting)):
                 self.head.weight[:, 2 * k:2 * k + 2] = torch.eye(2) / len(self.voting)
-
-    def set_target_norm(self, mean: Tensor, std: Tensor) -> None:
-        with torch.no_grad():
-            self.target_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
-            self.target_std.copy_(torch.as_tensor(std, dtype=torch.float32))
 
     def saliency_logits(self, onv: Tensor) -> list[Tensor]:
         """Each voting layer's saliency over its sites [B, N_h] (the soft-argmax's logits)."""
