@@ -34,6 +34,10 @@ def test_the_image_is_the_dense_binning_matrix_applied_to_each_channel(net):
         inside = rows > 0
         assert torch.allclose(rows[inside], torch.ones(int(inside.sum())), atol=1e-5)  # each pixel a weighted mean
         assert inside.float().mean() > 0.6  # black only beyond the retina's rim
+    # a transform per group of the batch (training's augmentation in one forward pass)
+    ref0 = torch.einsum("qp,bpc->bcq", dense_binning(net, 0), x[:2].reshape(2, net.P, 3)).reshape(2, 3, net.warp.size, net.warp.size)
+    ref5 = torch.einsum("qp,bpc->bcq", dense_binning(net, 5), x[2:].reshape(1, net.P, 3)).reshape(1, 3, net.warp.size, net.warp.size)
+    assert torch.allclose(net.image(x, [0, 5]), torch.cat([ref0, ref5]), atol=1e-5)
 
 
 @pytest.mark.parametrize("k", [0, 1, 6, 10, 2 * ROTATIONS - 1])

@@ -23,8 +23,8 @@ the irregular layout (:mod:`warp_vision.nn.retina_conv`) shares its weights but 
   ``window_deg`` of it, soft-arg-maxed over the cells' unit direction vectors, gives the ball's direction
   as (yaw, pitch), standardised as the targets are. Local, not global: a lamp elsewhere on the map cannot
   pull the estimate toward it; the angular part covers a near ball at the magnified centre, whose heat
-  is a plateau many cells wide (in the loop a fixated ball's estimate otherwise wandered over its disc). Training adds a
-  cross-entropy of the heat map against the cell of the true direction (:meth:`heatmap_loss`).
+  is a plateau many cells wide. Training adds a cross-entropy of the heat map against the cell of the
+  true direction (:meth:`heatmap_loss`).
 """
 
 from __future__ import annotations
@@ -39,6 +39,8 @@ from torch import Tensor, nn
 from warp_vision.frames import gaze_angles, gaze_directions
 from warp_vision.nn.standardise import StandardisedTargets
 
+#: pixels: the foveated image is IMAGE_SIZE x IMAGE_SIZE
+IMAGE_SIZE = 96
 #: deg: the read-out's soft-arg-max also takes every cell within this angle of the heat map's peak
 WINDOW_DEG = 6.0
 #: transforms for augmentation: ROTATIONS angles about the optical axis, each plain and mirrored
@@ -84,8 +86,9 @@ class FoveatedImage:
         return np.stack([u.ravel(), v.ravel()], -1)
 
     def binning(self, photoreceptor_dirs: np.ndarray, m: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
-        """(pixel, photoreceptor, weight), the entries of the sparse [size^2, P] matrix that bins the ONV of photoreceptors at ``photoreceptor_dirs``
-        into the image whose pixel directions are mapped by ``m`` (3 x 3) before looking them up."""
+        """(pixel, photoreceptor, weight): the entries of the sparse [size^2, P] matrix that bins the ONV of
+        photoreceptors at ``photoreceptor_dirs`` into the image whose pixel directions are mapped by ``m``
+        (3 x 3) before looking them up."""
         n = self.size
         # photoreceptor p lands in the pixel of m^-1 d_p (the pixel whose turned direction is d_p)
         uv = self.dirs_to_uv(photoreceptor_dirs @ m)  # rows: (m^T d)^T, m orthogonal
@@ -97,9 +100,10 @@ class FoveatedImage:
         rows, cols, vals = [pix], [pr], [1.0 / counts[pix]]
         empty = np.flatnonzero(counts == 0)
         if len(empty):
+            tree = cKDTree(photoreceptor_dirs)
             want = self.uv_to_dirs(self.grid_uv(n)[empty]) @ m.T
-            dist, nn_idx = cKDTree(photoreceptor_dirs).query(want, k=4)
-            spacing = np.median(cKDTree(photoreceptor_dirs).query(photoreceptor_dirs[:: max(1, len(photoreceptor_dirs) // 500)], k=2)[0][:, 1])
+            dist, nn_idx = tree.query(want, k=4)
+            spacing = np.median(tree.query(photoreceptor_dirs[:: max(1, len(photoreceptor_dirs) // 500)], k=2)[0][:, 1])
             w = 1.0 / np.maximum(dist, 1e-9)
             w /= w.sum(1, keepdims=True)
             # beyond the rim (nearest photoreceptor far beyond the local spacing there): black
@@ -143,13 +147,17 @@ class RetinaImageCNN(StandardisedTargets):
             self._binnings[k] = self.warp.binning(self._dirs, transform_matrix(k))
         return self._binnings[k]
 
-    def image(self, x: Tensor, k: int = 0) -> Tensor:
-        """ONV inputs [B, 3P] -> the foveated image [B, 3, size, size] of augmentation ``k``."""
+    def image(self, x: Tensor, k=0) -> Tensor:
+        """ONV inputs [B, 3P] -> the foveated image [B, 3, size, size] of augmentation ``k`` (an int), or
+        with a list of ints, the batch split into that many consecutive groups (``torch.tensor_split``),
+        group g binned through augmentation ``k[g]``."""
         if x.ndim != 2 or x.shape[1] != 3 * self.P:
             raise ValueError(f"onv: expected [B, {3 * self.P}], got {tuple(x.shape)}")
+        if not isinstance(k, (int, np.integer)):
+            return torch.cat([self.image(part, kk) for part, kk in zip(torch.tensor_split(x, len(k)), k)])
         b, n = x.shape[0], self.warp.size
         cols = x.reshape(b, self.P, 3).permute(1, 0, 2).reshape(self.P, b * 3).float()
-        pix, pr, w = (t.to(x.device) for t in self.binning(k))
+        pix, pr, w = (t.to(x.device) for t in self.binning(int(k)))
         img = cols.new_zeros(n * n, b * 3).index_add_(0, pix, cols[pr] * w[:, None])  # [n^2, B*3]
         return img.reshape(n, n, b, 3).permute(2, 3, 0, 1).contiguous(memory_format=torch.channels_last)
 
@@ -166,7 +174,7 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
     (yaw, pitch) [B, 2] of the ball: resampling to a foveated image, a CNN with a feature pyramid, a
     heat map and a local soft-arg-max (module docstring)."""
 
-    def __init__(self, photoreceptor_angles: np.ndarray, size: int = 96, channels: int = 16, max_ecc_deg: float = 50.0,
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
                  power: float = 1.5, window: int = 5, window_deg: float = WINDOW_DEG):
         if not (isinstance(window, int) and window >= 1 and window % 2 == 1):
             raise ValueError(f"window: expected an odd positive int, got {window!r}")
@@ -203,9 +211,10 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
         w = logits.masked_fill(~(near_cells | near_angle), float("-inf")).softmax(1)
         return gaze_angles(w @ self.cell_dirs)
 
-    def forward(self, x: Tensor, transform: int = 0, with_logits: bool = False):
-        """Standardised (yaw, pitch) [B, 2] of the ball in the image of augmentation ``transform``; with
-        ``with_logits`` also the heat map's logits (for :meth:`heatmap_loss`)."""
+    def forward(self, x: Tensor, transform=0, with_logits: bool = False):
+        """Standardised (yaw, pitch) [B, 2] of the ball in the image of augmentation ``transform`` (an int,
+        or a list of ints for consecutive groups: :meth:`image`); with ``with_logits`` also the heat map's
+        logits (for :meth:`heatmap_loss`)."""
         logits = self.logits(self.image(x, transform))
         out = (self.read_out(logits) - self.target_mean) / self.target_std
         return (out, logits) if with_logits else out
@@ -229,13 +238,13 @@ class RetinaCNNLimbNet(RetinaImageCNN):
     and CNN of :class:`RetinaImageCNN`, its last stage's map flattened (where things are matters) into a
     hidden layer of ``hidden`` units and a linear read-out."""
 
-    def __init__(self, photoreceptor_angles: np.ndarray, size: int = 96, channels: int = 16, max_ecc_deg: float = 50.0,
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
                  power: float = 1.5, hidden: int = 128):
         super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=6)
         last = self.stage_channels[-1] * (size // 16) ** 2
         self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 6))
 
-    def forward(self, x: Tensor, transform: int = 0) -> Tensor:
+    def forward(self, x: Tensor, transform=0) -> Tensor:
         return self.head(self.features(self.image(x, transform))[-1])
 
     @staticmethod

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from warp_vision.frames import gaze_directions
+from warp_vision.nn.retina_cnn import IMAGE_SIZE
 from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
 from warp_vision.train import harness
 from warp_vision.train.config import TrainConfig, onv_dtype_name
@@ -23,8 +24,6 @@ from warp_vision.train.config import TrainConfig, onv_dtype_name
 HEATMAP_WEIGHT = 0.02
 #: The cnn's heat-map cross-entropy weight: its heat map is its read-out, so the cross-entropy leads.
 CNN_HEATMAP_WEIGHT = 0.1
-#: The cnn's foveated image: CNN_IMAGE_SIZE x CNN_IMAGE_SIZE pixels.
-CNN_IMAGE_SIZE = 96
 #: Huber loss threshold in standardised target units (the targets' std is about 20 degrees, so ~2 degrees).
 HUBER_DELTA = 0.1
 
@@ -75,9 +74,10 @@ class FoveationTask(harness.OnvTask):
         c = self.cfg
         angles = self.retina.visual_angles(make_eye(c.data_config())) if c.head_kind() == "softargmax" else None
         return {"kind": "foveation", "model": c.model, "head": c.head_kind(), "layers": c.layers, "channels": c.channels,
-                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c), "image_size": CNN_IMAGE_SIZE,
+                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
-                "photoreceptor_angles": None if angles is None else torch.from_numpy(np.asarray(angles, np.float64))}
+                "photoreceptor_angles": None if angles is None else torch.from_numpy(np.asarray(angles, np.float64)),
+                **({"image_size": IMAGE_SIZE} if c.model == "cnn" else {})}
 
     def prepare(self, model, norm):
         model.set_target_norm(norm["target_mean"], norm["target_std"])
@@ -91,10 +91,10 @@ class FoveationTask(harness.OnvTask):
         return f"{self.cfg.model} ({self.cfg.head_kind()} head): {sum(p.numel() for p in model.parameters()):,} parameters, layers {layers}"
 
     def batch_loss(self, net, idx, norm, device):
+        if self.cfg.model == "cnn":  # turned and mirrored copies, four groups a batch
+            return self._cnn_batch_loss(net, idx, norm, device)
         y = ((self.target[idx] - norm["target_mean"]) / norm["target_std"]).to(device)
         x = net_input(self.onv16[idx], norm, device, self.onv_dtype)
-        if self.cfg.model == "cnn":  # turned and mirrored copies, four groups a batch, each with its heat map
-            return self._cnn_batch_loss(net, idx, norm, device)
         if self.cfg.model == "conv":  # the saliency maps also learn where the ball is, site by site
             pred, logits = net(x, with_logits=True)
             inner = getattr(net, "module", net)  # under DDP
@@ -105,25 +105,19 @@ class FoveationTask(harness.OnvTask):
         return loss, {"loss": float(loss.detach()), "mse": float(torch.nn.functional.mse_loss(pred.detach(), y))}
 
     def _cnn_batch_loss(self, net, idx, norm, device, groups: int = 4):
+        """The cnn's loss: the batch in ``groups`` consecutive groups, each binned through a random
+        augmentation with its targets turned alike, in one forward pass (one pass under DDP, and batch
+        norm sees the whole batch)."""
         from warp_vision.nn.retina_cnn import ROTATIONS
 
         inner = getattr(net, "module", net)  # under DDP
-        x = net_input(self.onv16[idx], norm, device, self.onv_dtype)
-        parts = torch.tensor_split(torch.arange(len(idx)), groups)
-        loss, mse, n = 0.0, 0.0, 0
-        for part in parts:
-            if not len(part):
-                continue
-            k = int(torch.randint(2 * ROTATIONS, ()))
-            true = inner.transform_targets(self.target[idx][part], k)
-            y = ((true - norm["target_mean"]) / norm["target_std"]).to(device)
-            pred, logits = net(x[part.to(device)], transform=k, with_logits=True)
-            part_loss = train_loss(self.cfg.loss, pred, y) + CNN_HEATMAP_WEIGHT * inner.heatmap_loss(logits, true.to(device))
-            loss = loss + part_loss * len(part)
-            mse += float(torch.nn.functional.mse_loss(pred.detach(), y)) * len(part)
-            n += len(part)
-        loss = loss / n
-        return loss, {"loss": float(loss.detach()), "mse": mse / n}
+        ks = [int(k) for k in torch.randint(2 * ROTATIONS, (groups,))]
+        target = self.target[idx]
+        true = torch.cat([inner.transform_targets(t, k) for t, k in zip(torch.tensor_split(target, groups), ks)])
+        y = ((true - norm["target_mean"]) / norm["target_std"]).to(device)
+        pred, logits = net(net_input(self.onv16[idx], norm, device, self.onv_dtype), transform=ks, with_logits=True)
+        loss = train_loss(self.cfg.loss, pred, y) + CNN_HEATMAP_WEIGHT * inner.heatmap_loss(logits, true.to(device))
+        return loss, {"loss": float(loss.detach()), "mse": float(torch.nn.functional.mse_loss(pred.detach(), y))}
 
     def evaluate(self, model, idx, norm, device, batch: int = 256):
         model.eval()

@@ -90,14 +90,14 @@ class LimbTask(harness.OnvTask):
 
     def net_spec(self):
         from warp_vision.eye.optics import NavarroEye
-        from warp_vision.train.foveation import CNN_IMAGE_SIZE
+        from warp_vision.nn.retina_cnn import IMAGE_SIZE
 
         c = self.cfg
         spec = {"kind": "limb", "model": c.model, "layers": c.layers, "receptive_field": c.receptive_field,
                 "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
         if c.model == "cnn":  # its image's warp: the directions the photoreceptors see at the default optics
-            spec.update(channels=c.channels, image_size=CNN_IMAGE_SIZE,
+            spec.update(channels=c.channels, image_size=IMAGE_SIZE,
                         photoreceptor_angles=torch.from_numpy(np.asarray(self.retina.visual_angles(NavarroEye()), np.float64)))
         return spec
 
