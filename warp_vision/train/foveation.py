@@ -4,7 +4,9 @@
 
 The dataset is :mod:`warp_vision.data.foveation` (self-synthesised ONVs of a ball in a room, cached by its
 config). The net is a liNet (or its fully-connected baseline) with a linear or soft-argmax read-out
-(:mod:`warp_vision.nn.heads`), trained on standardised targets with a Huber loss (or the paper's MSE).
+(:mod:`warp_vision.nn.heads`), or with ``--model conv|cnn`` a weight-shared net with a heat map
+(:mod:`warp_vision.nn.retina_conv`, :mod:`warp_vision.nn.retina_cnn`: turned and mirrored copies in
+training), trained on standardised targets with a Huber loss (or the paper's MSE).
 The run itself (directories, resume, DDP, checkpoints, early stopping) is :mod:`warp_vision.train.harness`.
 """
 
