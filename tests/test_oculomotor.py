@@ -4,11 +4,12 @@ its accuracy measured on the body."""
 import json
 
 import numpy as np
+import pytest
 import torch
 
-from warp_vision.nn.trained import build_net, load_net
+from warp_vision.nn.trained import build_net, load_net, seal
 from warp_vision.body import Body, BodyConfig
-from warp_vision.sim.oculomotor import HoldingDataConfig, evaluate_on_body, load_oculomotor, transition_pairs
+from warp_vision.sim.oculomotor import HOLDING_VERSION, HoldingDataConfig, evaluate_on_body, load_oculomotor, transition_pairs
 from warp_vision.train import oculomotor
 from warp_vision.train.rundir import run_config
 from warp_vision.train.config import resolve, OCULOMOTOR_PRESETS, OculomotorTrainConfig
@@ -66,3 +67,9 @@ def test_oculomotor_net_learns_the_inverse(tmp_path):
     nets = load_oculomotor(tmp_path)
     x = (torch.zeros(1, 2), torch.full((1, 6), 0.2))
     assert torch.equal(nets["left"](*x), net(*x))
+    # a net of an older eye plant's holding data is refused, naming the command that retrains it
+    assert ck["data"]["generator_version"] == HOLDING_VERSION
+    ck["data"]["generator_version"] = HOLDING_VERSION - 1
+    torch.save(seal({k: v for k, v in ck.items() if k != "integrity"}), run / "best.pt")
+    with pytest.raises(ValueError, match="retrain it: python -m warp_vision.train oculomotor --eye left"):
+        load_oculomotor(tmp_path)

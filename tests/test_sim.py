@@ -139,6 +139,44 @@ def test_holding_activations_hold_the_gaze(body):
     assert a[0, 0] > a[0, 1] and a[1, 1] > a[1, 0]
 
 
+def test_extraocular_tendon_paths_are_continuous(body):
+    """Over the 38 deg gaze disc no tendon's length jumps between gazes a degree apart: each wraps the
+    globe on one side throughout (the obliques once flipped to the far side, 40-47 mm longer, over part of
+    the disc, and the superior oblique turned from a depressor into an elevator above 14 deg up)."""
+    import mujoco
+
+    from warp_vision.body import EYE_MUSCLE_NAMES
+    from warp_vision.sim.oculomotor import eye_qpos
+
+    m, d = body.model, mujoco.MjData(body.model)
+    deg = np.arange(-38.0, 38.5, 1.0)
+    for side in ("left", "right"):
+        ids = [m.tendon(f"{name}_{side}").id for name in EYE_MUSCLE_NAMES]
+        length = np.full((len(deg), len(deg), len(ids)), np.nan)
+        for a, yaw in enumerate(deg):
+            for b, pitch in enumerate(deg):
+                if np.hypot(yaw, pitch) <= 38.0:
+                    d.qpos[:] = eye_qpos(body, side, np.radians(yaw), np.radians(pitch))
+                    mujoco.mj_fwdPosition(m, d)
+                    length[a, b] = d.ten_length[ids]
+        step = max(np.nanmax(np.abs(np.diff(length, axis=0))), np.nanmax(np.abs(np.diff(length, axis=1))))
+        assert step < 0.5e-3, f"{side} eye: a tendon's length jumps {1e3 * step:.1f} mm between neighbouring gazes"
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_holding_activations_take_the_eye_there_from_the_centre(body, side):
+    """The holding activations of a 20 deg gaze in each of eight directions, switched on with the eye
+    straight ahead, bring it there (no other equilibrium on the way: upward gazes once stopped 6-8 deg short)."""
+    from warp_vision.sim.oculomotor import eye_holding_activations, settle_gaze
+
+    ang = np.radians(np.arange(0, 360, 45))
+    g = np.radians(20.0) * np.stack([np.cos(ang), np.sin(ang)], 1)
+    a, _ = eye_holding_activations(body, side, g)
+    for k in range(len(g)):
+        got = settle_gaze(body, side, a[k])
+        assert np.degrees(np.linalg.norm(got - g[k])) < 0.5, (side, np.degrees(g[k]), np.degrees(got))
+
+
 def test_a_saccade_step_settles_fast(body):
     """Stepping the activations from straight ahead to those holding 20 deg brings the eye within 1 deg
     in under 0.12 s of simulated time (a human 20 deg saccade lasts about 0.06 s)."""

@@ -76,7 +76,10 @@ SIDES = ("left", "right")
 #: Extraocular muscles: name -> (origin, via point, insertion, wrap side, textbook action). Positions are
 #: in the eye frame at rest (m from the eye centre) with x measured *nasally* (mirrored per eye): the
 #: origin and via point are fixed in the head, the insertion on the globe; the tendon wraps the globe on
-#: the side of ``wrap side`` where its straight path would cut through it.
+#: the side of ``wrap side`` where its straight path would cut through it. The obliques' sides are temporal
+#: (above the globe for the superior, below for the inferior): straight up or down, their paths flipped to
+#: the globe's far side (40-47 mm longer) over part of the gaze disc, and the superior oblique elevated the
+#: eye above 14 deg up (tests/test_sim.py checks every path is continuous over the disc).
 _A = np.array([0.007, 0.0, -0.030])  # the annulus of Zinn: the orbit's apex, behind and nasal of the eye
 _S60, _C60 = np.sin(np.radians(60)), np.cos(np.radians(60))  # insertions 60 deg from the front pole
 
@@ -92,9 +95,9 @@ EYE_MUSCLES = {
     "superior_rectus": (_A + [0, 0.004, 0], None, EYE_RADIUS * np.array([0, _S60, _C60]), [0, 1, 0], "elevation"),
     "inferior_rectus": (_A + [0, -0.004, 0], None, EYE_RADIUS * np.array([0, -_S60, _C60]), [0, -1, 0], "depression"),
     "superior_oblique": (_A + [0.002, 0.003, 0], np.array([0.014, 0.012, 0.008]),
-                         EYE_RADIUS * _unit([-0.35, 0.75, -0.55]), [0, 1, 0], "intorsion"),
+                         EYE_RADIUS * _unit([-0.35, 0.75, -0.55]), [-0.5, 0.866, 0], "intorsion"),
     "inferior_oblique": (np.array([0.010, -0.014, 0.004]), None,
-                         EYE_RADIUS * _unit([-0.5, -0.8, -0.3]), [0, -1, 0], "extorsion"),
+                         EYE_RADIUS * _unit([-0.5, -0.8, -0.3]), [-0.5, -0.866, 0], "extorsion"),
 }
 EYE_MUSCLE_NAMES = tuple(EYE_MUSCLES)
 #: Insertion sites sit this far off the globe's surface (the tendon's thickness); see _add_eye.
