@@ -81,12 +81,10 @@ class _OracleFoveator:
         self.body, self.side, self.frames = body, side, 0
 
     def __call__(self, onv):
-        from warp_vision.frames import gaze_angles
+        from warp_vision.sim.loop import true_direction
 
         self.frames += 1
-        T = self.body.eye_pose(self.side)
-        d = T[:3, :3].T @ (self.body.ball_position() - T[:3, 3])
-        return np.asarray(gaze_angles(d / np.linalg.norm(d)))[None]
+        return true_direction(self.body, self.side, self.body.ball_position())[None]
 
 
 class _HoldingOculomotor:
@@ -131,6 +129,31 @@ def test_the_loop_renders_every_nth_period_and_still_saccades(bare_body, frame_e
     assert loop._optics and loop.estimate and loop.onv
     loop.reset()  # forgets what the run saw, so the next run does not depend on this one
     assert loop.period == 0 and not loop._optics and not loop.estimate and not loop.onv
+
+
+def test_oracle_perception_takes_the_true_direction_and_asks_no_net(bare_body):
+    """With perception="oracle" the controller gets the ball's true direction in each eye frame (the eyes
+    still render, for the pupils) and the foveation nets are never asked; unknown modes are refused."""
+    from warp_vision.sim.loop import VisuomotorLoop, point_at, true_direction
+    from warp_vision.sim.scenarios import run_scenario
+
+    body = bare_body
+    body.reset()
+    body.model.opt.gravity[:] = 0
+    fov = {s: _OracleFoveator(body, s) for s in SIDES}
+    for f in fov.values():
+        f.__class__ = type("Unasked", (_OracleFoveator,), {"__call__": lambda self, onv: pytest.fail("a net was asked")})
+    loop = VisuomotorLoop(body, fov, {s: _HoldingOculomotor(body, s) for s in SIDES}, perception="oracle")
+    p = point_at(body, -12.0, -6.0, 1.0)
+    tr = run_scenario(loop, 0.4, ball=lambda _t: p, progress=False)
+    assert tr["error_left"][0] > 8 and max(tr["error_left"][-1], tr["error_right"][-1]) < 1.0
+    assert np.allclose(loop.estimate["left"], true_direction(body, "left", p), atol=np.radians(2.0)) and loop.onv
+    # the true direction: a point on the eye's optical axis is straight ahead, one to its +x side has yaw > 0
+    c, z, x = body.eye_pose("left")[:3, 3], body.eye_pose("left")[:3, 2], body.eye_pose("left")[:3, 0]
+    assert np.allclose(true_direction(body, "left", c + z), 0.0, atol=1e-12)
+    assert true_direction(body, "left", c + z + 0.1 * x)[0] == pytest.approx(np.arctan(0.1))
+    with pytest.raises(ValueError, match="perception"):
+        VisuomotorLoop(body, fov, {}, perception="vision")
 
 
 def test_the_loop_rejects_a_bad_frame_rate(bare_body):

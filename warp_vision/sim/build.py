@@ -55,4 +55,5 @@ def setup_loop(args):
     pupil = {s: load_pupil(runs["pupil", s]) for s in SIDES} if ("pupil", "left") in runs else None
     lens = {s: load_lens(runs["lens", s]) for s in SIDES} if ("lens", "left") in runs else None
     return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
-                                ball=args.ball, pupil_nets=pupil, lens_nets=lens)
+                                ball=args.ball, pupil_nets=pupil, lens_nets=lens,
+                                perception=getattr(args, "gaze_perception", "nets"))

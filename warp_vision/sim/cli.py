@@ -251,7 +251,7 @@ def _focus_retinas(shots: list, retina, path: str) -> None:
 
 
 def main(argv=None) -> int:
-    from warp_vision.sim.loop import BALLS, FRAME_EVERY, INTRAOCULAR
+    from warp_vision.sim.loop import BALLS, FRAME_EVERY, INTRAOCULAR, PERCEPTION
 
     ap = argparse.ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -294,6 +294,12 @@ def main(argv=None) -> int:
                                 "the default foveation nets learn); ordinary: a grey-white ball lit by the room's lamps, in a "
                                 "room at its everyday albedos (generator v8's kind of scene: use it with v8 nets, e.g. the "
                                 "--model cnn runs of README's 'Ordinary objects')")
+        if name in ("demo", "experiments"):
+            p.add_argument("--gaze-perception", choices=PERCEPTION, default="nets",
+                           help="where the gaze controller learns the ball's direction: nets (default), each eye's "
+                                "foveation net from its ONV; oracle: the ball's true direction in each eye frame (the "
+                                "eyes still render), which separates perception's errors from the controller's and "
+                                "oculomotor nets'")
         p.add_argument("--frame-every", type=int, default=FRAME_EVERY,
                        help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
                             f"(default {FRAME_EVERY}: 25 frames a second; 1 renders every period)")

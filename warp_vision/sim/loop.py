@@ -41,7 +41,7 @@ import mujoco
 import numpy as np
 import torch
 
-from warp_vision.frames import gaze_direction, line_crossing
+from warp_vision.frames import gaze_angles, gaze_direction, line_crossing
 from warp_vision.body import ARM_PARTS, HIDDEN_FROM_EYES, SIDES, Body, visible_parts
 from warp_vision.sim.oculomotor import holding_activations
 
@@ -79,6 +79,9 @@ OPTICS_HYSTERESIS = 0.75  # of a step: how far from its rendered state the eye m
 #: Who commands the iris and the lens: "nets" (each eye's pupil and lens nets) or "analytic" (their
 #: teachers: Watson & Yellott's pupil, and accommodation to where the gaze lines converge).
 INTRAOCULAR = ("nets", "analytic")
+#: Who tells the gaze controller where the ball is: "nets" (each eye's foveation net, from its ONV) or
+#: "oracle" (the ball's true direction in the eye frame: separates perception's errors from control's).
+PERCEPTION = ("nets", "oracle")
 
 
 def _load_kind(run_dir: str, kind: str, device: str):
@@ -229,7 +232,12 @@ class VisuomotorLoop:
     control period. ``timing`` accumulates wall seconds per stage (render, nets, mujoco, control)."""
 
     def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, frame_every: int = FRAME_EVERY,
-                 ball: str = "glowing", pupil_nets: dict | None = None, lens_nets: dict | None = None):
+                 ball: str = "glowing", pupil_nets: dict | None = None, lens_nets: dict | None = None,
+                 perception: str = "nets"):
+        if perception not in PERCEPTION:
+            raise ValueError(f"perception: expected one of {PERCEPTION}, got {perception!r}")
+        #: "nets" (the foveation nets' estimates) or "oracle" (the true directions; the eyes still render)
+        self.perception = perception
         if not isinstance(frame_every, (int, np.integer)) or frame_every < 1:
             raise ValueError(f"frame_every: expected a whole number of control periods >= 1, got {frame_every!r}")
         for name, nets in (("pupil_nets", pupil_nets), ("lens_nets", lens_nets)):
@@ -339,7 +347,10 @@ class VisuomotorLoop:
         if seen:
             onv = self.render()
             t0 = time.perf_counter()
-            err = {s: self.fov[s](onv[s])[0] for s in SIDES}  # the ball's (yaw, pitch) in each eye frame
+            if self.perception == "oracle":
+                err = {s: true_direction(body, s, body.ball_position()) for s in SIDES}
+            else:
+                err = {s: self.fov[s](onv[s])[0] for s in SIDES}  # the ball's (yaw, pitch) in each eye frame
             self.estimate = err
             self.timing["nets"] += time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -494,6 +505,12 @@ def vergence_distance(body: Body) -> float:
         return np.inf
     t1, t2 = st
     return float(np.linalg.norm(0.5 * (p1 + t1 * d1 + p2 + t2 * d2) - 0.5 * (p1 + p2)))
+
+
+def true_direction(body: Body, side: str, point) -> np.ndarray:
+    """(yaw, pitch) rad of ``point`` in eye ``side``'s frame: what its foveation net estimates."""
+    T = body.eye_pose(side)
+    return gaze_angles(T[:3, :3].T @ (np.asarray(point, float) - T[:3, 3]))
 
 
 def gaze_error_deg(body: Body, side: str, point) -> float:

@@ -146,6 +146,7 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
     share = {k: v / wall for k, v in loop.timing.items()}
     share["other"] = max(0.0, 1.0 - sum(share.values()))  # traces, progress bars, Python between the stages
     out["ball"] = loop.ball
+    out["gaze_perception"] = loop.perception
     out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall, "frame_every": loop.frame_every,
                      "frames_per_s": 1.0 / (loop.frame_every * control_dt), "share": share}
     return out
