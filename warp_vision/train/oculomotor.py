@@ -63,7 +63,10 @@ class OculomotorTask(harness.Task):
     def data_config(self):
         from dataclasses import asdict
 
-        return asdict(self.cfg.data_config())
+        from warp_vision.sim.oculomotor import HOLDING_VERSION
+
+        # the generator's version travels with the net: load_oculomotor refuses nets of an older eye plant
+        return {**asdict(self.cfg.data_config()), "generator_version": HOLDING_VERSION}
 
     def _errors(self, net, idx, device):
         i, j = (torch.as_tensor(p[np.asarray(idx)]) for p in self.pairs)
