@@ -419,3 +419,29 @@ def test_parse_shard():
             parse_shard(bad)
     with pytest.raises(ValueError, match="shard"):
         parse_shard((0, 1))
+
+
+def test_a_reader_waits_for_the_other_writers_shards_when_asked(tmp_path):
+    """A distributed run's rank that rendered its shard first reads the whole dataset only once the other
+    ranks' chunks are there (waiting_for_writers); outside that block a missing chunk is an error at once,
+    and a wait that runs out is the same error."""
+    import threading
+
+    from warp_vision.data.store import waiting_for_writers
+
+    data = make_data()
+    mine, theirs = new_store(tmp_path / "d", shard=(0, 2)), new_store(tmp_path / "d", shard=(1, 2))
+    fill(mine, data)
+    with pytest.raises(ValueError, match="dataset incomplete"):
+        ChunkedStore.open(tmp_path / "d").load()
+    with waiting_for_writers(0.3), pytest.raises(ValueError, match="dataset incomplete"):
+        ChunkedStore.open(tmp_path / "d").load()
+    writer = threading.Timer(0.5, lambda: fill(theirs, data))
+    writer.start()
+    with waiting_for_writers(30.0):
+        got = ChunkedStore.open(tmp_path / "d").load()
+    writer.join()
+    assert_bit_equal(got, data)
+    from warp_vision.data import store
+
+    assert store.WAIT_FOR_WRITERS_S == 0.0  # the block restores it

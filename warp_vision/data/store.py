@@ -39,9 +39,11 @@ Typical use (one process per shard; ``--shard I/N`` parsed with ``parse_shard``)
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
+import time
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -105,6 +107,24 @@ def _check_shard(shard: Any) -> tuple[int, int]:
         raise ValueError(f"shard index I must satisfy 0 <= I < N, got shard {i}/{n}")
     return i, n
 
+
+
+#: Seconds :meth:`ChunkedStore.load` waits for missing chunks to appear before it calls the dataset
+#: incomplete (0: it does not wait). Set by :func:`waiting_for_writers` while the ranks of a distributed run
+#: each render their own shard and then read the whole: a rank done first must not read before the others.
+WAIT_FOR_WRITERS_S = 0.0
+
+
+@contextlib.contextmanager
+def waiting_for_writers(seconds: float):
+    """Within the block, :meth:`ChunkedStore.load` waits up to ``seconds`` for chunks other writers are
+    still writing (see :data:`WAIT_FOR_WRITERS_S`)."""
+    global WAIT_FOR_WRITERS_S
+    old, WAIT_FOR_WRITERS_S = WAIT_FOR_WRITERS_S, float(seconds)
+    try:
+        yield
+    finally:
+        WAIT_FOR_WRITERS_S = old
 
 class ChunkedStore:
     """A dataset of ``total`` samples stored as checksummed chunks of ``chunk_size`` samples in ``root``.
@@ -372,6 +392,10 @@ class ChunkedStore:
         """
         names = self._check_field_names(fields)
         missing = self._all_missing()
+        deadline = time.monotonic() + WAIT_FOR_WRITERS_S
+        while missing and time.monotonic() < deadline:  # other ranks still writing their shards
+            time.sleep(min(2.0, max(0.0, deadline - time.monotonic())))
+            missing = self._all_missing()
         if missing:
             head = ", ".join(str(c) for c in missing[:10]) + (", ..." if len(missing) > 10 else "")
             raise ValueError(

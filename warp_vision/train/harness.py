@@ -37,6 +37,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from warp_vision.data.store import waiting_for_writers
 from warp_vision.fileio import write_json
 from warp_vision.nn.trained import ONV_DTYPES, build_net, read_checkpoint
 from warp_vision.train.config import epoch_lr, onv_dtype_name
@@ -300,7 +301,10 @@ def warm_start(model: torch.nn.Module, run_dir) -> None:
 def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, progress: bool):
     """Load the data, fit the normalisation, build the net and optimiser, restore a resumed run from
     checkpoint ``ck``."""
-    task.load((dd.rank, dd.world), progress)
+    # the ranks render their shards of a missing dataset, then each reads the whole: one done first waits
+    # for the others' chunks (an hour at most) rather than calling the dataset incomplete
+    with waiting_for_writers(3600.0 if dd.world > 1 else 0.0):
+        task.load((dd.rank, dd.world), progress)
     dd.barrier()
     tr, va, te = task.splits()
     norm = task.fit_norm(tr)
