@@ -289,11 +289,11 @@ def main(argv=None) -> int:
                                                      "runs/pupil, or runs/quick/pupil with --quick)")
         p.add_argument("--lens", default=None, help="the lens runs' directory (likewise: runs/lens, runs/quick/lens)")
         if name != "intercept":
-            p.add_argument("--ball", choices=BALLS, default="glowing",
-                           help="glowing (default): a white ball that glows, in the room dimmed (generator v7's scene, what "
-                                "the default foveation nets learn); ordinary: a grey-white ball lit by the room's lamps, in a "
-                                "room at its everyday albedos (generator v8's kind of scene: use it with v8 nets, e.g. the "
-                                "--model cnn runs of README's 'Ordinary objects')")
+            p.add_argument("--ball", choices=BALLS, default="ordinary",
+                           help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
+                                "albedos (generator v8's kind of scene, what the default foveation nets learn); glowing: a "
+                                "white ball that glows, in the room dimmed (generator v7's scene: use it with v7 nets, "
+                                "python -m warp_vision.train --generator 7 --model linet ...)")
         if name in ("demo", "experiments"):
             p.add_argument("--gaze-perception", choices=PERCEPTION, default="nets",
                            help="where the gaze controller learns the ball's direction: nets (default), each eye's "

@@ -1,9 +1,9 @@
-"""The closed loop: MuJoCo body -> scene -> both eyes' ONVs -> foveation liNets -> gaze and neck control
+"""The closed loop: MuJoCo body -> scene -> both eyes' ONVs -> foveation nets -> gaze and neck control
 -> oculomotor nets -> muscles -> MuJoCo.
 
 On each visual frame (every ``FRAME_EVERY`` control periods of ``CONTROL_DT``) the scene follows the MuJoCo
 state, each eye renders its ONV from its eye body's pose with its own retina and current optical state
-(pupil, accommodation), and its foveation liNet (trained by ``python -m warp_vision.train --eye
+(pupil, accommodation), and its foveation net (trained by ``python -m warp_vision.train --eye
 left|right``) estimates the ball's direction in the eye frame. Every control period the gaze controller
 turns the latest estimate into a change of the commanded gaze:
 
@@ -105,7 +105,8 @@ def load_lens(run_dir: str, device: str = "cpu"):
 
 
 class Foveator:
-    """An eye's trained foveation liNet: ONV [B, 3P] -> the ball's (yaw, pitch) in the eye frame, rad."""
+    """An eye's trained foveation net (a liNet or the retina CNN): ONV [B, 3P] -> the ball's (yaw, pitch) in
+    the eye frame, rad."""
 
     def __init__(self, run_dir: str, device: str = "cpu"):
         from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina

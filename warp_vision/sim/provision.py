@@ -1,4 +1,4 @@
-"""What the closed loop needs, made on first use: each eye's foveation liNet and oculomotor net (and,
+"""What the closed loop needs, made on first use: each eye's foveation net and oculomotor net (and,
 for ``sim intercept``, the arm's motor nets and each eye's limb vision net).
 
 ``python -m warp_vision.sim demo`` (and ``experiments``, ``intraocular``, ``intercept``) call :func:`provide`
@@ -34,7 +34,7 @@ from warp_vision.body import SIDES
 #: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards); an arm's
 #: motor nets (holding activations, training, body checks) and an eye's limb vision net (rendering its
 #: ONVs, then training) as their presets' comments in :mod:`warp_vision.train.config` estimate them.
-MINUTES = {("foveation", "default"): 4.5, ("foveation", "quick"): 1.2,
+MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 3.0,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
            ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 13.0, ("lens", "quick"): 3.0,
            ("arm", "default"): 8.0, ("arm", "quick"): 2.0, ("limb", "default"): 15.0, ("limb", "quick"): 4.0}

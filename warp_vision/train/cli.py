@@ -35,8 +35,10 @@ def _train_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m warp_vision.train",
         description=(
-            "Train the foveation liNet: synthesise (or reuse) a dataset of ONVs of a white ball in a room, "
-            "train the net to predict the eye rotation (yaw, pitch) that foveates the ball, evaluate, and "
+            "Train a foveation net: synthesise (or reuse) a dataset of ONVs of a ball in a room (the default "
+            "preset: generator v8's ordinary balls and the retina CNN; --generator 7 --model linet: v7's glowing "
+            "ball and the paper's liNet), train the net to predict the eye rotation (yaw, pitch) that foveates "
+            "the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
             "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'oculomotor --eye left|right' (an eye's "
             "oculomotor net), 'evaluate RUN_DIR' and "

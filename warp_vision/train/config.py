@@ -75,10 +75,10 @@ class TrainConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
     data_seed: int = 0  # seed of the dataset (scenes) and of the train/val/test split
-    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room) or 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms; README has why 7 is still the default)
+    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room) or 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms; the quick, default and paper presets' choice)
     # the model
     input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset); auto: sample for generator 8, dataset for 7
-    model: str = "linet"  # linet; fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the ball-finder for generator 8)
+    model: str = "linet"  # linet (the smoke and paper presets'); fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the ball-finder for generator 8, the quick and default presets')
     head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig. 5), or auto (softargmax for a liNet, linear for fc)
     layers: int = 4  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
@@ -144,12 +144,14 @@ class TrainConfig:
 PRESETS: dict[str, dict] = {
     # end to end in well under a minute (tests)
     "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1, layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
-    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU
-    "quick": dict(samples=2000, epochs=12, patience=12),
-    # the default run: about 10 minutes on a 2-core CPU (8,000 ONVs of P=14,400, S=4)
-    "default": {},
-    # the paper's set-up: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
-    "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10),
+    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 3 minutes on a 2-core CPU
+    "quick": dict(samples=2000, epochs=12, patience=12, generator=8, model="cnn", lr=2e-3),
+    # the default run: the retina CNN on generator v8, about 15 minutes on a 2-core CPU (12,000 ONVs of
+    # P=14,400, S=4 rendered in about 8; 12 epochs of about 34 s). v7's liNet: --generator 7 --model linet
+    # --lr 0.001 --epochs 40 --samples 8000
+    "default": dict(generator=8, model="cnn", samples=12_000, lr=2e-3, epochs=12),
+    # the paper's set-up on v8: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
+    "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10, generator=8),
 }
 
 
@@ -441,9 +443,17 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
             f"--{f.name.replace('_', '-')}",
             type=type(value),
             default=None,
-            help=f"{_help(cls, f.name)} (default: {value!r}; presets may change it)",
+            help=f"{_help(cls, f.name)} ({_preset_defaults(presets, f.name, value)})",
             **extra,
         )
+
+
+def _preset_defaults(presets: dict, name: str, value) -> str:
+    """The default preset's value of field ``name`` and the other presets' where they differ: "default: 8;
+    smoke: 7" (``value``: the field's own default, which a preset that does not set it keeps)."""
+    shown = presets.get("default", {}).get(name, value)
+    others = [f"{k}: {v.get(name, value)!r}" for k, v in presets.items() if k != "default" and v.get(name, value) != shown]
+    return "; ".join([f"default: {shown!r}"] + [f"--preset {o}" for o in others])
 
 
 def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
