@@ -87,6 +87,13 @@ class _OracleFoveator:
         return true_direction(self.body, self.side, self.body.ball_position())[None]
 
 
+class _UnaskedFoveator(_OracleFoveator):
+    """A foveation net that must not be asked (the loop's perception is the oracle)."""
+
+    def __call__(self, onv):
+        pytest.fail("a foveation net was asked")
+
+
 class _HoldingOculomotor:
     """Stands in for a trained oculomotor net: integrates the commanded changes into a gaze and returns
     the least-effort activations that hold it (what the nets are trained to reproduce)."""
@@ -140,9 +147,7 @@ def test_oracle_perception_takes_the_true_direction_and_asks_no_net(bare_body):
     body = bare_body
     body.reset()
     body.model.opt.gravity[:] = 0
-    fov = {s: _OracleFoveator(body, s) for s in SIDES}
-    for f in fov.values():
-        f.__class__ = type("Unasked", (_OracleFoveator,), {"__call__": lambda self, onv: pytest.fail("a net was asked")})
+    fov = {s: _UnaskedFoveator(body, s) for s in SIDES}
     loop = VisuomotorLoop(body, fov, {s: _HoldingOculomotor(body, s) for s in SIDES}, perception="oracle")
     p = point_at(body, -12.0, -6.0, 1.0)
     tr = run_scenario(loop, 0.4, ball=lambda _t: p, progress=False)

@@ -108,7 +108,6 @@ def _check_shard(shard: Any) -> tuple[int, int]:
     return i, n
 
 
-
 #: Seconds :meth:`ChunkedStore.load` waits for missing chunks to appear before it calls the dataset
 #: incomplete (0: it does not wait). Set by :func:`waiting_for_writers` while the ranks of a distributed run
 #: each render their own shard and then read the whole: a rank done first must not read before the others.
@@ -125,6 +124,7 @@ def waiting_for_writers(seconds: float):
         yield
     finally:
         WAIT_FOR_WRITERS_S = old
+
 
 class ChunkedStore:
     """A dataset of ``total`` samples stored as checksummed chunks of ``chunk_size`` samples in ``root``.

@@ -263,24 +263,10 @@ def load_oculomotor(run_root) -> dict:
     for side in SIDES:
         run = os.path.join(run_root, side)
         nets[side], ck = load_net(run)
-        version = holding_version(run, ck["data"])
+        # checkpoints saved before the version travelled with them learnt from v1
+        version = int(ck["data"].get("generator_version", 1))
         if version != HOLDING_VERSION:
-            raise ValueError(f"{run}: an oculomotor net of holding data {'v%d' % version if version else 'of an older version'}, "
-                             f"solved on an eye plant since corrected (now v{HOLDING_VERSION}: see HOLDING_VERSION); retrain it: python -m "
-                             f"warp_vision.train oculomotor --eye {side} --out {run} --overwrite")
+            raise ValueError(f"{run}: an oculomotor net of holding data v{version}, solved on an eye plant since corrected "
+                             f"(now v{HOLDING_VERSION}: see HOLDING_VERSION); retrain it: python -m warp_vision.train "
+                             f"oculomotor --eye {side} --out {run} --overwrite")
     return nets
-
-
-def holding_version(run_dir: str, data: dict) -> int | None:
-    """The holding-data version an oculomotor run learnt from: its checkpoint's ``data``, or for a run saved
-    before the version travelled with it, its dataset directory's name (the config's key, the version in it)
-    when that is the current key; None when neither tells."""
-    if "generator_version" in data:
-        return int(data["generator_version"])
-    cfg_path = os.path.join(run_dir, "config.json")
-    if os.path.isfile(cfg_path):
-        data_dir = json.loads(open(cfg_path).read()).get("data_dir", "")
-        fields = {k: data[k] for k in ("eye", "gazes", "max_gaze_deg", "seed", "chunk_size") if k in data}
-        if os.path.basename(os.path.normpath(data_dir)) == f"oculomotor-{HoldingDataConfig(**fields).key()}":
-            return HOLDING_VERSION
-    return None

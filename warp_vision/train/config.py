@@ -449,8 +449,8 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
 
 
 def _preset_defaults(presets: dict, name: str, value) -> str:
-    """The default preset's value of field ``name`` and the other presets' where they differ: "default: 8;
-    smoke: 7" (``value``: the field's own default, which a preset that does not set it keeps)."""
+    """The default preset's value of field ``name`` and the other presets' where they differ, for --help:
+    "default: 8; --preset smoke: 7" (``value``: the field's own default, kept by a preset that does not set it)."""
     shown = presets.get("default", {}).get(name, value)
     others = [f"{k}: {v.get(name, value)!r}" for k, v in presets.items() if k != "default" and v.get(name, value) != shown]
     return "; ".join([f"default: {shown!r}"] + [f"--preset {o}" for o in others])
