@@ -177,3 +177,25 @@ def test_a_plateau_at_the_magnified_centre_reads_out_at_its_middle(net):
     assert torch.rad2deg((out - target).norm()) < 1.5  # about the ball's centre, not its edge cell
     wide.window_deg = 0.0  # the cell window alone: the edge cell wins
     assert torch.allclose(wide.read_out(logits)[0].double(), gaze_angles(wide.cell_dirs[edge].double()), atol=1e-3)
+
+
+def test_the_ranging_net_sees_the_fovea_finely_and_keeps_distances_under_augmentation():
+    from warp_vision.nn.retina_cnn import RANGE_ECC_DEG, RANGE_GATE_DEG, RetinaCNNRangeNet
+
+    angles = Retina.log_polar(400, seed=1).visual_angles()
+    net = RetinaCNNRangeNet(angles, size=32, channels=4)
+    # the image covers the central RANGE_ECC_DEG only, and the gate leaves room for a near ball's disc
+    edge = net.warp.uv_to_dirs(np.array([1.0, 0.0]))
+    assert np.degrees(np.arccos(edge[2])) == pytest.approx(RANGE_ECC_DEG) and RANGE_GATE_DEG < RANGE_ECC_DEG - 2
+    x = torch.randn(3, 3 * 400, requires_grad=True)
+    y = net(x, transform=5)
+    assert y.shape == (3, 1)
+    y.sum().backward()
+    assert x.grad is not None and torch.isfinite(x.grad).all()
+    t = torch.log(torch.tensor([[0.5], [2.0]]))
+    for k in (0, 7, 2 * ROTATIONS - 1):
+        assert torch.equal(RetinaCNNRangeNet.transform_targets(t, k), t)
+    with pytest.raises(ValueError):
+        net(torch.randn(2, 3 * 399))
+    with pytest.raises(ValueError):
+        RetinaCNNRangeNet(angles, size=30)

@@ -45,6 +45,14 @@ IMAGE_SIZE = 96
 WINDOW_DEG = 6.0
 #: transforms for augmentation: ROTATIONS angles about the optical axis, each plain and mirrored
 ROTATIONS = 24
+#: the ranging net's image (:class:`RetinaCNNRangeNet`): the central RANGE_ECC_DEG at a nearly uniform
+#: scale (power 1.2: about 0.15 deg a pixel at 1-2 deg, where the photoreceptors lie 0.04-0.13 deg apart)
+RANGE_IMAGE_SIZE = 96
+RANGE_ECC_DEG = 8.0
+RANGE_POWER = 1.2
+#: deg: the ranging net reads balls within this angle of the line of sight (trained on those only; at
+#: run time the foveation net's direction decides), so a near ball's disc stays inside its image
+RANGE_GATE_DEG = 5.6
 
 
 def transform_matrix(k: int) -> np.ndarray:
@@ -256,3 +264,26 @@ class RetinaCNNLimbNet(RetinaImageCNN):
         if k % 2:
             t = t.flip(1)
         return t.reshape(-1, 6)
+
+
+class RetinaCNNRangeNet(RetinaImageCNN):
+    """ONV [B, 3P] -> the standardised log distance (m) [B, 1] from the eye to a ball near the line of
+    sight (within :data:`RANGE_GATE_DEG`): the limb vision nets' depth. The image is the foveal
+    :data:`RANGE_ECC_DEG` at nearly uniform scale, where a ball of known size shows its distance by its
+    apparent size (0.76 deg across at 3 m for the cannon's 4 cm ball, 4.6 deg at 0.5 m); the CNN of
+    :class:`RetinaImageCNN`, its last stage flattened into a hidden layer and one output. A turn or
+    mirror of the world leaves a distance as it is, so every augmentation keeps the target."""
+
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = RANGE_IMAGE_SIZE, channels: int = 16,
+                 max_ecc_deg: float = RANGE_ECC_DEG, power: float = RANGE_POWER, hidden: int = 128):
+        super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=1)
+        last = self.stage_channels[-1] * (size // 16) ** 2
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1))
+
+    def forward(self, x: Tensor, transform=0) -> Tensor:
+        return self.head(self.features(self.image(x, transform))[-1])
+
+    @staticmethod
+    def transform_targets(target: Tensor, k: int) -> Tensor:
+        """A distance is the same in a turned or mirrored world."""
+        return target

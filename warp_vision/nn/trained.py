@@ -91,6 +91,12 @@ def _limb(spec: dict):
 
         torch.manual_seed(spec["seed"])
         return RetinaCNNLimbNet(_array(spec["photoreceptor_angles"]), spec["image_size"], spec["channels"])
+    if spec["model"] == "range":
+        from warp_vision.nn.retina_cnn import RetinaCNNRangeNet
+
+        torch.manual_seed(spec["seed"])
+        return RetinaCNNRangeNet(_array(spec["photoreceptor_angles"]), spec["image_size"], spec["channels"],
+                                 spec["max_ecc_deg"], spec["power"])
     from warp_vision.nn.connectivity import onv_positions
     from warp_vision.nn.heads import limb_vision_net
 
