@@ -69,7 +69,9 @@ TASKS = {
     "limb": ("limb", "LimbTrainConfig", "LIMB_PRESETS",
              "An eye's limb vision net (the paper's nets 3-10): synthesise (or reuse) ONVs of the closed loop's world "
              "with the body's arms at random postures and the cannon's ball near a hand or on a shot's path, the eye "
-             "tracking it; train the liNet from the ONV to each arm's hand-to-ball discrepancy (eye frame, m); "
+             "tracking it; train the ranging net (default: the ball's distance from its apparent size, for balls near the "
+             "line of sight; the loop adds the foveation net's direction and the hand's proprioception) or, with "
+             "--model linet|fc|cnn, a net from the ONV to each arm's hand-to-ball discrepancy (eye frame, m); "
              "measure it on rooms and shots training never saw, and write config, checkpoints, metrics, summary and "
              "figures to --out (default runs/limb/<eye>)."),
     "pupil": ("pupil", "PupilTrainConfig", "PUPIL_PRESETS",

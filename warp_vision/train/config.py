@@ -11,7 +11,7 @@ from warp_vision.data.foveation import FoveationDataConfig
 
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
-CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn"], "eye": ["left", "right"],
+CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn", "range"], "eye": ["left", "right"],
            "onv_dtype": ["auto", "float16", "bfloat16", "float32"],
            "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"],
            "input_norm": ["auto", "sample", "dataset"], "generator": [7, 8]}
@@ -46,7 +46,7 @@ def onv_dtype_name(cfg) -> str:
     store's) for a liNet and float32 for the fc baseline."""
     if cfg.onv_dtype != "auto":
         return cfg.onv_dtype
-    return "float32" if cfg.model in ("fc", "conv", "cnn") else "float16"
+    return "float32" if cfg.model in ("fc", "conv", "cnn", "range") else "float16"
 
 
 def epoch_lr(cfg, epoch: int) -> float:
@@ -128,6 +128,9 @@ class TrainConfig:
 
     def validate(self) -> None:
         _check_common(self, PRESETS, ("samples", "photoreceptors", "samples_per_receptor"))
+        if self.model == "range":
+            raise ValueError("model: range is the limb vision task's (python -m warp_vision.train limb --model range); "
+                             "foveation: linet, fc, conv or cnn")
         if self.model == "fc" and self.head == "softargmax":
             raise ValueError("head: the fc baseline has no unit positions to vote with; use --head linear")
         if self.model in ("conv", "cnn") and self.head == "linear":
@@ -203,6 +206,8 @@ class FaceTrainConfig:
         _check_common(self, FACE_PRESETS)
         if self.task != "faces":
             raise ValueError(f"task: expected 'faces', got {self.task!r}")
+        if self.model not in ("linet", "fc"):
+            raise ValueError(f"model: expected linet or fc for face recognition, got {self.model!r}")
         if self.identities < 2:
             raise ValueError(f"identities: expected at least 2 (a classifier needs classes), got {self.identities}")
         if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
@@ -538,8 +543,8 @@ ARM_PRESETS: dict[str, dict] = {
 
 @dataclass
 class LimbTrainConfig:
-    """Everything a limb vision run depends on (one eye's net: the hand-to-ball discrepancy of both arms;
-    written to RUN_DIR/config.json)."""
+    """Everything a limb vision run depends on (one eye's net: the ball's distance, or the hand-to-ball
+    discrepancy of both arms; written to RUN_DIR/config.json)."""
 
     preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
     task: str = "limb"  # fixed: tells evaluate which kind of run a directory holds
@@ -553,8 +558,8 @@ class LimbTrainConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel (the loop's)
     data_seed: int = 0  # seed of the dataset and of the train/val/test split
     # the model
-    model: str = "linet"  # linet, fc: the fully-connected twin with the same hidden sizes, or cnn: a CNN on the ONV binned to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py)
-    channels: int = 16  # cnn only: channels of its first stage (x1, 2, 4, 6 over its four stages)
+    model: str = "linet"  # linet, fc: the fully-connected twin with the same hidden sizes, cnn: a CNN on the ONV binned to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py), or range: a CNN on the central 8 deg to the ball's distance (the loop adds the foveation net's direction and the hand's proprioception)
+    channels: int = 16  # cnn and range only: channels of its first stage (x1, 2, 4, 6 over its four stages)
     layers: int = 3  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units
@@ -565,7 +570,7 @@ class LimbTrainConfig:
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
     lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
     epochs: int = 30  # at most
-    patience: int = 8  # early stopping: epochs without a better validation median error (near balls)
+    patience: int = 8  # early stopping: epochs without a better validation median error (near balls; ranging: of the distance)
     val_fraction: float = 0.1
     test_fraction: float = 0.1
     seed: int = 0  # initialisation and shuffling
@@ -593,8 +598,10 @@ class LimbTrainConfig:
             raise ValueError(f"task: expected 'limb', got {self.task!r}")
         if not self.near_weight_m > 0:
             raise ValueError(f"near_weight_m: expected > 0 m, got {self.near_weight_m}")
-        if self.model not in ("linet", "fc", "cnn"):
-            raise ValueError(f"model: expected linet, fc or cnn for limb vision, got {self.model!r}")
+        if self.model not in ("linet", "fc", "cnn", "range"):
+            raise ValueError(f"model: expected linet, fc, cnn or range for limb vision, got {self.model!r}")
+        if self.model in ("cnn", "range") and self.onv_dtype not in ("auto", "float32"):
+            raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
         if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
             raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
         if not self.out:
@@ -608,7 +615,8 @@ LIMB_PRESETS: dict[str, dict] = {
     "smoke": dict(samples=64, heldout_samples=16, photoreceptors=400, samples_per_receptor=1, layers=2,
                   receptive_field=8, batch=16, epochs=2, patience=2),
     # a first look: about 4 minutes on a 2-core CPU
-    "quick": dict(samples=2000, heldout_samples=300, epochs=12, patience=12),
-    # one eye in about 15 minutes on a 2-core CPU (rendering 11,000 ONVs, then training)
-    "default": {},
+    "quick": dict(samples=2000, heldout_samples=300, model="range", lr=2e-3, epochs=12, patience=12),
+    # one eye in about 17 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 5 minutes of training):
+    # the ranging net (the ONV-only nets find the ball but not the hands: README)
+    "default": dict(model="range", lr=2e-3, epochs=24, patience=24),
 }

@@ -1,4 +1,5 @@
-"""The limb vision task: one eye's liNet from its ONV to each arm's hand-to-ball discrepancy.
+"""The limb vision task: one eye's net from its ONV to each arm's hand-to-ball discrepancy, or (``--model
+range``, the default preset's) to the ball's distance.
 
 ``python -m warp_vision.train limb --eye left|right [--preset smoke|quick|default] [--flag value ...]``
 
@@ -13,10 +14,21 @@ balls near a hand, the ones that matter for striking, count most. The best epoch
 validation median error on balls within 0.6 m of the hand; the summary gives that error (median and 90th
 percentile, cm, and relative to the true distance) on the test split and on the held-out set (rooms and
 shots training never saw), and by distance.
+
+``--model range`` (:class:`warp_vision.nn.retina_cnn.RetinaCNNRangeNet`): the net reads the ball's
+distance from the eye (log m) on the same ONVs, those whose ball lies within
+:data:`~warp_vision.nn.retina_cnn.RANGE_GATE_DEG` of the line of sight. The nets above find the ball but
+not the hands (README: the hands are dim, thin and peripheral, and every ONV-only net stays at chance on
+them), so the loop's limb vision (:class:`warp_vision.sim.limb.LimbVision`) puts the discrepancy
+together: the ball's direction from the eye's foveation net, its distance from this net, the hand from
+proprioception. The loss is a Huber loss on the standardised log distance; the best epoch has the
+smallest validation median relative error; the summary gives the relative and absolute errors by
+distance, on the test split and held out.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +44,10 @@ NEAR_M = 0.6
 HUBER_DELTA = 0.1
 #: m: the distance bins of the summary
 BINS_M = (0.0, 0.2, 0.4, 0.6, 1.0, 2.0, 4.0)
+#: m: the ranging summary's bins of the eye-ball distance
+RANGE_BINS_M = (0.0, 0.5, 1.0, 2.0, 4.0)
+#: Huber threshold of the ranging loss (standardised log distance)
+RANGE_HUBER_DELTA = 0.5
 
 
 def discrepancy_errors(pred: np.ndarray, true: np.ndarray) -> dict:
@@ -56,11 +72,41 @@ def discrepancy_errors(pred: np.ndarray, true: np.ndarray) -> dict:
     return out
 
 
+def range_errors(pred_log: np.ndarray, true_log: np.ndarray, hand_m: np.ndarray) -> dict:
+    """Errors of predicted eye-ball distances (log m, [N]) against the true ones: relative (pred / true -
+    1) and absolute (cm), overall, by :data:`RANGE_BINS_M`, and for the balls within :data:`NEAR_M` of a
+    hand (``hand_m`` [N]: the nearer hand's distance to the ball, m): the discrepancy's error along the
+    line of sight."""
+    p, t = np.asarray(pred_log, float).ravel(), np.asarray(true_log, float).ravel()
+    rel = np.exp(p - t) - 1.0
+    cm = np.abs(np.exp(p) - np.exp(t)) * 100
+    dist, near = np.exp(t), np.asarray(hand_m, float).ravel() < NEAR_M
+    nan = float("nan")
+
+    def stats(m):
+        return {"n": int(m.sum()), "median_relative": float(np.median(np.abs(rel[m]))) if m.any() else nan,
+                "p90_relative": float(np.percentile(np.abs(rel[m]), 90)) if m.any() else nan,
+                "bias_relative": float(np.median(rel[m])) if m.any() else nan,
+                "median_cm": float(np.median(cm[m])) if m.any() else nan}
+
+    every = np.ones(len(t), bool)
+    out = {"depth_" + k: v for k, v in stats(every).items()}
+    out["near_hand"] = stats(near)
+    out["by_distance"] = {f"{lo:g}-{hi:g} m": stats((dist >= lo) & (dist < hi)) for lo, hi in zip(RANGE_BINS_M, RANGE_BINS_M[1:])}
+    return out
+
+
 class LimbTask(harness.OnvTask):
     name = "limb"
     config_cls = LimbTrainConfig
     data_module = "warp_vision.sim.limb"
     selection = {"near_median_cm": "min"}
+
+    def __init__(self, cfg, log=print):
+        super().__init__(cfg, log)
+        self.ranging = cfg.model == "range"
+        if self.ranging:
+            self.selection = {"depth_median_relative": "min"}
 
     def load(self, shard, progress, synthesize: bool = True):
         from warp_vision.data.store import ChunkedStore
@@ -80,10 +126,22 @@ class LimbTask(harness.OnvTask):
         h = ChunkedStore.open(self.heldout_dir).load(fields)
         self.h_onv16, self.h_target, self.h_meta = (torch.from_numpy(h[k]) for k in fields)
         self.retina = Retina.load(self.ddir / "retina.npz")
+        if self.ranging:  # the ball's log distance from the eye [N, 1]
+            self.target, self.h_target = (torch.log(m[:, :1].double()).float() for m in (self.meta, self.h_meta))
+
+    def _gated(self, meta: torch.Tensor) -> np.ndarray:
+        """Ranging: the samples whose ball lies within RANGE_GATE_DEG of the line of sight."""
+        from warp_vision.nn.retina_cnn import RANGE_GATE_DEG
+
+        return meta[:, 3].numpy() < RANGE_GATE_DEG
 
     def splits(self):
         c = self.cfg
-        return harness.splits(len(self.target), c.data_seed, c.val_fraction, c.test_fraction, min_test=2)
+        parts = harness.splits(len(self.target), c.data_seed, c.val_fraction, c.test_fraction, min_test=2)
+        if self.ranging:
+            keep = self._gated(self.meta)
+            parts = tuple(p[keep[p]] for p in parts)
+        return parts
 
     def fit_norm(self, train):
         t = self.target[torch.as_tensor(train)]
@@ -97,9 +155,13 @@ class LimbTask(harness.OnvTask):
         spec = {"kind": "limb", "model": c.model, "layers": c.layers, "receptive_field": c.receptive_field,
                 "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
-        if c.model == "cnn":  # its image's warp: the directions the photoreceptors see at the default optics
+        if c.model in ("cnn", "range"):  # its image's warp: the directions the photoreceptors see at the default optics
             spec.update(channels=c.channels, image_size=IMAGE_SIZE,
                         photoreceptor_angles=torch.from_numpy(np.asarray(self.retina.visual_angles(NavarroEye()), np.float64)))
+        if c.model == "range":
+            from warp_vision.nn.retina_cnn import RANGE_ECC_DEG, RANGE_IMAGE_SIZE, RANGE_POWER
+
+            spec.update(image_size=RANGE_IMAGE_SIZE, max_ecc_deg=RANGE_ECC_DEG, power=RANGE_POWER)
         return spec
 
     def prepare(self, model, norm):
@@ -107,6 +169,9 @@ class LimbTask(harness.OnvTask):
         set_input_standardisation(model, norm)
 
     def describe(self, model):
+        if self.ranging:
+            return (f"limb vision ranging cnn ({model.warp.size} x {model.warp.size} image of the central "
+                    f"{math.degrees(model.warp.max_ecc):g} deg): {sum(p.numel() for p in model.parameters()):,} parameters")
         if self.cfg.model == "cnn":
             return f"limb vision cnn ({model.warp.size} x {model.warp.size} foveated image): {sum(p.numel() for p in model.parameters()):,} parameters"
         b = model.backbone
@@ -123,6 +188,13 @@ class LimbTask(harness.OnvTask):
     def batch_loss(self, net, idx, norm, device):
         y = self.target[idx]
         x = net_input(self.onv16[idx], norm, device, self.onv_dtype)
+        if self.ranging:  # any turn or mirror of the world: the distance stays
+            from warp_vision.nn.retina_cnn import ROTATIONS
+
+            z = ((y - norm["target_mean"]) / norm["target_std"]).to(device)
+            loss = torch.nn.functional.huber_loss(net(x, transform=int(torch.randint(2 * ROTATIONS, ()))), z,
+                                                  delta=RANGE_HUBER_DELTA)
+            return loss, {"loss": float(loss.detach())}
         if self.cfg.model == "cnn":  # a turned and mirrored copy of the world, its discrepancies turned alike
             from warp_vision.nn.retina_cnn import ROTATIONS, RetinaCNNLimbNet
 
@@ -144,13 +216,22 @@ class LimbTask(harness.OnvTask):
                 z = model(net_input(onv16[torch.as_tensor(idx[s:s + batch])], norm, device, self.onv_dtype)).cpu()
                 out.append(z * norm["target_std"] + norm["target_mean"])
         model.train()
-        return torch.cat(out) if out else torch.zeros(0, 6)
+        return torch.cat(out) if out else torch.zeros(0, self.target.shape[1])
+
+    @staticmethod
+    def _hand_m(meta: torch.Tensor) -> np.ndarray:
+        return meta[:, 1:3].min(1).values.numpy()
 
     def evaluate(self, model, idx, norm, device):
         self._norm = norm
         idx = np.asarray(idx)
         pred = self._predict(model, self.onv16, idx, norm, device)
         true = self.target[torch.as_tensor(idx)]
+        if self.ranging:
+            ev = range_errors(pred.numpy(), true.numpy(), self._hand_m(self.meta[torch.as_tensor(idx)]))
+            z, zp = ((t - norm["target_mean"]) / norm["target_std"] for t in (true, pred))
+            ev["loss"] = float(torch.nn.functional.huber_loss(zp, z, delta=RANGE_HUBER_DELTA)) if len(idx) else float("nan")
+            return {**ev, "pred": pred}
         ev = discrepancy_errors(pred.numpy(), true.numpy())
         y = true
         w = self._weights(y)
@@ -160,11 +241,17 @@ class LimbTask(harness.OnvTask):
         return {**ev, "pred": pred}
 
     def epoch_line(self, row):
+        if self.ranging:
+            return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.4f}  val loss {row['val_loss']:.4f}  "
+                    f"val distance error median {100 * row['val_depth_median_relative']:.2f}%, "
+                    f"p90 {100 * row['val_depth_p90_relative']:.2f}%")
         return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.4f}  val loss {row['val_loss']:.4f}  "
                 f"val near-ball error median {row['val_near_median_cm']:.2f} cm, p90 {row['val_near_p90_cm']:.2f} cm")
 
     def summary(self, test, history, model):
         norm = self._norm  # the test evaluation's, just before
+        if self.ranging:
+            return self._range_summary(test, model, norm)
         pred = self._predict(model.cpu(), self.h_onv16, np.arange(len(self.h_target)), norm, "cpu")
         self.heldout_pred = pred.numpy()
         held = discrepancy_errors(self.heldout_pred, self.h_target.numpy())
@@ -174,11 +261,49 @@ class LimbTask(harness.OnvTask):
                 "test": {k: v for k, v in test.items() if k != "pred"}, "heldout": held,
                 "dataset": str(self.ddir), "heldout_dataset": str(self.heldout_dir)}
 
+    def _range_summary(self, test, model, norm):
+        idx = np.flatnonzero(self._gated(self.h_meta))
+        pred = self._predict(model.cpu(), self.h_onv16, idx, norm, "cpu").numpy()
+        self.heldout_idx, self.heldout_pred = idx, pred
+        true, meta = self.h_target[torch.as_tensor(idx)].numpy(), self.h_meta[torch.as_tensor(idx)]
+        held = range_errors(pred, true, self._hand_m(meta))
+        tracked = meta[:, 3].numpy() < 2.0
+        held["tracked_within_2deg"] = range_errors(pred[tracked], true[tracked], self._hand_m(meta)[tracked])
+        return {"eye": self.cfg.eye, "target": "log distance (m) from the eye's centre to the ball, balls within "
+                f"{self._gate_deg()} deg of the line of sight", "test": {k: v for k, v in test.items() if k != "pred"},
+                "heldout": held, "heldout_samples_in_gate": int(len(idx)),
+                "dataset": str(self.ddir), "heldout_dataset": str(self.heldout_dir)}
+
+    @staticmethod
+    def _gate_deg() -> float:
+        from warp_vision.nn.retina_cnn import RANGE_GATE_DEG
+
+        return RANGE_GATE_DEG
+
+    def _range_figures(self, out, plt):
+        true = np.exp(self.h_target[torch.as_tensor(self.heldout_idx)].numpy().ravel())
+        pred = np.exp(self.heldout_pred.ravel())
+        fig, axs = plt.subplots(1, 2, figsize=(10, 4))
+        axs[0].scatter(true, pred, s=3, alpha=0.4)
+        axs[0].plot([0, true.max()], [0, true.max()], "k", lw=0.8)
+        axs[0].set(xlabel="true distance (m)", ylabel="estimated (m)", title=f"held-out ({self.cfg.eye} eye): the ball's distance")
+        axs[1].scatter(true, 100 * np.abs(pred / true - 1), s=3, alpha=0.4)
+        axs[1].axhline(5.0, color="r", lw=0.8, ls="--")
+        axs[1].set(xlabel="true distance (m)", ylabel="|relative error| (%)", yscale="log", title="relative error")
+        fig.tight_layout()
+        (Path(out) / "figures").mkdir(parents=True, exist_ok=True)
+        fig.savefig(Path(out) / "figures" / "range_errors.png", dpi=110)
+        plt.close(fig)
+
     def figures(self, out, history, test, idx):
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+
+        if self.ranging:
+            self._range_figures(out, plt)
+            return
 
         true = self.h_target.numpy().reshape(-1, 3)
         pred = self.heldout_pred.reshape(-1, 3)
@@ -203,6 +328,9 @@ class LimbTask(harness.OnvTask):
         plt.close(fig)
 
     def eval_line(self, run_dir, split, n, ev):
+        if self.ranging:
+            return (f"{run_dir} ({split}, {n:,} ONVs): ball distance error median {100 * ev['depth_median_relative']:.2f}%, "
+                    f"90th percentile {100 * ev['depth_p90_relative']:.2f}%, median {ev['depth_median_cm']:.2f} cm")
         return (f"{run_dir} ({split}, {n:,} ONVs): hand-ball error within {NEAR_M} m: median {ev['near_median_cm']:.2f} cm, "
                 f"90th percentile {ev['near_p90_cm']:.2f} cm, relative {ev['near_median_relative']:.3f}")
 
