@@ -142,3 +142,100 @@ def test_the_gaze_lines_cross_at_the_ball_and_fixation_vision_sees_it_there():
     assert fx(None, 0.02) is None and len(fx.log) == 1
     with pytest.raises(ValueError):
         FixationVision("middle")
+
+
+def test_range_errors_are_relative_absolute_and_split_by_distance_and_hand():
+    from warp_vision.train.limb import range_errors
+
+    true = np.log([0.5, 1.5, 3.0, 0.8])
+    pred = true + np.log([1.1, 0.98, 1.02, 1.0])
+    e = range_errors(pred, true, hand_m=np.array([0.3, 0.9, 2.0, 0.1]))
+    assert e["depth_n"] == 4 and e["depth_median_relative"] == pytest.approx(0.02)
+    assert e["depth_bias_relative"] == pytest.approx(0.01)
+    assert e["near_hand"]["n"] == 2 and e["near_hand"]["median_cm"] == pytest.approx(2.5)  # 5 cm and 0 cm
+    assert e["by_distance"]["2-4 m"]["n"] == 1 and e["by_distance"]["2-4 m"]["median_cm"] == pytest.approx(6.0)
+    assert e["by_distance"]["1-2 m"]["median_relative"] == pytest.approx(0.02)
+
+
+def test_smoke_ranging_run_trains_on_balls_near_the_line_of_sight(tmp_path):
+    from warp_vision.nn.retina_cnn import RANGE_GATE_DEG
+    from warp_vision.nn.trained import load_net
+    from warp_vision.train.config import LimbTrainConfig
+    from warp_vision.train.limb import LimbTask
+
+    run = tmp_path / "left"
+    argv = ["limb", "--preset", "smoke", "--model", "range", "--out", str(run),
+            "--data-dir", str(tmp_path / "data" / "limb-smoke"), "--no-progress"]
+    assert train_main(argv) == 0
+    s = json.loads((run / "summary.json").read_text())
+    for split in ("test", "heldout"):
+        assert {"depth_median_relative", "depth_p90_relative", "near_hand", "by_distance"} <= set(s[split])
+    assert 0 < s["heldout_samples_in_gate"] <= 16 and (run / "figures" / "range_errors.png").exists()
+    net, ck = load_net(run)
+    assert ck["net"]["model"] == "range" and ck["net"]["onv_dtype"] == "float32"
+    assert net(torch.rand(3, 3 * 400)).shape == (3, 1)
+    # the splits hold only the balls within the gate, and the target is the log distance
+    task = LimbTask(LimbTrainConfig(**json.loads((run / "config.json").read_text())))
+    task.load((0, 1), progress=False, synthesize=False)
+    ids = np.concatenate(task.splits())
+    assert len(ids) and (task.meta[ids, 3].numpy() < RANGE_GATE_DEG).all()
+    assert torch.allclose(task.target[:, 0], torch.log(task.meta[:, 0]))
+    # a foveation run cannot be a ranging net
+    assert train_main(["--preset", "smoke", "--model", "range", "--no-progress"]) == 2
+
+
+def test_limb_vision_with_ranging_nets_puts_the_ball_along_the_seen_direction(tmp_path):
+    from types import SimpleNamespace
+
+    from warp_vision.frames import gaze_angles, look_rotation
+    from warp_vision.nn.retina_cnn import RANGE_GATE_DEG
+    from warp_vision.sim.limb import LimbVision
+
+    for eye in SIDES:
+        assert train_main(["limb", "--preset", "smoke", "--model", "range", "--eye", eye, "--epochs", "1",
+                           "--out", str(tmp_path / eye), "--data-dir", str(tmp_path / "data" / eye), "--no-progress"]) == 0
+    lv = LimbVision({s: str(tmp_path / s) for s in SIDES}, "left")
+    assert lv.ranging
+    onv = {s: torch.rand(1, 3 * 400) for s in SIDES}
+    dist = {s: lv.distance(onv[s], s) for s in SIDES}
+    assert all(np.isfinite(d) and d > 0 for d in dist.values())
+    with pytest.raises(ValueError):
+        lv.discrepancy(onv)
+    poses = {}
+    for s, x in (("left", 0.032), ("right", -0.032)):
+        poses[s] = np.eye(4)
+        poses[s][:3, :3], poses[s][:3, 3] = look_rotation([0.0, -1.0, 0.1], up=(0.0, 0.0, 1.0)), [x, -0.09, 1.55]
+    inside = gaze_angles(np.array([np.sin(np.radians(2.0)), 0.0, np.cos(np.radians(2.0))]))
+    outside = gaze_angles(np.array([np.sin(np.radians(RANGE_GATE_DEG + 1)), 0.0, np.cos(np.radians(RANGE_GATE_DEG + 1))]))
+    loop = SimpleNamespace(onv=onv, estimate={"left": inside, "right": outside})
+    hand = np.array([0.2, -0.4, 1.0])
+    p = lv.observe(loop, poses, hand, 0.04)
+    u = poses["left"][:3, :3] @ np.array([np.sin(np.radians(2.0)), 0.0, np.cos(np.radians(2.0))])
+    assert np.allclose(p, poses["left"][:3, 3] + dist["left"] * u, atol=1e-6)  # the right eye is outside its gate
+    t, est, per_eye, h = lv.log[-1]
+    assert set(per_eye) == {"left"} and np.array_equal(h, hand)
+    loop.estimate = {"left": outside, "right": outside}
+    assert lv.observe(loop, poses, hand, 0.08) is None  # no eye sees the ball near its line of sight
+    # the ONV-only and the ranging nets do not mix
+    assert train_main(["limb", "--preset", "smoke", "--epochs", "1", "--out", str(tmp_path / "linet"),
+                       "--data-dir", str(tmp_path / "data" / "right"), "--eye", "right", "--no-progress"]) == 0
+    with pytest.raises(ValueError, match="ranging"):
+        LimbVision({"left": str(tmp_path / "left"), "right": str(tmp_path / "linet")}, "left")
+
+
+def test_frame_errors_compare_each_observation_with_the_ballistic_ball():
+    from warp_vision.sim.cannon import shot_from_seed
+    from warp_vision.sim.intercept import ballistic_path
+    from warp_vision.sim.limb import frame_error_summary, frame_errors
+
+    shot = shot_from_seed(1_000_000)
+    hand = np.array([0.2, -0.3, 1.0])
+    log = []
+    for t in (0.04, 0.08, 0.12, 0.16):
+        ball = ballistic_path(shot.muzzle, shot.launch_velocity, [t])[0]
+        log.append((t, ball + [0.0, 0.0, 0.05], {}, hand))
+    rows = frame_errors(log, shot, until=0.13)
+    assert len(rows) == 3 and all(r[1] == pytest.approx(0.05) for r in rows)
+    s = frame_error_summary(rows + [(0.3, 0.01, 0.0)])
+    assert s["all"]["frames"] == 4 and s["near"]["frames"] == 1 and s["near"]["median_cm"] == pytest.approx(1.0)
+    assert s["all"]["median_cm"] == pytest.approx(5.0)

@@ -45,9 +45,10 @@ def test_defaults_and_the_shots_they_pick(parsed):
     assert (a.side, a.shots, a.shot_seed, a.perception, a.seed) == ("left", None, None, "vision", 0)
     assert a.out == os.path.join("runs", "sim_intercept") and a.video_format == "gif"
     assert a.intraocular == "analytic" and a.ball == "glowing" and a.no_arms is False and a.perception_error_cm == []
+    assert a.frame_every == 2  # 50 frames a second for the cannon ball (the other commands: 25)
     assert [s.seed for s in pick_shots(a)] == [1_000_000]  # the first held-out shot
-    a = parsed("--quick", "--shots", "3", "--seed", "5", "--side", "right", "--frame-every", "2")
-    assert a.out == os.path.join("runs", "quick", "sim_intercept") and a.frame_every == 2
+    a = parsed("--quick", "--shots", "3", "--seed", "5", "--side", "right", "--frame-every", "4")
+    assert a.out == os.path.join("runs", "quick", "sim_intercept") and a.frame_every == 4
     shots = pick_shots(a)
     assert [s.seed for s in shots] == [1_000_005, 1_000_006, 1_000_007] and {s.side for s in shots} == {"right"}
     a = parsed("--shot-seed", "42", "--out", "elsewhere", "--video-format", "mp4")
@@ -121,8 +122,8 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
     assert (arm.what, left.what) == ("left arm's motor nets", "left eye's limb vision net")
     assert NetSpec("oculomotor", "left", "o", "quick").command()[3:5] == ["--eye", "left"]
     assert (MINUTES["arm", "default"], MINUTES["arm", "quick"], MINUTES["limb", "default"], MINUTES["limb", "quick"]) \
-        == (8.0, 2.0, 15.0, 4.0)
-    assert (arm.minutes(), left.minutes()) == (8.0, 15.0)
+        == (8.0, 2.0, 17.0, 4.0)
+    assert (arm.minutes(), left.minutes()) == (8.0, 17.0)
     assert [s.kind for s in strike_plan("right", "a", None, quick=True)] == ["arm"]
     with pytest.raises(ValueError, match="side"):
         strike_plan("middle", "a", "l")
@@ -141,7 +142,7 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
 
     assert provide([arm, left, right], progress=False, log=lines.append, runner=fake) == [arm, left, right]
     assert [c[3] for c in calls] == ["arm", "limb", "limb"] and all("--no-progress" in c for c in calls)
-    assert "about 38 min" in lines[0] and "left arm's motor nets" in lines[1] and "right eye's limb vision net" in lines[3]
+    assert "about 42 min" in lines[0] and "left arm's motor nets" in lines[1] and "right eye's limb vision net" in lines[3]
     with pytest.raises(SystemExit, match="left arm's motor nets failed"):
         provide(strike_plan("left", str(tmp_path / "arm2"), None), progress=False, log=lambda _m: None,
                 runner=lambda cmd: 1)

@@ -326,7 +326,7 @@ class BallisticPerception:
     :data:`FIT_WINDOW_S`, each weighted by 1 / (:data:`FIT_NEAR_M` + its estimated distance to the hand)^2,
     evaluated at ``t`` (one observation: at rest; none yet: None, and the interceptor holds).
     :meth:`reset` forgets the observations (at the launch); ``log`` keeps them all, with each eye's
-    part: (t, estimate [3], {eye: [3]})."""
+    part and the hand at the render: (t, estimate [3], {eye: [3]}, hand [3])."""
 
     def __init__(self, arm: str):
         if arm not in SIDES:
@@ -339,8 +339,9 @@ class BallisticPerception:
         self._obs = []
 
     def _add(self, t: float, p: np.ndarray, hand, per_eye: dict) -> np.ndarray:
-        self._obs.append((float(t), p, float(np.linalg.norm(p - np.asarray(hand, float)))))
-        self.log.append((float(t), p, per_eye))
+        hand = np.asarray(hand, float).copy()
+        self._obs.append((float(t), p, float(np.linalg.norm(p - hand))))
+        self.log.append((float(t), p, per_eye, hand))
         return p
 
     def __call__(self, body, t: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -354,12 +355,18 @@ class BallisticPerception:
 class LimbVision(BallisticPerception):
     """Both eyes' limb vision nets (trained by ``python -m warp_vision.train limb --eye left|right``) as the
     interception's perception of the ball (:class:`warp_vision.sim.intercept.ArmInterceptor`'s
-    ``perception``; the fit: :class:`BallisticPerception`).
+    ``perception``; the fit: :class:`BallisticPerception`). The two eyes' estimates are averaged, as in
+    the paper; the hand's position (m, world) comes from proprioception.
 
-    On each visual frame, :meth:`observe` runs each eye's net on its ONV, takes the discrepancy of
-    ``arm``'s hand (eye frame), turns it into the world frame with the eye's orientation at the render
-    (the oculomotor system's knowledge of where its eye points) and adds the hand's position
-    (proprioception): one estimate of the ball per eye; the two are averaged, as in the paper."""
+    - Ranging nets (``--model range``, the default preset's): on each visual frame each eye whose
+      foveation net sees the ball within :data:`~warp_vision.nn.retina_cnn.RANGE_GATE_DEG` of its line of
+      sight (``loop.estimate``, the loop's own tracking input) gives the ball at the distance its ranging
+      net reads from its ONV along that direction, turned into the world frame with the eye's pose at the
+      render (the oculomotor system's knowledge of where its eye points); the discrepancy is that ball
+      minus the hand. No eye within its gate: no observation that frame.
+    - ONV-only nets (linet, fc, cnn): each eye's net gives the discrepancy of ``arm``'s hand (eye frame)
+      from its ONV; turned into the world frame and added to the hand's position, one estimate of the
+      ball per eye."""
 
     def __init__(self, run_dirs: dict, arm: str, device: str = "cpu"):
         from warp_vision.nn.trained import load_net, onv_dtype
@@ -367,7 +374,7 @@ class LimbVision(BallisticPerception):
         super().__init__(arm)
         if set(run_dirs) != set(SIDES):
             raise ValueError(f"run_dirs: expected one run per eye {SIDES}, got {sorted(run_dirs)}")
-        self.nets, self.norms, self.dtypes, self.data = {}, {}, {}, {}
+        self.nets, self.norms, self.dtypes, self.data, models = {}, {}, {}, {}, {}
         for s, rd in run_dirs.items():
             model, ck = load_net(rd, device)
             if ck.get("net", {}).get("kind") != "limb":
@@ -376,6 +383,12 @@ class LimbVision(BallisticPerception):
             if ck["data"]["eye"] != s:
                 raise ValueError(f"{rd}: a net of the {ck['data']['eye']} eye, given for the {s} eye")
             self.nets[s], self.norms[s], self.dtypes[s], self.data[s] = model, ck["norm"], onv_dtype(ck["net"]), ck["data"]
+            models[s] = ck["net"]["model"]
+        ranging = {s: m == "range" for s, m in models.items()}
+        if len(set(ranging.values())) > 1:
+            raise ValueError(f"limb vision runs: both eyes' nets must be ranging nets or neither, got {models}")
+        self.ranging = ranging["left"]
+        self.run_dirs = dict(run_dirs)
         self.device = device
         self._k = 0 if arm == "left" else 3
 
@@ -386,20 +399,48 @@ class LimbVision(BallisticPerception):
             if retinas[s].P != P:
                 raise ValueError(f"limb vision net of the {s} eye: trained on P={P} photoreceptors, the loop renders {retinas[s].P}")
 
-    def discrepancy(self, onv: dict) -> dict:
-        """{eye: [6]} each eye's net on its ONV [1, 3P] (or [3P]): ball - hand of the left and right arm, eye frame (m)."""
+    def _predict(self, s: str, onv) -> np.ndarray:
         from warp_vision.nn.trained import predict_targets
 
+        x = torch.as_tensor(onv).reshape(1, -1)
+        return predict_targets(self.nets[s], x, self.norms[s], self.device, self.dtypes[s])[0].double().numpy()
+
+    def discrepancy(self, onv: dict) -> dict:
+        """ONV-only nets: {eye: [6]} each eye's net on its ONV [1, 3P] (or [3P]): ball - hand of the left and
+        right arm, eye frame (m)."""
+        if self.ranging:
+            raise ValueError("discrepancy: ranging nets read the ball's distance (distance()); the loop adds the "
+                             "direction and the hand (observe())")
+        return {s: self._predict(s, onv[s]) for s in SIDES}
+
+    def distance(self, onv, eye: str) -> float:
+        """Ranging nets: the ball's distance (m) from ``eye``'s centre, read from its ONV [1, 3P] (or [3P])."""
+        if not self.ranging:
+            raise ValueError("distance: these limb vision nets give discrepancies (discrepancy())")
+        return float(np.exp(self._predict(eye, onv)[0]))
+
+    def ball_in_eyes(self, loop, eye_poses: dict) -> dict:
+        """Ranging nets: {eye: the ball's world position (m)} for each eye whose foveation estimate
+        (``loop.estimate``) lies within the ranging gate."""
+        from warp_vision.nn.retina_cnn import RANGE_GATE_DEG
+
         out = {}
-        for s in SIDES:
-            x = torch.as_tensor(onv[s]).reshape(1, -1)
-            out[s] = predict_targets(self.nets[s], x, self.norms[s], self.device, self.dtypes[s])[0].double().numpy()
+        for s, est in (getattr(loop, "estimate", None) or {}).items():
+            u = gaze_direction(*np.asarray(est, float))
+            if np.degrees(np.arccos(np.clip(u[2], -1.0, 1.0))) <= RANGE_GATE_DEG:
+                out[s] = eye_poses[s][:3, 3] + eye_poses[s][:3, :3] @ (self.distance(loop.onv[s], s) * u)
         return out
 
-    def observe(self, loop, eye_poses: dict, hand, t: float) -> np.ndarray:
+    def observe(self, loop, eye_poses: dict, hand, t: float) -> np.ndarray | None:
         """One frame: the ball's estimated world position (m) from the ONVs ``loop`` just rendered
-        (``loop.onv``), with the eyes at ``eye_poses`` ({eye: [4, 4] world-from-eye}) and ``arm``'s hand at
-        ``hand`` (m, world) at the render, at t (s)."""
+        (``loop.onv``, and with ranging nets ``loop.estimate``), with the eyes at ``eye_poses`` ({eye: [4, 4]
+        world-from-eye}) and ``arm``'s hand at ``hand`` (m, world) at the render, at t (s); None when no eye
+        sees the ball within its gate (ranging nets)."""
+        if self.ranging:
+            per_eye = self.ball_in_eyes(loop, eye_poses)
+            if not per_eye:
+                return None
+            return self._add(t, np.mean(list(per_eye.values()), axis=0), hand, per_eye)
         d = self.discrepancy(loop.onv)
         per_eye = {s: np.asarray(hand, float) + eye_poses[s][:3, :3] @ d[s][self._k:self._k + 3] for s in SIDES}
         return self._add(t, 0.5 * (per_eye["left"] + per_eye["right"]), hand, per_eye)
@@ -450,3 +491,79 @@ def fit_ballistic(times, positions, weights, t: float) -> tuple[np.ndarray, np.n
     A = np.stack([np.ones_like(ts), ts], 1) * sw
     coef, *_ = np.linalg.lstsq(A, P * sw, rcond=None)
     return coef[0], coef[1]
+
+
+def frame_errors(log, shot, until: float) -> list:
+    """Per visual frame of one shot before ``until`` s (its first contact): (true ball-hand distance m,
+    |estimated - true ball| m, |estimated - true| ball-hand distance m), against the shot's ballistic path;
+    ``log``: a :class:`BallisticPerception`'s log entries of that shot."""
+    from warp_vision.sim.intercept import ballistic_path
+
+    out = []
+    for t, p, _per_eye, hand in log:
+        if t >= until:
+            continue
+        ball = ballistic_path(shot.muzzle, shot.launch_velocity, [t])[0]
+        true = float(np.linalg.norm(ball - hand))
+        out.append((true, float(np.linalg.norm(p - ball)), abs(float(np.linalg.norm(p - hand)) - true)))
+    return out
+
+
+def frame_error_summary(rows: list, near_m: float = NEAR_M) -> dict:
+    """Medians and 90th percentiles (cm) of :func:`frame_errors` rows: all frames, and the frames whose
+    ball is within ``near_m`` of the hand (the limb vision goal's range)."""
+    a = np.asarray(rows, float).reshape(-1, 3)
+
+    def part(m):
+        if not m.any():
+            return {"frames": 0, "median_cm": None, "p90_cm": None, "median_relative": None}
+        return {"frames": int(m.sum()), "median_cm": float(np.median(a[m, 1]) * 100),
+                "p90_cm": float(np.percentile(a[m, 1], 90) * 100),
+                "median_relative": float(np.median(a[m, 1] / np.maximum(a[m, 0], 1e-6)))}
+
+    return {"all": part(np.ones(len(a), bool)), "near": part(a[:, 0] < near_m), "near_m": near_m}
+
+
+def ball_in_eye(cfg: LimbDataConfig, index: int, poser: Poser) -> np.ndarray:
+    """Sample ``index``'s ball in its eye frame (m; :func:`sample_params` again: samples are reproducible)."""
+    p = sample_params(cfg, index, poser)
+    R, centre = p["eye_pose"][:3, :3], p["eye_pose"][:3, 3]
+    return R.T @ (p["ball"] - centre)
+
+
+def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False) -> dict:
+    """The limb vision of the loop on the held-out ONVs of ``limb_run`` (a ranging run of ``python -m
+    warp_vision.train limb``): for each held-out sample whose ball ``foveation`` (the eye's
+    :class:`warp_vision.sim.loop.Foveator`) sees within the ranging gate, the ball where the foveation
+    net's direction and the ranging net's distance put it, minus each hand at its true place
+    (proprioception), against the true discrepancies: :func:`warp_vision.train.limb.discrepancy_errors`
+    (cm, near = balls within :data:`NEAR_M` of the hand), and the share of samples seen within the gate."""
+    import json as _json
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from warp_vision.nn.retina_cnn import RANGE_GATE_DEG
+    from warp_vision.nn.trained import load_net, predict_targets
+    from warp_vision.train.limb import discrepancy_errors
+
+    net, ck = load_net(limb_run)
+    if ck["net"].get("model") != "range":
+        raise ValueError(f"{limb_run}: expected a ranging limb vision run (--model range), got {ck['net'].get('model')!r}")
+    summary = _json.loads((Path(limb_run) / "summary.json").read_text())
+    store = ChunkedStore.open(summary["heldout_dataset"])
+    cfg = LimbDataConfig(**{k: v for k, v in store.manifest["config"].items() if k != "generator_version"})
+    d = store.load(["onv", "target"])
+    onv = torch.from_numpy(d["onv"])
+    direction = foveation(onv)  # [N, 2] yaw, pitch
+    u = np.stack([gaze_direction(*a) for a in direction])
+    seen = np.degrees(np.arccos(np.clip(u[:, 2], -1.0, 1.0))) <= RANGE_GATE_DEG
+    idx = np.flatnonzero(seen)
+    dist = np.exp(predict_targets(net, onv[torch.as_tensor(idx)], ck["norm"], "cpu").numpy()[:, 0])
+    poser = Poser()
+    true_ball = np.stack([ball_in_eye(cfg, int(i), poser) for i in tqdm(idx, desc="held-out balls", disable=not progress)])
+    est_ball = dist[:, None] * u[idx]
+    target = d["target"][idx].astype(np.float64)  # ball - hand, each arm, eye frame
+    pred = target + np.tile(est_ball - true_ball, 2)  # the hands at their true places
+    return {"samples": int(len(onv)), "seen_within_gate": int(len(idx)), **discrepancy_errors(pred, target),
+            "ball_median_cm": float(np.median(np.linalg.norm(est_ball - true_ball, axis=1)) * 100)}

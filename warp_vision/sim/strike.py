@@ -195,7 +195,7 @@ def _intercept_one(args, loop, interceptor, vision, shot) -> dict:
     limb = None
     if vision is not None:
         frame_t, est, pos_err, dist_err = [], [], [], []
-        for tf, p, _per_eye in vision.log:  # each frame: the estimate against the state at the render
+        for tf, p, _per_eye, _hand in vision.log:  # each frame: the estimate against the state at the render
             k = int(round(tf / CONTROL_DT))
             if k not in samples:
                 continue
@@ -233,24 +233,46 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
     from warp_vision.sim.intercept import OffsetOracle, arm_interceptor, intercept_stats, run_vision_shot
     from warp_vision.sim.strike_figures import mode_label, stats_figures, target_offset
 
-    from warp_vision.sim.limb import FixationVision
+    from warp_vision.sim.limb import FixationVision, frame_error_summary, frame_errors
 
     progress = not args.no_progress
     loop_mode = {"vision": "vision", "fixation": "fixation"}.get(args.perception, "loop_oracle")
-    results, wall = {}, {}
+    results, wall, seen = {}, {}, {}
+
+    def runner(ic, perception, rows):
+        """run_vision_shot, keeping the perception's per-frame errors until the ball's first contact"""
+        def run(shot):
+            start = len(perception.log) if perception is not None else 0
+            r = run_vision_shot(loop, shot, ic, perception)
+            if perception is not None:
+                until = min([c.t for c in r.first_contacts.values()] + [shot.flight_time])
+                rows.extend(frame_errors(perception.log[start:], shot, until))
+            return r
+        return run
+
     timing0 = dict(loop.timing)
     t0 = time.perf_counter()
-    results[loop_mode] = intercept_stats(shots, runner=lambda shot: run_vision_shot(loop, shot, interceptor, vision),
-                                         progress=progress, desc=mode_label(loop_mode))
+    rows: list = []
+    results[loop_mode] = intercept_stats(shots, runner=runner(interceptor, vision, rows), progress=progress,
+                                         desc=mode_label(loop_mode))
+    if vision is not None:
+        seen[loop_mode] = frame_error_summary(rows)
     wall[loop_mode] = time.perf_counter() - t0
     timing = {k: v - timing0.get(k, 0.0) for k, v in loop.timing.items()}
     if loop_mode == "vision":  # the same loop with the eyes' fixation in place of the limb vision nets
         fixation = FixationVision(args.side)
         other = arm_interceptor(loop.body, nets, args.side, perception=fixation)
         t0 = time.perf_counter()
-        results["fixation"] = intercept_stats(shots, runner=lambda shot: run_vision_shot(loop, shot, other, fixation),
-                                              progress=progress, desc=mode_label("fixation"))
+        rows = []
+        results["fixation"] = intercept_stats(shots, runner=runner(other, fixation, rows), progress=progress,
+                                              desc=mode_label("fixation"))
+        seen["fixation"] = frame_error_summary(rows)
         wall["fixation"] = time.perf_counter() - t0
+    heldout = None
+    if getattr(vision, "ranging", False):  # the limb vision nets on their held-out ONVs, with the loop's foveation nets
+        from warp_vision.sim.limb import heldout_limb_vision_errors
+
+        heldout = {s: heldout_limb_vision_errors(vision.run_dirs[s], loop.fov[s]) for s in SIDES}
     bare = Body()  # oracle and passive: run_shot on a body of their own, no rendering
     modes = [("oracle", lambda b: arm_interceptor(b, nets, args.side))]
     for e in args.perception_error_cm:  # each factory makes a perception of its own, seeded alike
@@ -269,6 +291,7 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
            "results": results,
            "median_closest_miss_m": {m: r["median_closest_miss_m"] for m, r in results.items()},
            "deflected_fraction": {m: r["deflected_fraction"] for m, r in results.items()},
+           "perception_errors": seen, "limb_vision_heldout": heldout,
            "wall_s": wall, "timing_s": timing, "timing_shares": time_shares(timing, wall[loop_mode]),
            "figures": figures}
     write_json(os.path.join(args.out, "intercept_stats.json"), out)
@@ -279,6 +302,17 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
         miss = "-" if r["median_closest_miss_m"] is None else f"{r['median_closest_miss_m']:.3f} m"
         print(f"{mode_label(m):28s} {hits:>10s} {r['deflected_fraction']:>9.2f} {miss:>12s} "
               f"{r['median_closest_m']:>13.3f} m {wall[m] / len(shots):>12.1f}")
+    for m, e in seen.items():
+        if e["all"]["frames"]:
+            near = e["near"]
+            near_text = (f"; within {e['near_m']:g} m of the hand ({near['frames']} frames): median {near['median_cm']:.1f} cm, "
+                         f"p90 {near['p90_cm']:.1f} cm, {near['median_relative']:.2f} of the distance") if near["frames"] else ""
+            print(f"{mode_label(m)}: the ball's position per frame in flight, median error {e['all']['median_cm']:.1f} cm "
+                  f"(p90 {e['all']['p90_cm']:.1f}, {e['all']['frames']} frames){near_text}")
+    for s, e in (heldout or {}).items():
+        print(f"limb vision, {s} eye, held-out ONVs ({e['seen_within_gate']} of {e['samples']} with the ball seen near the "
+              f"line of sight): hand-ball error within 0.6 m median {e['near_median_cm']:.2f} cm, p90 {e['near_p90_cm']:.2f} cm, "
+              f"{e['near_median_relative']:.3f} of the distance; every ball {e['all_median_cm']:.2f} cm")
     print(f"{mode_label(loop_mode)}, wall time: " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in out["timing_shares"].items()))
     print(f"wrote {os.path.join(args.out, 'intercept_stats.json')} and {', '.join(os.path.basename(f) for f in figures)}")
     return out
