@@ -240,20 +240,28 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
         return nn.functional.cross_entropy(logits, nearest)
 
 
-class RetinaCNNLimbNet(RetinaImageCNN):
-    """ONV [B, 3P] -> standardised hand-to-ball discrepancies [B, 6] (``ball - hand`` of the left and of
-    the right arm, eye frame; the limb vision task, :mod:`warp_vision.train.limb`): the foveated image
-    and CNN of :class:`RetinaImageCNN`, its last stage's map flattened (where things are matters) into a
-    hidden layer of ``hidden`` units and a linear read-out."""
+class RetinaImageRegression(RetinaImageCNN):
+    """The foveated image and CNN of :class:`RetinaImageCNN`, its last stage's map flattened (where things
+    are matters) into a hidden layer of ``hidden`` units and a linear read-out of ``outputs`` values."""
 
-    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
-                 power: float = 1.5, hidden: int = 128):
-        super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=6)
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int, channels: int, max_ecc_deg: float, power: float,
+                 hidden: int, outputs: int):
+        super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=outputs)
         last = self.stage_channels[-1] * (size // 16) ** 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 6))
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, outputs))
 
     def forward(self, x: Tensor, transform=0) -> Tensor:
         return self.head(self.features(self.image(x, transform))[-1])
+
+
+class RetinaCNNLimbNet(RetinaImageRegression):
+    """ONV [B, 3P] -> standardised hand-to-ball discrepancies [B, 6] (``ball - hand`` of the left and of
+    the right arm, eye frame; the limb vision task, :mod:`warp_vision.train.limb`): a
+    :class:`RetinaImageRegression` of the whole foveated image."""
+
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
+                 power: float = 1.5, hidden: int = 128):
+        super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, hidden, outputs=6)
 
     @staticmethod
     def transform_targets(target: Tensor, k: int) -> Tensor:
@@ -266,22 +274,17 @@ class RetinaCNNLimbNet(RetinaImageCNN):
         return t.reshape(-1, 6)
 
 
-class RetinaCNNRangeNet(RetinaImageCNN):
+class RetinaCNNRangeNet(RetinaImageRegression):
     """ONV [B, 3P] -> the standardised log distance (m) [B, 1] from the eye to a ball near the line of
     sight (within :data:`RANGE_GATE_DEG`): the limb vision nets' depth. The image is the foveal
     :data:`RANGE_ECC_DEG` at nearly uniform scale, where a ball of known size shows its distance by its
-    apparent size (0.76 deg across at 3 m for the cannon's 4 cm ball, 4.6 deg at 0.5 m); the CNN of
-    :class:`RetinaImageCNN`, its last stage flattened into a hidden layer and one output. A turn or
-    mirror of the world leaves a distance as it is, so every augmentation keeps the target."""
+    apparent size (0.76 deg across at 3 m for the cannon's 4 cm ball, 4.6 deg at 0.5 m); a
+    :class:`RetinaImageRegression` with one output. A turn or mirror of the world leaves a distance as it
+    is, so every augmentation keeps the target."""
 
     def __init__(self, photoreceptor_angles: np.ndarray, size: int = RANGE_IMAGE_SIZE, channels: int = 16,
                  max_ecc_deg: float = RANGE_ECC_DEG, power: float = RANGE_POWER, hidden: int = 128):
-        super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=1)
-        last = self.stage_channels[-1] * (size // 16) ** 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1))
-
-    def forward(self, x: Tensor, transform=0) -> Tensor:
-        return self.head(self.features(self.image(x, transform))[-1])
+        super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, hidden, outputs=1)
 
     @staticmethod
     def transform_targets(target: Tensor, k: int) -> Tensor:
