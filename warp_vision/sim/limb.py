@@ -48,7 +48,7 @@ LIMB_DATA_VERSION = 1
 SIDES = ("left", "right")
 #: Samples whose ball lies on a cannon shot's path (the rest: near a hand).
 PATH_SHARE = 0.45
-#: m: the near-hand balls lie this far from the hand's grasp site at most.
+#: m: the near-hand balls lie this far from the hand's grasp site at most; the errors' near range (the issue's).
 NEAR_M = 0.6
 #: Share of arm draws whose hand must lie in front of the shoulder (the interception's postures).
 FRONT_SHARE = 0.7
@@ -493,6 +493,58 @@ def fit_ballistic(times, positions, weights, t: float) -> tuple[np.ndarray, np.n
     return coef[0], coef[1]
 
 
+#: m: the distance bins of the summary
+BINS_M = (0.0, 0.2, 0.4, 0.6, 1.0, 2.0, 4.0)
+#: m: the ranging summary's bins of the eye-ball distance
+RANGE_BINS_M = (0.0, 0.5, 1.0, 2.0, 4.0)
+
+
+def discrepancy_errors(pred: np.ndarray, true: np.ndarray) -> dict:
+    """Errors of predicted discrepancies [N, 6] (m) against the true ones: per arm-sample pair, |pred -
+    true| and the true distance |true|. The near metrics (``near_*``) take the pairs within
+    :data:`NEAR_M`; ``by_distance`` the median error per bin of :data:`BINS_M`."""
+    p, t = np.asarray(pred, float).reshape(-1, 3), np.asarray(true, float).reshape(-1, 3)
+    err = np.linalg.norm(p - t, axis=1)
+    dist = np.linalg.norm(t, axis=1)
+    near = dist < NEAR_M
+    nan = float("nan")
+    out = {"near_pairs": int(near.sum()),
+           "near_median_cm": float(np.median(err[near]) * 100) if near.any() else nan,
+           "near_p90_cm": float(np.percentile(err[near], 90) * 100) if near.any() else nan,
+           "near_median_relative": float(np.median(err[near] / dist[near])) if near.any() else nan,
+           "all_median_cm": float(np.median(err) * 100) if len(err) else nan,
+           "all_median_relative": float(np.median(err / np.maximum(dist, 1e-6))) if len(err) else nan}
+    out["by_distance"] = {f"{lo:g}-{hi:g} m": {"pairs": int(((dist >= lo) & (dist < hi)).sum()),
+                                               "median_cm": float(np.median(err[(dist >= lo) & (dist < hi)]) * 100)
+                                               if ((dist >= lo) & (dist < hi)).any() else None}
+                          for lo, hi in zip(BINS_M, BINS_M[1:])}
+    return out
+
+
+def range_errors(pred_log: np.ndarray, true_log: np.ndarray, hand_m: np.ndarray) -> dict:
+    """Errors of predicted eye-ball distances (log m, [N]) against the true ones: relative (pred / true -
+    1) and absolute (cm), overall, by :data:`RANGE_BINS_M`, and for the balls within :data:`NEAR_M` of a
+    hand (``hand_m`` [N]: the nearer hand's distance to the ball, m): the discrepancy's error along the
+    line of sight."""
+    p, t = np.asarray(pred_log, float).ravel(), np.asarray(true_log, float).ravel()
+    rel = np.exp(p - t) - 1.0
+    cm = np.abs(np.exp(p) - np.exp(t)) * 100
+    dist, near = np.exp(t), np.asarray(hand_m, float).ravel() < NEAR_M
+    nan = float("nan")
+
+    def stats(m):
+        return {"n": int(m.sum()), "median_relative": float(np.median(np.abs(rel[m]))) if m.any() else nan,
+                "p90_relative": float(np.percentile(np.abs(rel[m]), 90)) if m.any() else nan,
+                "bias_relative": float(np.median(rel[m])) if m.any() else nan,
+                "median_cm": float(np.median(cm[m])) if m.any() else nan}
+
+    every = np.ones(len(t), bool)
+    out = {"depth_" + k: v for k, v in stats(every).items()}
+    out["near_hand"] = stats(near)
+    out["by_distance"] = {f"{lo:g}-{hi:g} m": stats((dist >= lo) & (dist < hi)) for lo, hi in zip(RANGE_BINS_M, RANGE_BINS_M[1:])}
+    return out
+
+
 def frame_errors(log, shot, until: float) -> list:
     """Per visual frame of one shot before ``until`` s (its first contact): (true ball-hand distance m,
     |estimated - true ball| m, |estimated - true| ball-hand distance m), against the shot's ballistic path;
@@ -536,7 +588,7 @@ def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False)
     warp_vision.train limb``): for each held-out sample whose ball ``foveation`` (the eye's
     :class:`warp_vision.sim.loop.Foveator`) sees within the ranging gate, the ball where the foveation
     net's direction and the ranging net's distance put it, minus each hand at its true place
-    (proprioception), against the true discrepancies: :func:`warp_vision.train.limb.discrepancy_errors`
+    (proprioception), against the true discrepancies: :func:`discrepancy_errors`
     (cm, near = balls within :data:`NEAR_M` of the hand), and the share of samples seen within the gate."""
     import json as _json
     from pathlib import Path
@@ -545,7 +597,6 @@ def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False)
 
     from warp_vision.nn.retina_cnn import RANGE_GATE_DEG
     from warp_vision.nn.trained import load_net, predict_targets
-    from warp_vision.train.limb import discrepancy_errors
 
     net, ck = load_net(limb_run)
     if ck["net"].get("model") != "range":

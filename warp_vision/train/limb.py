@@ -35,65 +35,14 @@ import numpy as np
 import torch
 
 from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
+from warp_vision.sim.limb import NEAR_M, discrepancy_errors, range_errors
 from warp_vision.train import harness
 from warp_vision.train.config import LimbTrainConfig, onv_dtype_name
 
-#: m: the issue's near range: balls within this distance of the hand
-NEAR_M = 0.6
 #: Huber threshold in standardised target units
 HUBER_DELTA = 0.1
-#: m: the distance bins of the summary
-BINS_M = (0.0, 0.2, 0.4, 0.6, 1.0, 2.0, 4.0)
-#: m: the ranging summary's bins of the eye-ball distance
-RANGE_BINS_M = (0.0, 0.5, 1.0, 2.0, 4.0)
 #: Huber threshold of the ranging loss (standardised log distance)
 RANGE_HUBER_DELTA = 0.5
-
-
-def discrepancy_errors(pred: np.ndarray, true: np.ndarray) -> dict:
-    """Errors of predicted discrepancies [N, 6] (m) against the true ones: per arm-sample pair, |pred -
-    true| and the true distance |true|. The near metrics (``near_*``) take the pairs within
-    :data:`NEAR_M`; ``by_distance`` the median error per bin of :data:`BINS_M`."""
-    p, t = np.asarray(pred, float).reshape(-1, 3), np.asarray(true, float).reshape(-1, 3)
-    err = np.linalg.norm(p - t, axis=1)
-    dist = np.linalg.norm(t, axis=1)
-    near = dist < NEAR_M
-    nan = float("nan")
-    out = {"near_pairs": int(near.sum()),
-           "near_median_cm": float(np.median(err[near]) * 100) if near.any() else nan,
-           "near_p90_cm": float(np.percentile(err[near], 90) * 100) if near.any() else nan,
-           "near_median_relative": float(np.median(err[near] / dist[near])) if near.any() else nan,
-           "all_median_cm": float(np.median(err) * 100) if len(err) else nan,
-           "all_median_relative": float(np.median(err / np.maximum(dist, 1e-6))) if len(err) else nan}
-    out["by_distance"] = {f"{lo:g}-{hi:g} m": {"pairs": int(((dist >= lo) & (dist < hi)).sum()),
-                                               "median_cm": float(np.median(err[(dist >= lo) & (dist < hi)]) * 100)
-                                               if ((dist >= lo) & (dist < hi)).any() else None}
-                          for lo, hi in zip(BINS_M, BINS_M[1:])}
-    return out
-
-
-def range_errors(pred_log: np.ndarray, true_log: np.ndarray, hand_m: np.ndarray) -> dict:
-    """Errors of predicted eye-ball distances (log m, [N]) against the true ones: relative (pred / true -
-    1) and absolute (cm), overall, by :data:`RANGE_BINS_M`, and for the balls within :data:`NEAR_M` of a
-    hand (``hand_m`` [N]: the nearer hand's distance to the ball, m): the discrepancy's error along the
-    line of sight."""
-    p, t = np.asarray(pred_log, float).ravel(), np.asarray(true_log, float).ravel()
-    rel = np.exp(p - t) - 1.0
-    cm = np.abs(np.exp(p) - np.exp(t)) * 100
-    dist, near = np.exp(t), np.asarray(hand_m, float).ravel() < NEAR_M
-    nan = float("nan")
-
-    def stats(m):
-        return {"n": int(m.sum()), "median_relative": float(np.median(np.abs(rel[m]))) if m.any() else nan,
-                "p90_relative": float(np.percentile(np.abs(rel[m]), 90)) if m.any() else nan,
-                "bias_relative": float(np.median(rel[m])) if m.any() else nan,
-                "median_cm": float(np.median(cm[m])) if m.any() else nan}
-
-    every = np.ones(len(t), bool)
-    out = {"depth_" + k: v for k, v in stats(every).items()}
-    out["near_hand"] = stats(near)
-    out["by_distance"] = {f"{lo:g}-{hi:g} m": stats((dist >= lo) & (dist < hi)) for lo, hi in zip(RANGE_BINS_M, RANGE_BINS_M[1:])}
-    return out
 
 
 class LimbTask(harness.OnvTask):
