@@ -11,7 +11,7 @@ from warp_vision.sim.cannon import GRAVITY
 from warp_vision.sim.limb import (META, NEAR_M, SIDES, LimbDataConfig, Poser, dataset_fields, fit_ballistic,
                                   render_samples, sample_params)
 from warp_vision.train.cli import main as train_main
-from warp_vision.sim.limb import discrepancy_errors
+from warp_vision.sim.limb_errors import discrepancy_errors
 
 
 @pytest.fixture(scope="module")
@@ -145,7 +145,7 @@ def test_the_gaze_lines_cross_at_the_ball_and_fixation_vision_sees_it_there():
 
 
 def test_range_errors_are_relative_absolute_and_split_by_distance_and_hand():
-    from warp_vision.sim.limb import range_errors
+    from warp_vision.sim.limb_errors import range_errors
 
     true = np.log([0.5, 1.5, 3.0, 0.8])
     pred = true + np.log([1.1, 0.98, 1.02, 1.0])
@@ -226,7 +226,7 @@ def test_limb_vision_with_ranging_nets_puts_the_ball_along_the_seen_direction(tm
 def test_frame_errors_compare_each_observation_with_the_ballistic_ball():
     from warp_vision.sim.cannon import shot_from_seed
     from warp_vision.sim.intercept import ballistic_path
-    from warp_vision.sim.limb import frame_error_summary, frame_errors
+    from warp_vision.sim.limb_errors import frame_error_summary, frame_errors
 
     shot = shot_from_seed(1_000_000)
     hand = np.array([0.2, -0.3, 1.0])

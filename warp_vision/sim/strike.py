@@ -233,7 +233,8 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
     from warp_vision.sim.intercept import OffsetOracle, arm_interceptor, intercept_stats, run_vision_shot
     from warp_vision.sim.strike_figures import mode_label, stats_figures, target_offset
 
-    from warp_vision.sim.limb import FixationVision, frame_error_summary, frame_errors
+    from warp_vision.sim.limb import FixationVision
+    from warp_vision.sim.limb_errors import frame_error_summary, frame_errors
 
     progress = not args.no_progress
     loop_mode = {"vision": "vision", "fixation": "fixation"}.get(args.perception, "loop_oracle")
@@ -270,7 +271,7 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
         wall["fixation"] = time.perf_counter() - t0
     heldout = None
     if getattr(vision, "ranging", False):  # the limb vision nets on their held-out ONVs, with the loop's foveation nets
-        from warp_vision.sim.limb import heldout_limb_vision_errors
+        from warp_vision.sim.limb_errors import heldout_limb_vision_errors
 
         heldout = {s: heldout_limb_vision_errors(vision.run_dirs[s], loop.fov[s]) for s in SIDES}
     bare = Body()  # oracle and passive: run_shot on a body of their own, no rendering

@@ -35,7 +35,8 @@ import numpy as np
 import torch
 
 from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
-from warp_vision.sim.limb import NEAR_M, discrepancy_errors, range_errors
+from warp_vision.sim.limb import NEAR_M
+from warp_vision.sim.limb_errors import discrepancy_errors, range_errors
 from warp_vision.train import harness
 from warp_vision.train.config import LimbTrainConfig, onv_dtype_name
 
