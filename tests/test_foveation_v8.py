@@ -32,7 +32,8 @@ def test_v7_stays_reproducible_by_its_version():
 
 @pytest.mark.parametrize("kw, match", [(dict(generator=6), "generator"), (dict(rooms="kitchen", generator=8), "rooms"),
                                        (dict(condition="fog", generator=8), "condition"),
-                                       (dict(generator=7, condition="white"), "generator 8")])
+                                       (dict(generator=7, condition="white"), "generators 8 and 9"),
+                                       (dict(generator=8, condition="decoy"), "generator 9")])
 def test_bad_v8_configs_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         FoveationDataConfig(**kw).validate()
@@ -155,14 +156,16 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     finally:
         os.chdir(cwd)
     out = capsys.readouterr().out
-    for label in ("glowing ball, dim room", "lit white ball", "coloured matte ball", "brighter object", "arm in view", "own test split"):
+    for label in ("glowing ball, dim room", "lit white ball", "coloured matte ball", "brighter object", "arm in view", "round decoy",
+                  "own test split"):
         assert label in out
     table = [line for line in out.splitlines() if line.startswith("| ")]
-    assert len(table) == 1 + 6 and all(line.count("/") >= 2 for line in table[1:])
+    assert len(table) == 1 + len(V.CONDITIONS) and all(line.count("/") >= 2 for line in table[1:])
     for r in runs:
         res = json.loads((tmp_path / r / "conditions.json").read_text())["results"]
         assert set(res) == {"own test split", *V.CONDITIONS[1:]}
         assert all(np.isfinite(v["median_deg"]) and v["p90_deg"] >= v["median_deg"] for v in res.values())
+        assert all(0 <= v["over_5deg"] <= 1 for v in res.values())
         assert (tmp_path / r / "figures" / "conditions.png").exists()
     # both runs were measured on the same held-out ONVs
     a = json.loads((tmp_path / runs[0] / "conditions.json").read_text())["results"]

@@ -64,10 +64,19 @@ def test_rendered_samples_fill_the_fields_and_keep_to_one_room(poser):
         render_samples(cfg, [3, 4], poser, retina)
 
 
-@pytest.mark.parametrize("bad", [dict(eye="middle"), dict(samples=0), dict(rooms="attic"), dict(shots="test")])
+@pytest.mark.parametrize("bad", [dict(eye="middle"), dict(samples=0), dict(rooms="attic"), dict(shots="test"), dict(ball="red")])
 def test_bad_dataset_configs_are_refused(bad):
     with pytest.raises(ValueError):
         LimbDataConfig(**bad).validate()
+
+
+def test_the_ball_is_part_of_the_dataset_and_the_glowing_datasets_keep_their_keys():
+    ordinary, glowing = LimbDataConfig(), LimbDataConfig(ball="glowing")
+    assert ordinary.ball == "ordinary" and ordinary.key() != glowing.key()
+    assert "ball" not in glowing.manifest()  # as the glowing-ball datasets were recorded before the choice
+    assert glowing.key() == "c912248a91d0"  # the left eye's default glowing-ball dataset, as it was cached
+    for cfg in (ordinary, glowing):
+        assert LimbDataConfig.from_manifest(cfg.manifest()) == cfg
 
 
 def test_the_errors_count_near_pairs_and_relative_error():
@@ -196,6 +205,9 @@ def test_limb_vision_with_ranging_nets_puts_the_ball_along_the_seen_direction(tm
                            "--out", str(tmp_path / eye), "--data-dir", str(tmp_path / "data" / eye), "--no-progress"]) == 0
     lv = LimbVision({s: str(tmp_path / s) for s in SIDES}, "left")
     assert lv.ranging
+    lv.check_ball("ordinary")  # the default: the loop's ordinary ball
+    with pytest.raises(ValueError, match="learnt the ordinary ball, the loop shows the glowing"):
+        lv.check_ball("glowing")
     onv = {s: torch.rand(1, 3 * 400) for s in SIDES}
     dist = {s: lv.distance(onv[s], s) for s in SIDES}
     assert all(np.isfinite(d) and d > 0 for d in dist.values())

@@ -44,7 +44,7 @@ def test_defaults_and_the_shots_they_pick(parsed):
     a = parsed()
     assert (a.side, a.shots, a.shot_seed, a.perception, a.seed) == ("left", None, None, "vision", 0)
     assert a.out == os.path.join("runs", "sim_intercept") and a.video_format == "gif"
-    assert a.intraocular == "analytic" and a.ball == "glowing" and a.no_arms is False and a.perception_error_cm == []
+    assert a.intraocular == "analytic" and a.ball == "ordinary" and a.no_arms is False and a.perception_error_cm == []
     assert a.frame_every == 2  # 50 frames a second for the cannon ball (the other commands: 25)
     assert [s.seed for s in pick_shots(a)] == [1_000_000]  # the first held-out shot
     a = parsed("--quick", "--shots", "3", "--seed", "5", "--side", "right", "--frame-every", "4")

@@ -170,7 +170,7 @@ def test_presets_pick_the_scene_generator_and_model_and_the_help_says_so():
     picks = {p: (resolve(p, {}).generator, resolve(p, {}).model) for p in PRESETS}
     assert picks == {"smoke": (7, "linet"), "quick": (8, "cnn"), "default": (8, "cnn"), "paper": (8, "linet")}
     assert resolve("paper", {}).samples_per_receptor == 8 and resolve("default", {"generator": 7}).generator == 7
-    assert _preset_defaults(PRESETS, "generator", 7) == "default: 8; --preset smoke: 7"
+    assert _preset_defaults(PRESETS, "generator", 7) == "default: 9; --preset smoke: 7"
     assert _preset_defaults({"default": {}, "smoke": {}}, "batch", 64) == "default: 64"
 
 

@@ -30,8 +30,9 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="python -m warp_vision.data", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="kind", required=True)
-    _add_config_flags(sub.add_parser("foveation", help="ONVs of a white ball in a room, with the eye rotation that foveates it"),
-                      FoveationDataConfig)
+    fov = sub.add_parser("foveation", help="ONVs of a ball in a room (--generator 7: a glowing white ball; 8: ordinary "
+                                           "balls among distractors; 9: and decoys), with the eye rotation that foveates it")
+    _add_config_flags(fov, FoveationDataConfig)
     faces = sub.add_parser("faces", help="ONVs of anny-built faces across yaw and pitch poses, with identity and pose")
     _add_config_flags(faces, FaceDataConfig)
     faces.add_argument("--identities-cache", default=None, help="identity meshes' cache file (default runs/faces/...)")

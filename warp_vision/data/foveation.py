@@ -1,9 +1,11 @@
 """Foveation data the virtual human synthesises itself: ONVs of a ball in a room, and the eye rotation
 that would bring the ball onto the fovea.
 
-Two generators, chosen by ``FoveationDataConfig.generator``: 8 is
+Three generators, chosen by ``FoveationDataConfig.generator``: 8 is
 :mod:`warp_vision.data.foveation_scenes` (ordinary balls in a family of everyday rooms, distractors, the
-body's arms); 7, described here and still the default, is a glowing white ball in one dim room.
+body's arms); 9 is v8 plus decoys, round things that are not the ball (:mod:`warp_vision.data.foveation_decoys`);
+7, described here and the config's default (the training presets choose 9), is a glowing white ball in
+one dim room.
 
 Each v7 sample: the eye stands somewhere in a dim room looking in a random direction; a glowing white ball
 of random size lies at 0.3 to 5 m, at a distance where it looks between :func:`min_apparent_diameter`
@@ -38,8 +40,9 @@ from warp_vision.frames import gaze_angles, gaze_directions, look_rotation
 #: The scene generators (bump the newest when a generator changes what a config renders: datasets are
 #: cached by config + version), each reproducible by ``FoveationDataConfig.generator``: 7 is the glowing
 #: white ball in one dim room; 8 (:mod:`warp_vision.data.foveation_scenes`) ordinary balls in a family of
-#: everyday rooms, among distractors, with the body's arms in view.
-GENERATORS = (7, 8)
+#: everyday rooms, among distractors, with the body's arms in view; 9 (:mod:`warp_vision.data.foveation_decoys`)
+#: v8 plus decoys (cylinders seen end-on, such as a cannon's muzzle), each v9 sample v8's with decoys added.
+GENERATORS = (7, 8, 9)
 #: The generator configs use unless they say otherwise: still v7, because no net trained on v8 so far
 #: finds its ordinary balls well enough for the closed loop (README: held-out medians of 9-30 degrees),
 #: and the loop's nets are trained by default.
@@ -75,7 +78,7 @@ class FoveationDataConfig:
     pupil_diameter_mm: float = 4.0
     seed: int = 0
     chunk_size: int = 256
-    generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room) or 8 (ordinary balls: foveation_scenes)
+    generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room), 8 (ordinary balls: foveation_scenes) or 9 (v8 + decoys)
     rooms: str = "train"  # v8: the room family, "train" or "heldout" (disjoint seeds)
     condition: str = "mixed"  # v8: "mixed" (training) or a test condition of foveation_scenes.CONDITIONS
 
@@ -97,7 +100,9 @@ class FoveationDataConfig:
         if self.condition not in CONDITIONS:
             raise ValueError(f"condition: expected one of {list(CONDITIONS)}, got {self.condition!r}")
         if self.generator == 7 and (self.rooms, self.condition) != ("train", "mixed"):
-            raise ValueError("rooms and condition belong to generator 8; generator 7 has one room and one condition")
+            raise ValueError("rooms and condition belong to generators 8 and 9; generator 7 has one room and one condition")
+        if self.generator == 8 and self.condition == "decoy":
+            raise ValueError("condition 'decoy' belongs to generator 9 (v8 has no decoys)")
 
     @classmethod
     def saved(cls, d: dict) -> "FoveationDataConfig":
@@ -284,9 +289,9 @@ def ball_visible(scene, p: dict, batch: int, device: str = "cpu") -> bool:
 
 
 def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device: str = "cpu") -> dict:
-    """Render samples ``indices`` of ``cfg`` (v7 in one batch of ``scene``; v8 per room, building each
-    room's scene, ``scene`` unused): {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3 (v7) or 7 (v8)]}."""
-    if cfg.generator == 8:
+    """Render samples ``indices`` of ``cfg`` (v7 in one batch of ``scene``; v8 and v9 per room, building each
+    room's scene, ``scene`` unused): {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3 (v7), 7 (v8) or 8 (v9)]}."""
+    if cfg.generator >= 8:
         return _render_v8(cfg, indices, retina, eye, device)
     return _render_v7(cfg, indices, scene, retina, eye, device)
 
@@ -320,34 +325,53 @@ def _render_v7(cfg: FoveationDataConfig, indices, scene, retina, eye, device: st
 
 #: v8's meta columns (v7 has the first three)
 META_V8 = ("distance_m", "radius_m", "occluded", "glow", "distractor", "arm", "brightness")
+#: v9's: v8's and whether a decoy is in view
+META_V9 = META_V8 + ("decoy",)
 
 
 def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cpu") -> dict:
-    """v8: the samples grouped by room; each room's scene built once (the last one is kept for the next call)."""
+    """v8 and v9: the samples grouped by room; each room's scene built once (the last one is kept for the
+    next call). v9 adds each sample's decoys to v8's sample."""
+    from warp_vision.data import foveation_decoys as D
     from warp_vision.data import foveation_scenes as V
     from warp_vision.kernels.render import render_onv
 
     indices = [int(i) for i in indices]
     out = {"onv": [], "target": [], "meta": []}
+    decoys = cfg.generator >= 9
+    limits = lambda ecc: (min_apparent_diameter(cfg, ecc), np.radians(MAX_APPARENT_DIAMETER_DEG))  # noqa: E731
+
+    def draw(i: int, attempt: int) -> dict:
+        p = V.sample_params(cfg, i, attempt, BALL_RADII, limits)
+        return D.add_decoys(cfg, p, i, attempt) if decoys else p
+
     for block in sorted({i // V.ROOM_BLOCK for i in indices}):
         idx = [i for i in indices if i // V.ROOM_BLOCK == block]
         key = (V.ROOM_FAMILIES[cfg.rooms], cfg.seed, block)
         with_arms = cfg.condition in ("mixed", "arm")
-        if _SCENE_V8.get("key") != (key, with_arms):
-            _SCENE_V8.update(key=(key, with_arms), scene=V.make_scene(*key, BALL_RADII, with_arms=with_arms))
+        if _SCENE_V8.get("key") != (key, with_arms, decoys):
+            scene = V.make_scene(*key, BALL_RADII, with_arms=with_arms)
+            if decoys:
+                D.add_decoy_objects(scene)
+            _SCENE_V8.update(key=(key, with_arms, decoys), scene=scene)
         scene = _SCENE_V8["scene"]
         attempts = [0] * len(idx)
-        limits = lambda ecc: (min_apparent_diameter(cfg, ecc), np.radians(MAX_APPARENT_DIAMETER_DEG))  # noqa: E731
-        ps = [V.sample_params(cfg, i, 0, BALL_RADII, limits) for i in idx]
+        ps = [draw(i, 0) for i in idx]
         todo = list(range(len(ps)))
         while todo:
             V.place(scene, ps)
-            todo = [k for k in todo if not ball_visible(scene, ps[k], k, device)]
+            if decoys:
+                D.place_decoys(scene, ps)
+            if decoys:  # the decoy column: one in sight (a "decoy" sample without one is redrawn)
+                for k in todo:
+                    ps[k]["meta"][-1] = D.decoy_in_sight(scene, ps[k], k, device)
+            todo = [k for k in todo if not ball_visible(scene, ps[k], k, device)
+                    or (cfg.condition == "decoy" and not ps[k]["meta"][-1])]
             for k in todo:
                 attempts[k] += 1
                 if attempts[k] > 50:  # pragma: no cover - never seen
-                    raise RuntimeError(f"sample {idx[k]}: no visible ball in 50 draws")
-                ps[k] = V.sample_params(cfg, idx[k], attempts[k], BALL_RADII, limits)
+                    raise RuntimeError(f"sample {idx[k]}: no visible ball (or, condition decoy, no decoy in sight) in 50 draws")
+                ps[k] = draw(idx[k], attempts[k])
         onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed,
                          device=device)
         out["onv"].append(onv.cpu().numpy().astype(np.float16))
@@ -360,7 +384,7 @@ _SCENE_V8: dict = {}
 
 
 def dataset_fields(cfg: FoveationDataConfig) -> dict:
-    meta = len(META_V8) if cfg.generator == 8 else 3
+    meta = {7: 3, 8: len(META_V8), 9: len(META_V9)}[cfg.generator]
     return {"onv": ((3 * cfg.photoreceptors,), "float16"), "target": ((2,), "float32"), "meta": ((meta,), "float32")}
 
 

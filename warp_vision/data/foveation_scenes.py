@@ -44,7 +44,8 @@ ROOM_BLOCK = 16
 #: The seed families of training and held-out rooms (disjoint by construction: the family is the first
 #: word of every room's seed).
 ROOM_FAMILIES = {"train": 0, "heldout": 1}
-CONDITIONS = ("mixed", "glow_dim", "white", "matte", "distractor", "arm")
+#: "decoy" (round things that are not the ball in view) is generator v9's (warp_vision.data.foveation_decoys).
+CONDITIONS = ("mixed", "glow_dim", "white", "matte", "distractor", "arm", "decoy")
 #: The training mixture: shares of samples with a glowing ball in a dim room (v7's condition), with a
 #: glowing ball in an ordinary room, with distractors in view, with the body's arms in view.
 MIX = {"glow_dim": 0.10, "glow": 0.05, "distractor": 0.30, "arm": 0.25}

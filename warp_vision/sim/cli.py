@@ -150,8 +150,19 @@ def demo(args) -> dict:
     fig.savefig(os.path.join(args.out, "gaze_error.png"), dpi=110)
     plt.close(fig)
     return {"launch_velocity_m_s": v.tolist(), "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES},
+            "gaze_error_deg": {s: flight_error_summary(tr["t"], tr[f"error_{s}"]) for s in SIDES},
             "video": {"paths": paths, "frames": writers[0].frames, "fps": fps, "size": size},
             "timing_s": dict(loop.timing)}
+
+
+def flight_error_summary(t, err, times=(0.1, 0.2, 0.3, 0.4, 0.5)) -> dict:
+    """One eye's gaze error (deg) over a shot: its median, the share of the time it is over 5 degrees (a
+    decoy fixated, or the ball lost), and its value at ``times`` (s from the launch)."""
+    t, err = np.asarray(t, float), np.asarray(err, float)
+    if len(t) == 0 or len(t) != len(err):
+        raise ValueError(f"t and err: expected equal, non-zero lengths, got {len(t)} and {len(err)}")
+    return {"median": float(np.median(err)), "share_over_5deg": float(np.mean(err > 5.0)),
+            **{f"at_{x:.1f}_s": float(np.interp(x, t, err)) for x in times if x <= t[-1]}}
 
 
 def _secs(t) -> str:
@@ -271,8 +282,8 @@ def main(argv=None) -> int:
         p.add_argument("--left", default=None, help="the left eye's foveation run, trained there if missing "
                                                     "(default runs/foveation_left, or runs/quick/foveation_left)")
         p.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
-        if name == "intercept":  # the arms strike; the ball glows (what the foveation and limb vision nets learnt)
-            p.set_defaults(no_arms=False, ball="glowing")
+        if name == "intercept":  # the arms strike
+            p.set_defaults(no_arms=False)
             p.add_argument("--seed", type=int, default=0,
                            help="the room's seed, and the first held-out shot: seed 1,000,000 + --seed (default 0)")
         else:
@@ -289,12 +300,12 @@ def main(argv=None) -> int:
         p.add_argument("--pupil", default=None, help="the pupil runs' directory: <dir>/left, <dir>/right (default "
                                                      "runs/pupil, or runs/quick/pupil with --quick)")
         p.add_argument("--lens", default=None, help="the lens runs' directory (likewise: runs/lens, runs/quick/lens)")
-        if name != "intercept":
-            p.add_argument("--ball", choices=BALLS, default="ordinary",
-                           help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
-                                "albedos (generator v8's kind of scene, what the default foveation nets learn); glowing: a "
-                                "white ball that glows, in the room dimmed (generator v7's scene: use it with v7 nets, "
-                                "python -m warp_vision.train --generator 7 --model linet ...)")
+        p.add_argument("--ball", choices=BALLS, default="ordinary",
+                       help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
+                            "albedos (generators v8 and v9's kind of scene, what the default foveation nets learn); glowing: "
+                            "a white ball that glows, in the room dimmed (generator v7's scene: use it with v7 nets, "
+                            "python -m warp_vision.train --generator 7 --model linet ...)"
+                            + ("; the limb vision nets must have learnt the same ball (train limb --ball)" if name == "intercept" else ""))
         if name in ("demo", "experiments"):
             p.add_argument("--gaze-perception", choices=PERCEPTION, default="nets",
                            help="where the gaze controller learns the ball's direction: nets (default), each eye's "

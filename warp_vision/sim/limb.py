@@ -2,7 +2,8 @@
 ball is relative to each hand.
 
 Each sample is one eye's ONV of the closed loop's own world (:func:`warp_vision.sim.loop.body_scene`: a
-room, the body's visible parts, the glowing ball the loop's foveation nets track) with the body in a
+room, the body's visible parts, the cannon's ball the loop's foveation nets track: by default the ordinary
+ball, lit by the room's lamps, ``ball="glowing"`` v7's glowing ball in the dimmed room) with the body in a
 state of its own repertoire, and the target the paper's limb vision nets estimate: the hand-to-ball
 discrepancy ``ball - hand`` for each arm (left first), in the eye frame (m).
 
@@ -77,6 +78,7 @@ class LimbDataConfig:
     rooms: str = "train"  # "train" or "heldout" room family
     shots: str = "train"  # the cannon's seed split the on-path balls come from
     chunk_size: int = ROOM_CHUNK
+    ball: str = "ordinary"  # the loop's ball (warp_vision.sim.loop.BALLS): ordinary, or glowing (the datasets before it)
 
     def validate(self) -> None:
         if self.eye not in SIDES:
@@ -87,9 +89,23 @@ class LimbDataConfig:
             raise ValueError(f"rooms: expected one of {sorted(ROOM_FAMILIES)}, got {self.rooms!r}")
         if self.shots not in SHOT_SPLITS:
             raise ValueError(f"shots: expected one of {SHOT_SPLITS}, got {self.shots!r}")
+        from warp_vision.sim.loop import BALLS
+
+        if self.ball not in BALLS:
+            raise ValueError(f"ball: expected one of {BALLS}, got {self.ball!r}")
+
+    @classmethod
+    def from_manifest(cls, m: dict) -> "LimbDataConfig":
+        """The config a dataset store recorded (:meth:`manifest`)."""
+        return cls(**{"ball": "glowing", **{k: v for k, v in m.items() if k != "generator_version"}})
 
     def manifest(self) -> dict:
-        return {"generator_version": LIMB_DATA_VERSION, **dataclasses.asdict(self)}
+        """The config as the dataset store records it; a glowing-ball config's is what it was before the
+        ``ball`` field (so its cached datasets are found again)."""
+        d = dataclasses.asdict(self)
+        if d["ball"] == "glowing":
+            del d["ball"]
+        return {"generator_version": LIMB_DATA_VERSION, **d}
 
     def key(self) -> str:
         return hashlib.sha256(json.dumps(self.manifest(), sort_keys=True).encode()).hexdigest()[:12]
@@ -248,11 +264,11 @@ def _scene(cfg: LimbDataConfig, chunk: int, poser: Poser):
     from warp_vision.sim.loop import body_scene, set_eye_view
 
     key = (ROOM_FAMILIES[cfg.rooms], cfg.seed, chunk)
-    if _SCENE.get("key") != key:
+    if _SCENE.get("key") != (key, cfg.ball):
         seed = int(np.random.default_rng([12, *key]).integers(2**31))
-        sc = body_scene(poser.body, seed, "glowing")
+        sc = body_scene(poser.body, seed, cfg.ball)
         set_eye_view(sc, True)
-        _SCENE.update(key=key, scene=sc)
+        _SCENE.update(key=(key, cfg.ball), scene=sc)
     return _SCENE["scene"]
 
 
@@ -391,6 +407,16 @@ class LimbVision(BallisticPerception):
         self.run_dirs = dict(run_dirs)
         self.device = device
         self._k = 0 if arm == "left" else 3
+
+    def check_ball(self, ball: str) -> None:
+        """ValueError unless both eyes' nets learnt the ball the loop shows (``ball``: ordinary or glowing;
+        a net saved before the choice existed learnt the glowing one)."""
+        for s in SIDES:
+            learnt = self.data[s].get("ball", "glowing")
+            if learnt != ball:
+                raise ValueError(f"{self.run_dirs[s]}: the {s} eye's limb vision net learnt the {learnt} ball, the loop shows "
+                                 f"the {ball} one (--ball {learnt}, or train it again: python -m warp_vision.train limb "
+                                 f"--eye {s} --ball {ball} --out {self.run_dirs[s]})")
 
     def check_retinas(self, retinas: dict) -> None:
         """ValueError unless each eye's net reads the photoreceptors of ``retinas[eye]`` (the loop's)."""

@@ -114,7 +114,7 @@ def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False)
         raise ValueError(f"{limb_run}: expected a ranging limb vision run (--model range), got {ck['net'].get('model')!r}")
     summary = _json.loads((Path(limb_run) / "summary.json").read_text())
     store = ChunkedStore.open(summary["heldout_dataset"])
-    cfg = LimbDataConfig(**{k: v for k, v in store.manifest["config"].items() if k != "generator_version"})
+    cfg = LimbDataConfig.from_manifest(store.manifest["config"])
     d = store.load(["onv", "target"])
     onv = torch.from_numpy(d["onv"])
     direction = foveation(onv)  # [N, 2] yaw, pitch

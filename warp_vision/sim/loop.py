@@ -137,7 +137,7 @@ SCENE_ANCHORS = ARM_PARTS["right"] + ARM_PARTS["left"] + HIDDEN_FROM_EYES
 
 
 #: The balls the loop can show: "ordinary" (a grey-white glossy ball, lit by the room's lamps, in a room
-#: at its everyday albedos: what the v8 nets are trained for) or "glowing" (v7's set-up: a white ball that
+#: at its everyday albedos: what the v8 and v9 nets are trained for) or "glowing" (v7's set-up: a white ball that
 #: glows, in the room dimmed to ROOM_ALBEDO, the body dimmed alike).
 BALLS = ("ordinary", "glowing")
 #: The ordinary ball's material and the second lamp of its room (the first is the room's hanging lamp).

@@ -116,6 +116,7 @@ def intercept(args) -> dict:
 
         vision = LimbVision(limb_runs, arm=args.side)
         vision.check_retinas({s: loop.fov[s].retina for s in SIDES})
+        vision.check_ball(args.ball)
     elif args.perception == "fixation":
         from warp_vision.sim.limb import FixationVision
 

@@ -36,7 +36,7 @@ def _train_parser() -> argparse.ArgumentParser:
         prog="python -m warp_vision.train",
         description=(
             "Train a foveation net: synthesise (or reuse) a dataset of ONVs of a ball in a room (the default "
-            "preset: generator v8's ordinary balls and the retina CNN; --generator 7 --model linet: v7's glowing "
+            "preset: generator v9's ordinary balls among distractors and decoys, and the retina CNN; --generator 7 --model linet: v7's glowing "
             "ball and the paper's liNet), train the net to predict the eye rotation (yaw, pitch) that foveates "
             "the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
@@ -105,8 +105,9 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--conditions", action="store_true",
                    help="foveation runs: render (or reuse) one held-out set per test condition (v8 scenes in rooms "
                         "training never saw: glowing ball in a dim room, lit white ball, coloured matte ball, a lamp or "
-                        "brighter object in view, the body's arm in view) and print one table with every run side by "
-                        "side (median / 90th percentile, degrees); writes RUN_DIR/conditions.json and "
+                        "brighter object in view, the body's arm in view; v9's: a round decoy in view) and print one "
+                        "table with every run side by side (median / 90th percentile, degrees, and the share more than "
+                        "5 degrees off); writes RUN_DIR/conditions.json and "
                         "RUN_DIR/figures/conditions.png")
     p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -14,7 +14,8 @@ from warp_vision.data.foveation import FoveationDataConfig
 CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn", "range"], "eye": ["left", "right"],
            "onv_dtype": ["auto", "float16", "bfloat16", "float32"],
            "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"],
-           "input_norm": ["auto", "sample", "dataset"], "generator": [7, 8]}
+           "input_norm": ["auto", "sample", "dataset"], "generator": [7, 8, 9],
+           "ball": ["ordinary", "glowing"]}
 
 
 def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
@@ -75,10 +76,10 @@ class TrainConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
     data_seed: int = 0  # seed of the dataset (scenes) and of the train/val/test split
-    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room) or 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms; the quick, default and paper presets' choice)
+    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room), 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms) or 9 (v8 plus decoys, round things that are not the ball, such as a cannon's muzzle; the quick, default and paper presets' choice)
     # the model
-    input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset); auto: sample for generator 8, dataset for 7
-    model: str = "linet"  # linet (the smoke and paper presets'); fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the ball-finder for generator 8, the quick and default presets')
+    input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset); auto: sample for generators 8 and 9, dataset for 7
+    model: str = "linet"  # linet (the smoke and paper presets'); fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the ball-finder for generators 8 and 9, the quick and default presets')
     head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig. 5), or auto (softargmax for a liNet, linear for fc)
     layers: int = 4  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
@@ -103,7 +104,7 @@ class TrainConfig:
 
     def per_sample_input(self) -> bool:
         """Whether the net's input is scaled by each ONV's own mean irradiance (``input_norm``, "auto" resolved)."""
-        return self.input_norm == "sample" or (self.input_norm == "auto" and self.generator == 8)
+        return self.input_norm == "sample" or (self.input_norm == "auto" and self.generator >= 8)
 
     def head_kind(self) -> str:
         """The read-out this config builds ("auto" resolved)."""
@@ -148,13 +149,13 @@ PRESETS: dict[str, dict] = {
     # end to end in well under a minute (tests)
     "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1, layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
     # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 3 minutes on a 2-core CPU
-    "quick": dict(samples=2000, epochs=12, patience=12, generator=8, model="cnn", lr=2e-3),
-    # the default run: the retina CNN on generator v8, about 15 minutes on a 2-core CPU (12,000 ONVs of
+    "quick": dict(samples=2000, epochs=12, patience=12, generator=9, model="cnn", lr=2e-3),
+    # the default run: the retina CNN on generator v9, about 15 minutes on a 2-core CPU (12,000 ONVs of
     # P=14,400, S=4 rendered in about 8; 12 epochs of about 34 s). v7's liNet: --generator 7 --model linet
     # --lr 0.001 --epochs 40 --samples 8000
-    "default": dict(generator=8, model="cnn", samples=12_000, lr=2e-3, epochs=12),
-    # the paper's set-up on v8: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
-    "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10, generator=8),
+    "default": dict(generator=9, model="cnn", samples=12_000, lr=2e-3, epochs=12),
+    # the paper's set-up on v9: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
+    "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10, generator=9),
 }
 
 
@@ -557,6 +558,7 @@ class LimbTrainConfig:
     eye: str = "left"  # left or right
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel (the loop's)
     data_seed: int = 0  # seed of the dataset and of the train/val/test split
+    ball: str = "ordinary"  # the cannon's ball as the loop shows it (sim --ball): ordinary (lit by the room's lamps) or glowing (v7's, the room dimmed)
     # the model
     model: str = "linet"  # linet, fc: the fully-connected twin with the same hidden sizes, cnn: a CNN on the ONV binned to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py), or range: a CNN on the central 8 deg to the ball's distance (the loop adds the foveation net's direction and the hand's proprioception)
     channels: int = 16  # cnn and range only: channels of its first stage (x1, 2, 4, 6 over its four stages)
@@ -576,18 +578,21 @@ class LimbTrainConfig:
     seed: int = 0  # initialisation and shuffling
     device: str = "auto"  # cpu, cuda, or auto
 
+    #: Fields added after runs were saved without them: a saved config that lacks one had this value.
+    LEGACY_DEFAULTS = {"ball": "glowing"}
+
     def data_config(self):
         from warp_vision.sim.limb import LimbDataConfig
 
         return LimbDataConfig(eye=self.eye, samples=self.samples, photoreceptors=self.photoreceptors,
-                              samples_per_receptor=self.samples_per_receptor, seed=self.data_seed)
+                              samples_per_receptor=self.samples_per_receptor, seed=self.data_seed, ball=self.ball)
 
     def heldout_config(self):
         from warp_vision.sim.limb import LimbDataConfig
 
         return LimbDataConfig(eye=self.eye, samples=self.heldout_samples, photoreceptors=self.photoreceptors,
                               samples_per_receptor=self.samples_per_receptor, seed=self.data_seed + 1,
-                              rooms="heldout", shots="heldout")
+                              rooms="heldout", shots="heldout", ball=self.ball)
 
     def epoch_lr(self, epoch: int) -> float:
         return epoch_lr(self, epoch)
