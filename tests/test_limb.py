@@ -103,6 +103,36 @@ def test_the_ballistic_fit_recovers_a_thrown_ball_and_weights_its_observations()
     assert np.array_equal(one[0], obs[0]) and np.array_equal(one[1], np.zeros(3))
 
 
+def test_the_validation_gate_keeps_a_decoy_out_of_the_fit_and_extrapolates_a_lost_ball():
+    from warp_vision.sim.limb import GATE_RELOCK, BallisticPerception
+
+    p0, v0 = np.array([1.2, -2.6, 0.9]), np.array([-2.0, 7.0, 2.5])
+    path = lambda t: p0 + v0 * t + 0.5 * GRAVITY * t**2  # noqa: E731
+    muzzle = p0.copy()
+    hand = np.array([0.3, 0.2, 1.0])
+    bp = BallisticPerception("left")
+    ts = np.arange(0.0, 0.40, 0.02)
+    for t in ts[:10]:  # the ball, seen for 0.2 s
+        bp._add(t, path(t), hand, {})
+    for t in ts[10:]:  # then the eyes fixate the muzzle (a static decoy) to the end
+        bp._add(t, muzzle, hand, {})
+    assert len(bp.rejected) == len(ts) - 10 and len(bp.log) == len(ts)  # never relocked onto a standing decoy
+    p, v = bp(None, 0.36)  # the path extrapolated from the ball's observations, not at rest at the muzzle
+    assert np.allclose(p, path(0.36), atol=1e-6) and np.allclose(v, v0 + GRAVITY * 0.36, atol=1e-6)
+    # without the gate the decoy would have pulled the fit toward the muzzle
+    last = [(t, q) for t, q, _, _ in bp.log if t >= 0.36 - 0.25]
+    ungated, _ = fit_ballistic([t for t, _ in last], [q for _, q in last], np.ones(len(last)), 0.36)
+    assert np.linalg.norm(ungated - path(0.36)) > 1.0
+    # a moving path of its own, seen GATE_RELOCK frames running, replaces a wrong first track
+    bp = BallisticPerception("left")
+    for t in ts[:5]:
+        bp._add(t, muzzle + np.array([0.0, 0.0, 1.0]) + 0.01 * t, hand, {})  # a wrong start, nearly still
+    for t in ts[5:5 + GATE_RELOCK]:
+        bp._add(t, path(t), hand, {})
+    p, _ = bp(None, ts[5 + GATE_RELOCK])
+    assert np.allclose(p, path(ts[5 + GATE_RELOCK]), atol=1e-6) and len(bp.rejected) == GATE_RELOCK - 1
+
+
 def test_smoke_run_trains_and_reports_held_out_errors(tmp_path):
     from warp_vision.nn.trained import load_net
 

@@ -333,39 +333,85 @@ FIT_WINDOW_S = 0.25
 FIT_NEAR_M = 0.15
 #: m: a fixation estimate's depth is capped here (gaze lines that barely converge)
 MAX_DEPTH_M = 8.0
+#: The validation gate: once the path is fitted to GATE_MIN_OBS observations spanning GATE_MIN_SPAN_S, an
+#: observation farther than GATE_M from where that path puts the ball is not the ball (the eyes caught by
+#: something else: the cannon's muzzle, a hand) and is left out of the fit. GATE_RELOCK consecutive
+#: rejected observations that lie on a path of their own, moving faster than GATE_MIN_SPEED (the cannon's
+#: ball flies at 6-12 m/s; a decoy stands still), replace the track: the first one was wrong.
+GATE_M = 0.3
+GATE_MIN_OBS = 4
+GATE_MIN_SPAN_S = 0.05
+GATE_RELOCK = 4
+GATE_MIN_SPEED = 3.0
 
 
 class BallisticPerception:
     """What a visual perception of the ball shares: its observations (one per visual frame, world frame),
     and, when called as the interceptor's ``perception`` ``(body, t) -> (position, velocity)``, a ballistic
-    path (gravity known) fitted by :func:`fit_ballistic` to the observations of the last
-    :data:`FIT_WINDOW_S`, each weighted by 1 / (:data:`FIT_NEAR_M` + its estimated distance to the hand)^2,
-    evaluated at ``t`` (one observation: at rest; none yet: None, and the interceptor holds).
-    :meth:`reset` forgets the observations (at the launch); ``log`` keeps them all, with each eye's
-    part and the hand at the render: (t, estimate [3], {eye: [3]}, hand [3])."""
+    path (gravity known) fitted by :func:`fit_ballistic` to the accepted observations of the
+    :data:`FIT_WINDOW_S` before the latest one (so the path is extrapolated when the eyes lose the ball),
+    each weighted by 1 / (:data:`FIT_NEAR_M` + its estimated distance to the hand)^2, evaluated at ``t``
+    (one observation: at rest; none yet: None, and the interceptor holds). Observations the validation
+    gate (:data:`GATE_M`) rejects stay out of the fit. :meth:`reset` forgets the observations (at the
+    launch); ``log`` keeps them all, with each eye's part and the hand at the render: (t, estimate [3],
+    {eye: [3]}, hand [3]); ``rejected`` the times of the rejected ones."""
 
     def __init__(self, arm: str):
         if arm not in SIDES:
             raise ValueError(f"arm: expected one of {SIDES}, got {arm!r}")
         self.arm = arm
         self.log: list = []
+        self.rejected: list = []
         self._obs: list = []
+        self._out: list = []  # the rejected observations since the last accepted one
 
     def reset(self) -> None:
-        self._obs = []
+        self._obs, self._out = [], []
 
     def _add(self, t: float, p: np.ndarray, hand, per_eye: dict) -> np.ndarray:
         hand = np.asarray(hand, float).copy()
-        self._obs.append((float(t), p, float(np.linalg.norm(p - hand))))
+        ob = (float(t), p, float(np.linalg.norm(p - hand)))
         self.log.append((float(t), p, per_eye, hand))
+        if self._gated(ob):
+            self.rejected.append(float(t))
+        else:
+            self._obs.append(ob)
         return p
 
-    def __call__(self, body, t: float) -> tuple[np.ndarray, np.ndarray] | None:
-        obs = [o for o in self._obs if o[0] >= t - FIT_WINDOW_S] or self._obs[-1:]
-        if not obs:
-            return None
+    def _gated(self, ob) -> bool:
+        """Whether the validation gate rejects observation ``ob`` (updating the track on a relock)."""
+        window = self._window()
+        if len(window) < GATE_MIN_OBS or window[-1][0] - window[0][0] < GATE_MIN_SPAN_S:
+            return False
+        pred, _ = self._fit(window, ob[0])
+        if np.linalg.norm(ob[1] - pred) <= GATE_M:
+            self._out = []
+            return False
+        self._out.append(ob)
+        if len(self._out) >= GATE_RELOCK:
+            p, v = self._fit(self._out, ob[0])
+            fits = all(np.linalg.norm(o[1] - self._fit(self._out, o[0])[0]) <= GATE_M / 2 for o in self._out)
+            if fits and np.linalg.norm(v) >= GATE_MIN_SPEED:  # a moving path of its own: the track was wrong
+                self._obs, self._out = list(self._out), []
+                return False
+        return True
+
+    def _window(self) -> list:
+        if not self._obs:
+            return []
+        last = self._obs[-1][0]
+        return [o for o in self._obs if o[0] >= last - FIT_WINDOW_S]
+
+    @staticmethod
+    def _fit(obs, t: float):
         w = 1.0 / (FIT_NEAR_M + np.array([o[2] for o in obs])) ** 2
         return fit_ballistic([o[0] for o in obs], [o[1] for o in obs], w, t)
+
+    def __call__(self, body, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        obs = self._window()
+        if not obs:
+            return None
+        return self._fit(obs, t)
 
 
 class LimbVision(BallisticPerception):
