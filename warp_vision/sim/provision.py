@@ -37,7 +37,7 @@ from warp_vision.body import SIDES
 MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 3.0,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
            ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 13.0, ("lens", "quick"): 3.0,
-           ("arm", "default"): 8.0, ("arm", "quick"): 2.0, ("limb", "default"): 17.0, ("limb", "quick"): 4.0}
+           ("arm", "default"): 8.0, ("arm", "quick"): 2.0, ("limb", "default"): 11.0, ("limb", "quick"): 4.0}
 
 #: Training commands whose side flag is ``--side`` (the arm's) rather than ``--eye``.
 _SIDE_FLAG = {"arm": "--side"}

@@ -621,7 +621,7 @@ LIMB_PRESETS: dict[str, dict] = {
                   receptive_field=8, batch=16, epochs=2, patience=2),
     # a first look: about 4 minutes on a 2-core CPU
     "quick": dict(samples=2000, heldout_samples=300, model="range", lr=2e-3, epochs=12, patience=12),
-    # one eye in about 17 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 5 minutes of training):
+    # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training; 9-11 measured):
     # the ranging net (the ONV-only nets find the ball but not the hands: README)
     "default": dict(model="range", lr=2e-3, epochs=24, patience=24),
 }
