@@ -85,7 +85,7 @@ def test_unknown_choices_are_refused_by_the_parser(tmp_path, monkeypatch, capsys
     from warp_vision.sim.cli import main
 
     monkeypatch.chdir(tmp_path)
-    for argv in (["--perception", "telepathy"], ["--video-format", "avi"], ["--ball", "ordinary"]):
+    for argv in (["--perception", "telepathy"], ["--video-format", "avi"], ["--ball", "neon"]):
         with pytest.raises(SystemExit) as e:
             main(["intercept", *argv])
         assert e.value.code == 2
