@@ -163,12 +163,12 @@ def test_bad_config_is_refused():
 
 
 def test_presets_pick_the_scene_generator_and_model_and_the_help_says_so():
-    """quick and default train the retina CNN on v8, paper the paper's liNet on v8, smoke a small v7 liNet;
+    """quick and default train the retina CNN on v9, paper the paper's liNet on v9, smoke a small v7 liNet;
     --help gives the default preset's value and the others' where they differ."""
     from warp_vision.train.config import PRESETS, _preset_defaults
 
     picks = {p: (resolve(p, {}).generator, resolve(p, {}).model) for p in PRESETS}
-    assert picks == {"smoke": (7, "linet"), "quick": (8, "cnn"), "default": (8, "cnn"), "paper": (8, "linet")}
+    assert picks == {"smoke": (7, "linet"), "quick": (9, "cnn"), "default": (9, "cnn"), "paper": (9, "linet")}
     assert resolve("paper", {}).samples_per_receptor == 8 and resolve("default", {"generator": 7}).generator == 7
     assert _preset_defaults(PRESETS, "generator", 7) == "default: 9; --preset smoke: 7"
     assert _preset_defaults({"default": {}, "smoke": {}}, "batch", 64) == "default: 64"
