@@ -43,9 +43,8 @@ from warp_vision.frames import gaze_angles, gaze_directions, look_rotation
 #: everyday rooms, among distractors, with the body's arms in view; 9 (:mod:`warp_vision.data.foveation_decoys`)
 #: v8 plus decoys (cylinders seen end-on, such as a cannon's muzzle), each v9 sample v8's with decoys added.
 GENERATORS = (7, 8, 9)
-#: The generator configs use unless they say otherwise: still v7, because no net trained on v8 so far
-#: finds its ordinary balls well enough for the closed loop (README: held-out medians of 9-30 degrees),
-#: and the loop's nets are trained by default.
+#: The generator a config uses unless it says otherwise: v7, so configs saved before the field existed
+#: read as v7's; the training presets choose v9 (warp_vision.train.config.PRESETS).
 GENERATOR_VERSION = 7
 #: Seeds of the two eyes' retinas: each eye has its own photoreceptor layout, hence its own net.
 RETINA_SEEDS = {"left": 1, "right": 2}
@@ -360,9 +359,8 @@ def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cp
         todo = list(range(len(ps)))
         while todo:
             V.place(scene, ps)
-            if decoys:
+            if decoys:  # and the decoy column: one in sight (a "decoy" sample without one is redrawn)
                 D.place_decoys(scene, ps)
-            if decoys:  # the decoy column: one in sight (a "decoy" sample without one is redrawn)
                 for k in todo:
                     ps[k]["meta"][-1] = D.decoy_in_sight(scene, ps[k], k, device)
             todo = [k for k in todo if not ball_visible(scene, ps[k], k, device)

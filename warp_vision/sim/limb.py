@@ -389,7 +389,7 @@ class BallisticPerception:
             return False
         self._out.append(ob)
         if len(self._out) >= GATE_RELOCK:
-            p, v = self._fit(self._out, ob[0])
+            _, v = self._fit(self._out, ob[0])
             fits = all(np.linalg.norm(o[1] - self._fit(self._out, o[0])[0]) <= GATE_M / 2 for o in self._out)
             if fits and np.linalg.norm(v) >= GATE_MIN_SPEED:  # a moving path of its own: the track was wrong
                 self._obs, self._out = list(self._out), []
