@@ -25,7 +25,7 @@ glow). v8 draws every sample from a family:
 
 ``FoveationDataConfig.condition`` picks the mixture: "mixed" (training) or one held-out test condition
 ("glow_dim": v7's glowing ball in a dim room; "white": a lit white ball; "matte": a coloured matte ball;
-"distractor": a lamp or brighter object in view; "arm": the body's arm in view). Every sample's
+"distractor": a lamp or brighter object in view; "arm": the body's arm in view; "decoy", generator v9's: a round decoy in view, :mod:`warp_vision.data.foveation_decoys`). Every sample's
 parameters come from a generator seeded with (dataset seed, sample index, attempt) and its room's from
 (family, dataset seed, block), so a sample never depends on how it is batched.
 """
