@@ -222,6 +222,53 @@ def test_other_read_outs_train(tmp_path, smoke_data, model, head, loss):
     assert foveation.evaluate_run(str(tmp_path / "run"), log=lambda *a: None)["median_deg"] == pytest.approx(summary["test_median_deg"])
 
 
+def test_workers_synthesise_the_same_dataset_in_several_processes(tmp_path, smoke_data, capsys):
+    lines = []
+    foveation.run(smoke(tmp_path, tmp_path / "data", epochs=1), progress=False, log=lines.append, workers=2)
+    assert any("synthesis in 2 processes" in line for line in lines), lines
+    got, want = ChunkedStore.open(tmp_path / "data"), ChunkedStore.open(smoke_data)
+    assert got.complete
+    # shard 1 of 2 (the odd chunks) was the spawned helper's: every chunk equals one process's rendering
+    for k, v in want.load().items():
+        assert np.array_equal(v, got.load()[k]), k
+    # a complete dataset starts no helper
+    lines.clear()
+    foveation.run(smoke(tmp_path / "again", tmp_path / "data", epochs=1), progress=False, log=lines.append, workers=2)
+    assert not any("processes" in line for line in lines)
+    assert harness.auto_workers("cuda:0", 50_000) == 1 and harness.auto_workers("cpu", 160) == 1
+    with pytest.raises(ValueError, match="workers"):
+        foveation.run(smoke(tmp_path / "bad", smoke_data), progress=False, workers=0)
+    with pytest.raises(SystemExit):
+        train_main(["--preset", "smoke", "--workers", "0"])
+    assert "positive integer or 'auto'" in capsys.readouterr().err
+
+
+def test_the_mse_is_split_into_missed_balls_and_the_rest(tmp_path, smoke_data, capsys):
+    se = torch.tensor([0.001, 0.003, 2.0, 0.002])
+    err = torch.tensor([0.5, 1.5, 30.0, 4.9])
+    parts = foveation.mse_parts(se, err)
+    assert parts["over_5deg"] == 0.25
+    assert parts["mse_share_off"] == pytest.approx(2.0 / 2.006)
+    assert parts["mse_within_5deg"] == pytest.approx(0.002)
+    assert np.isnan(foveation.mse_parts(torch.zeros(0), torch.zeros(0))["over_5deg"])
+    foveation.run(smoke(tmp_path, smoke_data, epochs=1), progress=False, log=lambda *a: None)
+    assert train_main(["evaluate", str(tmp_path / "run")]) == 0
+    assert "deg off (another object found) hold" in capsys.readouterr().out
+    row = json.loads((tmp_path / "run/metrics.jsonl").read_text().splitlines()[0])
+    assert 0 <= row["val_over_5deg"] <= 1
+
+
+def test_a_failing_synthesis_helper_is_an_error(tmp_path, monkeypatch):
+    import dataclasses
+
+    good = resolve("smoke", {"data_dir": str(tmp_path / "data")})
+    task = foveation.FoveationTask(dataclasses.replace(good, samples_per_receptor=0), log=lambda *a: None)
+    # the spawned helper renders with the task's (invalid) config and fails; this process's shard is a no-op
+    monkeypatch.setattr(foveation.FoveationTask, "render", lambda self, shard, progress: None)
+    with pytest.raises(RuntimeError, match="synthesis helper"):
+        harness.render_in_processes(task, 2, progress=False)
+
+
 def test_torchrun_two_processes(tmp_path, smoke_data):
     env = dict(os.environ, WARP_VISION_THREADS="1", OMP_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29517",

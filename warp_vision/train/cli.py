@@ -28,7 +28,24 @@ def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         "(N = the epochs done ends it now: the best checkpoint is evaluated, figures written)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--workers", type=_workers, default="auto", metavar="N",
+                   help="processes that synthesise a missing dataset (foveation and limb runs; the dataset is the same "
+                        "for any N); default auto: one per CPU core, at most 8, for a dataset of 1,000 samples or more (else 1; "
+                        "1 on a GPU; under torchrun each rank renders its own shard)")
     return _debug_flag(p)
+
+
+def _workers(text: str):
+    """--workers: a positive integer or "auto"."""
+    if text == "auto":
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'auto', got {text!r}")
+    return n
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -186,8 +203,8 @@ def main(argv: list[str] | None = None) -> int:
         make = lambda: C.from_args(a)  # noqa: E731
     run = _module(name).run
     if a.resume:
-        return _guarded(lambda: run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs), a.debug)
-    return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite), a.debug)
+        return _guarded(lambda: run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs, workers=a.workers), a.debug)
+    return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite, workers=a.workers), a.debug)
 
 
 def _guarded(job, debug: bool = False) -> int:

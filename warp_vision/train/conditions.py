@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-#: deg: an estimate this far off has found another object (the table's third figure: the share of such samples).
-OFF_DEG = 5.0
+from warp_vision.train.foveation import OFF_DEG  # the table's third figure: the share of samples this far off
+
 #: Held-out sets use sample seeds this far from the training set's (their rooms are from the held-out family).
 HELD_OUT_SEED = 1000
 #: The test conditions and their goals (median deg), from issue 17; "decoy" (generator v9) is not one of

@@ -76,6 +76,15 @@ class Task:
         a missing dataset is an error), then load it whole."""
         raise NotImplementedError
 
+    def render(self, shard: tuple[int, int], progress: bool) -> None:
+        """Render this shard's missing part of the task's dataset(s) without loading them. A task that has
+        it (and :meth:`dataset_dirs`) synthesises in several processes when a run asks for ``workers``."""
+        raise NotImplementedError
+
+    def dataset_dirs(self) -> list[Path]:
+        """The stores :meth:`render` writes; empty (the default): the task renders in this process only."""
+        return []
+
     def splits(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(train, validation, test) sample ids: what the epoch shuffles, and what evaluate() gets."""
         raise NotImplementedError
@@ -298,9 +307,90 @@ def warm_start(model: torch.nn.Module, run_dir) -> None:
         raise ValueError(f"init: {best} holds another net than this run builds ({str(e).splitlines()[0]})") from None
 
 
-def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, progress: bool):
-    """Load the data, fit the normalisation, build the net and optimiser, restore a resumed run from
-    checkpoint ``ck``."""
+def auto_workers(device: str, samples: int) -> int:
+    """Synthesis processes a run uses by default: on the CPU one per usable core (at most
+    :data:`MAX_WORKERS`) for a dataset of at least :data:`AUTO_MIN_SAMPLES`; otherwise one (a helper's
+    start, importing torch and Warp and building its scene, costs seconds; on a GPU the launches are
+    not where the time goes)."""
+    from warp_vision.kernels.launch import cpu_threads
+
+    if device.startswith("cuda") or samples < AUTO_MIN_SAMPLES:
+        return 1
+    return max(1, min(MAX_WORKERS, cpu_threads()))
+
+
+#: The most synthesis processes ``workers="auto"`` starts (each holds its own Warp, torch and scene).
+MAX_WORKERS = 8
+#: ``workers="auto"`` renders datasets smaller than this in one process (the smoke preset's, tests').
+AUTO_MIN_SAMPLES = 1000
+
+
+def _store_complete(path: Path) -> bool:
+    from warp_vision.data.store import ChunkedStore
+
+    try:
+        return ChunkedStore.open(path).complete
+    except (ValueError, OSError):  # no store there yet
+        return False
+
+
+def _render_shard(task_cls, cfg, shard: tuple[int, int], threads: int) -> None:
+    """A helper process of :func:`render_in_processes`: render shard ``shard`` quietly."""
+    os.environ["WARP_VISION_THREADS"] = str(threads)
+    torch.set_num_threads(threads)
+    task_cls(cfg, log=lambda *a, **k: None).render(shard, progress=False)
+
+
+def render_in_processes(task: Task, workers: int, progress: bool) -> bool:
+    """Synthesise ``task``'s missing dataset in ``workers`` processes: this one renders shard 0 of
+    ``workers`` (with the progress bar), ``workers - 1`` spawned helpers the others, all at once (the
+    samples do not depend on the shard that renders them: the dataset is the same as one process's).
+    Returns False, doing nothing, when there is nothing to render, one worker, or a task that renders
+    in one process only. A helper that fails is a RuntimeError after the others finish (the chunks
+    written stay: run again to resume)."""
+    import multiprocessing as mp
+
+    from warp_vision.kernels.launch import cpu_threads
+
+    dirs = task.dataset_dirs()
+    if workers <= 1 or not dirs or all(_store_complete(Path(d)) for d in dirs):
+        return False
+    threads = max(1, cpu_threads() // workers)
+    task.log(f"synthesis in {workers} processes (this one and {workers - 1} helper{'s' if workers > 2 else ''}), "
+             f"{threads} thread{'s' if threads > 1 else ''} each; the bar counts this process's shard")
+    ctx = mp.get_context("spawn")  # a fresh interpreter: no fork of torch's or Warp's threads
+    helpers = [ctx.Process(target=_render_shard, args=(type(task), task.cfg, (i, workers), threads), daemon=True)
+               for i in range(1, workers)]
+    for h in helpers:
+        h.start()
+    old = os.environ.get("WARP_VISION_THREADS")
+    os.environ["WARP_VISION_THREADS"] = str(threads)
+    try:
+        task.render((0, workers), progress)
+    except BaseException:
+        for h in helpers:
+            h.terminate()
+        raise
+    finally:
+        if old is None:
+            os.environ.pop("WARP_VISION_THREADS", None)
+        else:
+            os.environ["WARP_VISION_THREADS"] = old
+        for h in helpers:
+            h.join()
+    failed = [h.exitcode for h in helpers if h.exitcode != 0]
+    if failed:
+        raise RuntimeError(f"{len(failed)} of {workers - 1} synthesis helper(s) failed (exit code {failed[0]}); the "
+                           "chunks written are kept: run the same command again to resume, or with --workers 1 to see the error")
+    return True
+
+
+def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, progress: bool, workers: int = 1):
+    """Load the data (synthesising a missing dataset in ``workers`` processes unless under torchrun, whose
+    ranks render their own shards), fit the normalisation, build the net and optimiser, restore a resumed
+    run from checkpoint ``ck``."""
+    if dd.world == 1:
+        render_in_processes(task, workers, progress)
     # the ranks render their shards of a missing dataset, then each reads the whole: one done first waits
     # for the others' chunks (an hour at most) rather than calling the dataset incomplete
     with waiting_for_writers(3600.0 if dd.world > 1 else 0.0):
@@ -400,13 +490,17 @@ def _median_seconds(history: list) -> float | None:
 
 
 def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, log=print,
-        stop_after_epoch: int | None = None, overwrite: bool = False, epochs: int | None = None) -> dict:
+        stop_after_epoch: int | None = None, overwrite: bool = False, epochs: int | None = None,
+        workers: int | str = "auto") -> dict:
     """Train (or resume) a run of ``task_cls``; returns the summary dict (also written to summary.json).
 
     A new run refuses an output directory that already holds a run (its metrics or checkpoints) unless
     ``overwrite``, which deletes them first. ``epochs`` gives a resumed run a new epoch cap (see
     :func:`open_run`). ``stop_after_epoch`` (tests) interrupts the run after that epoch, as Ctrl-C would,
-    and returns ``{"interrupted": True}``."""
+    and returns ``{"interrupted": True}``. ``workers``: processes that synthesise a missing dataset
+    (:func:`render_in_processes`; "auto": :func:`auto_workers`)."""
+    if workers != "auto" and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
+        raise ValueError(f"workers: expected a positive integer or 'auto', got {workers!r}")
     rank0 = int(os.environ.get("RANK", "0")) == 0  # (torchrun's; Dist reads it again below)
     say = log if rank0 else (lambda *a, **k: None)
     cfg, out, ck = open_run(task_cls, cfg, resume, overwrite, epochs, say)
@@ -417,7 +511,9 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
         write_json(out / "config.json", asdict(cfg))
     dd = Dist(device)
     t_start = time.perf_counter()
-    ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress)
+    if workers == "auto":
+        workers = auto_workers(device, int(getattr(cfg, "samples", 0)))
+    ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress, workers)
     t_data = time.perf_counter() - t_start
     spec = task.net_spec()
     if dd.rank == 0:

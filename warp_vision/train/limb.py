@@ -58,18 +58,24 @@ class LimbTask(harness.OnvTask):
         if self.ranging:
             self.selection = {"depth_median_relative": "min"}
 
+    def dataset_dirs(self):
+        """The training set's store and the held-out set's (rooms and shots training never sees) beside it."""
+        ddir = Path(self.cfg.data_dir)
+        return [ddir, ddir.parent / f"limb-{self.cfg.heldout_config().key()}"]
+
+    def render(self, shard, progress):
+        from warp_vision.sim.limb import synthesize
+
+        for d, dcfg in zip(self.dataset_dirs(), (self.cfg.data_config(), self.cfg.heldout_config())):
+            synthesize(d, dcfg, shard=shard, progress=progress, log=self.log)
+
     def load(self, shard, progress, synthesize: bool = True):
         from warp_vision.data.store import ChunkedStore
         from warp_vision.eye.retina import Retina
-        from warp_vision.sim.limb import synthesize as render
 
-        c = self.cfg
-        self.ddir = Path(c.data_dir)
-        hcfg = c.heldout_config()
-        self.heldout_dir = self.ddir.parent / f"limb-{hcfg.key()}"
+        self.ddir, self.heldout_dir = self.dataset_dirs()
         if synthesize:
-            render(self.ddir, c.data_config(), shard=shard, progress=progress, log=self.log)
-            render(self.heldout_dir, hcfg, shard=shard, progress=progress, log=self.log)
+            self.render(shard, progress)
         fields = ["onv", "target", "meta"]
         d = ChunkedStore.open(self.ddir).load(fields)
         self.onv16, self.target, self.meta = (torch.from_numpy(d[k]) for k in fields)
