@@ -7,7 +7,8 @@ import torch
 
 from warp_vision.eye.retina import Retina
 from warp_vision.frames import gaze_angles, gaze_directions
-from warp_vision.nn.retina_cnn import ROTATIONS, RetinaCNNFoveationNet, transform_matrix
+from warp_vision.nn.retina_cnn import (CONSENSUS_DEG, ROTATIONS, RetinaCNNFoveationNet, consensus_of, consensus_transforms,
+                                      transform_matrix)
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +105,73 @@ def test_forward_gives_standardised_angles_with_gradients(net):
     assert out.shape == (2, 2) and logits.shape == (2, (net.warp.size // 2) ** 2)
     (out.sum() + logits.logsumexp(1).sum()).backward()
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_consensus_views_are_distinct_turns_alternately_mirrored():
+    assert consensus_transforms(1) == [0]
+    for n in (2, 8, 16, 48):
+        ks = consensus_transforms(n)
+        assert len(set(ks)) == n and all(0 <= k < 2 * ROTATIONS for k in ks)
+        assert [k % 2 for k in ks] == [i % 2 for i in range(n)]
+    assert sorted(consensus_transforms(48)) == list(range(48))
+    for bad in (0, 49, 2.0):
+        with pytest.raises(ValueError, match="views"):
+            consensus_transforms(bad)
+
+
+def test_the_consensus_averages_the_largest_agreeing_group_and_outvotes_the_rest():
+    def dirs(deg):
+        return gaze_directions(torch.tensor(np.radians(deg), dtype=torch.float64))
+
+    agree = [[10.0, 0.0], [10.5, 0.3], [9.6, -0.2], [10.2, 0.1], [9.9, 0.4]]  # within 2 deg of each other
+    decoy = [[30.0, 5.0], [30.4, 5.2], [29.8, 4.9]]
+    # two samples of 8 views: the decoy views first, then the ball's; 5 agreeing views against 3
+    d = torch.stack([dirs(decoy + agree), dirs(agree[:1] + decoy + agree[1:])])
+    got = np.degrees(consensus_of(d).numpy())
+    want = np.degrees(gaze_angles(dirs(agree).sum(0)).numpy())
+    assert np.allclose(got, want[None], atol=1e-9)
+    # a group of 3 against 2: the 3 decoy views win (the rule counts views, it does not know the ball)
+    got = np.degrees(consensus_of(dirs(agree[:2] + decoy)[None]).numpy())[0]
+    assert np.allclose(got, np.degrees(gaze_angles(dirs(decoy).sum(0)).numpy()), atol=1e-9)
+    # on a tie the first view's group; views further than CONSENSUS_DEG from it are left out
+    two = torch.stack([dirs([[0.0, 0.0], [20.0, 0.0]])])
+    assert np.allclose(consensus_of(two).numpy(), 0.0, atol=1e-12)
+    c = CONSENSUS_DEG
+    edge = torch.stack([dirs([[0.0, 0.0], [0.95 * c, 0.0], [-0.95 * c, 0.0], [1.05 * c, 0.0]])])  # the first two tie at 3
+    assert np.degrees(float(consensus_of(edge)[0, 0])) == pytest.approx(0.0, abs=1e-9)  # 1.05 c is not in view 0's group
+
+
+def test_eval_mode_reads_out_by_the_consensus_of_views_as_a_plain_reference_does(net):
+    import copy
+
+    torch.manual_seed(3)
+    m = copy.deepcopy(net).eval()
+    m.views = 8
+    x = torch.randn(5, 3 * m.P)
+    with torch.no_grad():
+        ref_dirs = []
+        for k in consensus_transforms(8):  # each view read alone, mapped back to the eye frame with numpy
+            ang = m.read_out(m.logits(m.image(x, k))).double().numpy()
+            ref_dirs.append(gaze_directions(ang) @ transform_matrix(k).T)
+        ref = []
+        for b in range(len(x)):
+            u = np.stack([r[b] / np.linalg.norm(r[b]) for r in ref_dirs])
+            near = u @ u.T >= np.cos(np.radians(CONSENSUS_DEG))
+            best = int(np.argmax(near.sum(1)))
+            ref.append(gaze_angles(u[near[best]].sum(0)))
+        ref = np.stack(ref)
+        got = m.consensus(x).double().numpy()
+        assert np.allclose(got, ref, atol=2e-5)
+        assert np.allclose(m.consensus(x, max_images=3).double().numpy(), got, atol=1e-6)  # views in groups: the same
+        z = m(x)  # eval mode: the consensus, standardised
+        assert torch.allclose(z, (m.consensus(x) - m.target_mean) / m.target_std, atol=1e-6)
+        m.views = 1  # one view: the plain read-out
+        assert torch.allclose(m(x), (m.read_out(m.logits(m.image(x, 0))) - m.target_mean) / m.target_std)
+        m.views = 8
+    m.train()  # training reads one (augmented) view
+    assert m(x).shape == (5, 2)
+    assert torch.allclose(m(x, transform=0).detach(), ((m.read_out(m.logits(m.image(x, 0))) - m.target_mean) / m.target_std).detach(),
+                          atol=1e-5)
 
 
 def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path):

@@ -39,10 +39,11 @@ def _foveation(spec: dict):
         backbone = RetinaConv(_array(spec["photoreceptor_xy"]), spec["layers"], spec["reduction"], spec["channels"], spec["seed"])
         return RetinaConvFoveationNet(backbone, angles)
     if spec["model"] == "cnn":
-        from warp_vision.nn.retina_cnn import RetinaCNNFoveationNet
+        from warp_vision.nn.retina_cnn import CONSENSUS_VIEWS, RetinaCNNFoveationNet
 
         torch.manual_seed(spec["seed"])
-        return RetinaCNNFoveationNet(angles, spec["image_size"], spec["channels"])
+        # a spec from before the consensus read-out reads with it too (inference only: the weights are the same)
+        return RetinaCNNFoveationNet(angles, spec["image_size"], spec["channels"], views=spec.get("views", CONSENSUS_VIEWS))
     return foveation_net(spec["model"], onv_positions(_array(spec["photoreceptor_xy"])), spec["layers"],
                          spec["receptive_field"], spec["reduction"], spec["seed"], head=spec["head"],
                          input_angles=None if angles is None else np.repeat(angles, 3, axis=0))

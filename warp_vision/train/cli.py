@@ -127,6 +127,9 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "5 degrees off); writes RUN_DIR/conditions.json and "
                         "RUN_DIR/figures/conditions.png")
     p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
+    p.add_argument("--views", type=int, default=None, metavar="N",
+                   help="with --conditions: read the retina CNN out by the consensus of N turned and mirrored views "
+                        "instead of the net's own (default: its spec's, 8; 1: the plain image alone)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return _debug_flag(p)
 
@@ -176,7 +179,7 @@ def _evaluate(argv: list[str]) -> int:
         if a.conditions:
             from warp_vision.train.conditions import evaluate_conditions
 
-            evaluate_conditions(a.run_dirs, a.samples, progress=not a.no_progress)
+            evaluate_conditions(a.run_dirs, a.samples, progress=not a.no_progress, views=a.views)
             return
         for run_dir in a.run_dirs:
             cfg_path = Path(run_dir) / "config.json"

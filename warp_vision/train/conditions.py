@@ -39,9 +39,14 @@ def condition_config(data, condition: str, samples: int):
                                seed=data.seed + HELD_OUT_SEED, chunk_size=min(data.chunk_size, 128))
 
 
-def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress: bool = True, log=print) -> dict:
+def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress: bool = True, log=print,
+                        views: int | None = None) -> dict:
     """Every run's best net on every held-out condition: {run_dir: {condition: {"median_deg", "p90_deg",
-    "n"}}}, printed as one table; writes each run's ``conditions.json`` and ``figures/conditions.png``."""
+    "n"}}}, printed as one table; writes each run's ``conditions.json`` and ``figures/conditions.png``.
+    ``views``: the retina CNN's consensus read-out over that many views instead of its spec's (1: the
+    plain image alone; nn/retina_cnn.py); the table's column names it."""
+    from warp_vision.nn.retina_cnn import consensus_transforms
+
     from warp_vision.data.foveation import synthesize
     from warp_vision.data.foveation_scenes import CONDITIONS
     from warp_vision.data.store import ChunkedStore
@@ -57,6 +62,8 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         raise ValueError(f"conditions: expected some of {list(CONDITIONS[1:])}, got {bad}")
     if samples < 10:
         raise ValueError(f"samples: expected at least 10 per condition, got {samples}")
+    if views is not None:
+        consensus_transforms(views)  # (validates)
     results, examples = {}, {}
     for run in run_dirs:
         out = Path(run)
@@ -70,6 +77,10 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         device = pick_device(cfg.device)
         model = build_net(ck["net"], device).eval()
         model.load_state_dict(ck["model"])
+        if views is not None:
+            if not hasattr(model, "views"):
+                raise ValueError(f"{out}: views: only the retina CNN (--model cnn) reads out by a consensus of views")
+            model.views = views
         dtype = onv_dtype(ck["net"])
         task = FoveationTask(cfg, lambda *a, **k: None)
         task.load((0, 1), progress=False, synthesize=False)
@@ -91,8 +102,9 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
             row[c] = {**_stats(err), "dataset": str(ddir)}
             k = int(torch.argsort(err)[len(err) // 2])  # the median sample
             examples[run][c] = (ddir, onv[k].float(), target[k].numpy(), pred[k].numpy(), float(err[k]))
-        results[str(run)] = row
-        atomic_write(out / "conditions.json", json.dumps({"samples_per_condition": samples, "results": row}, indent=2))
+        results[str(run) if views is None else f"{run} (views {views})"] = row
+        atomic_write(out / "conditions.json", json.dumps({"samples_per_condition": samples,
+                                                          "views": getattr(model, "views", None), "results": row}, indent=2))
         _figure(out, cfg, examples[run])
     log(table(results))
     return results

@@ -85,6 +85,7 @@ class TrainConfig:
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units (conv: of its sites)
     channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
+    views: int = 8  # cnn only: its read-out at inference (validation, test, the simulation) is the consensus of this many turned and mirrored views (nn/retina_cnn.py: CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
     # optimisation
     init: str = ""  # a foveation run directory whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
     loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls too small or hidden to localise) or mse (the paper's)
@@ -140,6 +141,8 @@ class TrainConfig:
             raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
         if self.channels < 1:
             raise ValueError(f"channels: expected a positive integer, got {self.channels}")
+        if not 1 <= self.views <= 48:
+            raise ValueError(f"views: expected 1 to 48 (24 turns, plain and mirrored), got {self.views}")
         if not (0 < self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
             raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
         self.data_config().validate()

@@ -106,7 +106,7 @@ class FoveationTask(harness.OnvTask):
                 "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
                 "photoreceptor_angles": None if angles is None else torch.from_numpy(np.asarray(angles, np.float64)),
-                **({"image_size": IMAGE_SIZE} if c.model == "cnn" else {})}
+                **({"image_size": IMAGE_SIZE, "views": c.views} if c.model == "cnn" else {})}
 
     def prepare(self, model, norm):
         model.set_target_norm(norm["target_mean"], norm["target_std"])
