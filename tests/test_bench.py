@@ -117,3 +117,14 @@ def test_memory_bench_runs_small_sizes_and_plots_into_a_new_directory(tmp_path):
     png = tmp_path / "new" / "memory.png"
     memory.plot(result, str(png))
     assert png.stat().st_size > 10_000
+
+
+def test_readout_bench_writes_a_row_per_setting_with_its_ratio(tmp_path):
+    from warp_vision.bench.cli import main
+
+    out = tmp_path / "readout.json"
+    assert main(["readout", "--views", "1", "2", "--batch", "2", "--repeats", "1", "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert [(r["batch"], r["views"]) for r in res["results"]] == [(2, 1), (2, 2)]
+    assert res["results"][0]["ratio_to_1_views"] == 1.0 and res["results"][1]["median_ms"] > 0
+    assert main(["readout", "--views", "0", "--out", str(out)]) == 2  # refused before any work

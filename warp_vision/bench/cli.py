@@ -63,7 +63,13 @@ def _parser() -> argparse.ArgumentParser:
     lop.add_argument("--quick", action="store_true", help="the --quick nets of python -m warp_vision.sim")
     lop.add_argument("--no-progress", action="store_true", help="no progress bars")
     lop.add_argument("--out", default="bench_results/loop.json", help="JSON output path")
-    for q in (lin, mem, rtp, lop):
+    rdo = sub.add_parser("readout", help="the foveation CNN's inference: the consensus of N views vs the plain image")
+    rdo.add_argument("--views", type=int, nargs="+", default=[1, 4, 8], help="settings (default 1 4 8; the first is the ratios' base)")
+    rdo.add_argument("--batch", type=int, nargs="+", default=[1, 64], help="ONVs per call (default 1, as the loop's eyes, and 64)")
+    rdo.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
+    rdo.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    rdo.add_argument("--out", default="bench_results/readout.json", help="JSON output path")
+    for q in (lin, mem, rtp, lop, rdo):
         add_debug_flag(q)
     return p
 
@@ -125,6 +131,15 @@ def _bench(args) -> int:
             if getattr(args, name) < 1:
                 raise ValueError(f"--{name}: expected a positive integer, got {getattr(args, name)}")
         result = raytrace.run(args.repeats, args.photoreceptors, args.samples, args.batch, device=device)
+    elif args.bench == "readout":
+        from warp_vision.bench import readout
+        from warp_vision.nn.retina_cnn import consensus_transforms
+
+        for n in args.views:
+            consensus_transforms(n)  # (validates: 1 to 48)
+        if min(args.batch) < 1 or args.repeats < 1:
+            raise ValueError("--batch and --repeats: expected positive integers")
+        result = readout.run(args.views, args.batch, args.repeats, device=device)
     elif args.bench == "loop":
         from warp_vision.bench import loop
 
