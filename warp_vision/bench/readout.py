@@ -1,7 +1,7 @@
 """The foveation CNN's read-out: inference time of the consensus of N views against the plain image's.
 
 The net is the default preset's retina CNN (untrained: its cost does not depend on its weights) on the
-default data config's retina; inputs are random standardised ONVs. Each setting is timed in interleaved
+default foveation data config's retina (P = 14,400); inputs are random standardised ONVs. Each setting is timed in interleaved
 rounds (:func:`warp_vision.bench.common.interleaved_ms`), so its ratio to one view comes from one run.
 """
 
@@ -13,11 +13,10 @@ from warp_vision.bench.common import interleaved_ms
 
 
 def run(views=(1, 4, 8), batches=(1, 64), repeats: int = 10, device: str = "cpu", log=print) -> dict:
-    from warp_vision.data.foveation import make_eye, make_retina
+    from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
     from warp_vision.nn.retina_cnn import RetinaCNNFoveationNet
-    from warp_vision.train.config import resolve
 
-    data = resolve("default", {}).data_config()
+    data = FoveationDataConfig()
     angles = make_retina(data).visual_angles(make_eye(data))
     torch.manual_seed(0)
     net = RetinaCNNFoveationNet(angles).to(device).eval()
