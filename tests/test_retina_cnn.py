@@ -185,6 +185,20 @@ def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path):
     assert np.isfinite(summary["test_median_deg"])
     model, ck = load_net(tmp_path / "run")
     assert isinstance(model, RetinaCNNFoveationNet) and ck["net"]["onv_dtype"] == "float32"
+    assert ck["net"]["views"] == 8 and model.views == 8  # the consensus read-out, from the spec
+    assert load_net(tmp_path / "run")[0].views == 8
+    spec_before = {k: v for k, v in ck["net"].items() if k != "views"}  # a spec written before views existed
+    from warp_vision.nn.trained import build_net as _build
+    assert _build(spec_before).views == 8
+    # the epochs' validation reads one view; the test (evaluate) the consensus; validate leaves views as it was
+    task = foveation.FoveationTask(cfg, log=lambda *a: None)
+    task.load((0, 1), progress=False, synthesize=False)
+    _, va, _ = task.splits()
+    one = task.validate(model, va, ck["norm"], "cpu")
+    assert model.views == 8
+    model.views = 1
+    assert one["median_deg"] == task.evaluate(model, va, ck["norm"], "cpu")["median_deg"]
+    model.views = 8
     with pytest.raises(ValueError, match="head"):
         resolve("smoke", {"model": "cnn", "head": "linear"}).validate()
 

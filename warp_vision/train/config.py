@@ -85,7 +85,7 @@ class TrainConfig:
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units (conv: of its sites)
     channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
-    views: int = 8  # cnn only: its read-out at inference (validation, test, the simulation) is the consensus of this many turned and mirrored views (nn/retina_cnn.py: CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
+    views: int = 8  # cnn only: its read-out at inference (the test, evaluate, the simulation; the epochs' validation reads one view) is the consensus of this many turned and mirrored views (nn/retina_cnn.py: CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
     # optimisation
     init: str = ""  # a foveation run directory whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
     loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls too small or hidden to localise) or mse (the paper's)

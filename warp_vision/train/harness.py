@@ -126,6 +126,11 @@ class Task:
         """Metrics of ``model`` on samples ``idx`` (floats), and its predictions (tensors)."""
         raise NotImplementedError
 
+    def validate(self, model, idx: np.ndarray, norm: dict, device: str) -> dict:
+        """The epoch's check on the validation samples (what picks the best epoch): :meth:`evaluate`, unless a
+        task's read-out at inference costs far more than the net it trains (the retina CNN's consensus)."""
+        return self.evaluate(model, idx, norm, device)
+
     #: the validation metrics that choose the best epoch: {name: "min" | "max"}
     selection: dict = {"loss": "min"}
     #: with several selection metrics, best.pt is written only at an epoch at least as good in all of them
@@ -434,7 +439,7 @@ def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: D
                 g["lr"] = epoch_lr(cfg, epoch)
         lr_now = opt.param_groups[0]["lr"]
         train = _train_epoch(task, net, model, opt, tr, epoch, norm, device, dd, progress, out)
-        ev = task.evaluate(model, va, norm, device)
+        ev = task.validate(model, va, norm, device)
         improved, save_best, state.best = select(task.selection, ev, state.best)
         state.bad = 0 if improved else state.bad + 1
         if getattr(cfg, "lr_schedule", "constant") == "plateau" and state.bad and state.bad % PLATEAU_EPOCHS == 0:
