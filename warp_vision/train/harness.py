@@ -219,7 +219,8 @@ class Dist:
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
         self.on = self.world > 1
-        if self.on and not dist.is_initialized():
+        self.owner = self.on and not dist.is_initialized()  # this run made the process group: it destroys it
+        if self.owner:
             dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
         if self.on and "WARP_VISION_THREADS" not in os.environ:  # the ranks share the cores
             threads = max(1, (os.cpu_count() or 1) // self.world)
@@ -229,6 +230,14 @@ class Dist:
     def barrier(self):
         if self.on:
             dist.barrier()
+
+    def close(self):
+        """Destroy the process group this run made, after a run every rank finished: left to the
+        interpreter's exit, gloo's threads can abort a rank ("terminate called without an active exception",
+        pytorch/pytorch#190489), seen in CI under load."""
+        if self.owner and dist.is_initialized():
+            dist.destroy_process_group()
+            self.owner = False
 
     def all_mean(self, x: float) -> float:
         if not self.on:
@@ -533,7 +542,9 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
             raise
         return {"interrupted": True}
     say(stopped)
-    return _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)
+    summary = _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)
+    dd.close()
+    return summary
 
 
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print) -> dict:
