@@ -173,3 +173,7 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     assert all(a[c]["dataset"] == b[c]["dataset"] for c in V.CONDITIONS[1:])
     assert train_main(["evaluate", runs[0], "--conditions", "--samples", "2"]) != 0
     assert "samples: expected at least 10" in capsys.readouterr().err
+    assert train_main(["evaluate", runs[0], "--conditions", "--views", "8", "--samples", "12"]) != 0  # a liNet
+    assert "only the retina CNN" in capsys.readouterr().err
+    assert train_main(["evaluate", runs[0], "--conditions", "--views", "0"]) != 0
+    assert "views" in capsys.readouterr().err

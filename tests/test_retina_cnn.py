@@ -199,6 +199,21 @@ def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path):
     model.views = 1
     assert one["median_deg"] == task.evaluate(model, va, ck["norm"], "cpu")["median_deg"]
     model.views = 8
+    # evaluate --conditions --views N reads the net with N views and says so
+    import json
+    import os
+
+    from warp_vision.train.conditions import evaluate_conditions
+
+    cwd = os.getcwd()
+    os.chdir(tmp_path)  # the held-out sets are cached under ./runs/datasets
+    try:
+        res = evaluate_conditions([str(tmp_path / "run")], 10, conditions=["glow_dim"], progress=False,
+                                  log=lambda *a: None, views=2)
+    finally:
+        os.chdir(cwd)
+    assert list(res) == [f"{tmp_path / 'run'} (views 2)"]
+    assert json.loads((tmp_path / "run/conditions.json").read_text())["views"] == 2
     with pytest.raises(ValueError, match="head"):
         resolve("smoke", {"model": "cnn", "head": "linear"}).validate()
 
