@@ -177,3 +177,6 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     assert "only the retina CNN" in capsys.readouterr().err
     assert train_main(["evaluate", runs[0], "--conditions", "--views", "0"]) != 0
     assert "views" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        train_main(["evaluate", runs[0], "--views", "8"])
+    assert "only with --conditions" in capsys.readouterr().err

@@ -31,8 +31,6 @@ thread count) and the kernels-alone timing (CPU launches). The JSON then also ho
 
 from __future__ import annotations
 
-import os
-from contextlib import contextmanager
 
 import torch
 
@@ -51,20 +49,6 @@ CUDA_SKIPPED = {
     "warp_1thread": "a CPU thread count (WARP_VISION_THREADS): a CUDA launch is not split across CPU threads",
     "warp_kernels_only_ms": "kernel_calls launches the op's feature-major kernels on the CPU only",
 }
-
-
-@contextmanager
-def _threads(n: int | None):
-    old = os.environ.get("WARP_VISION_THREADS")
-    if n is not None:
-        os.environ["WARP_VISION_THREADS"] = str(n)
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("WARP_VISION_THREADS", None)
-        else:
-            os.environ["WARP_VISION_THREADS"] = old
 
 
 def min_bytes(B: int, n_in: int, N: int, R: int, itemsize: int = 4, grad_x: bool = True,
@@ -93,7 +77,7 @@ def _phases(fn, threads, x, x_req, weight, bias, gy) -> dict:
 
     def under(f):
         def call():
-            with _threads(threads):
+            with launch.threads_set(threads):
                 f()
         return call
 
@@ -204,7 +188,7 @@ def _time_layout(impls: dict, inp: dict, feature_major: bool, repeats: int, log)
     ref = (y0, *torch.autograd.grad(y0, (x_req, weight, bias), grad_y_bm))
     per_layout, cases = {}, {}
     for name, (fn, threads) in impls.items():
-        with _threads(threads):
+        with launch.threads_set(threads):
             y = fn(x_req)
             gy = grad_y_bm if y.is_contiguous() else grad_y_fm  # what the next layer would return
             got = (y, *torch.autograd.grad(y, (x_req, weight, bias), gy))

@@ -15,6 +15,7 @@ launch once and afterwards only rebinds its arguments, which costs far less.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import threading
@@ -64,6 +65,22 @@ def cpu_threads() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
+
+
+@contextlib.contextmanager
+def threads_set(n: int | None):
+    """Within the block, split launches use ``n`` threads (``WARP_VISION_THREADS``; None: unchanged);
+    the variable's previous state is restored after."""
+    old = os.environ.get("WARP_VISION_THREADS")
+    if n is not None:
+        os.environ["WARP_VISION_THREADS"] = str(n)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("WARP_VISION_THREADS", None)
+        else:
+            os.environ["WARP_VISION_THREADS"] = old
 
 
 def _get_pool(n: int) -> ThreadPoolExecutor:

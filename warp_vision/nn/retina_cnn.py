@@ -209,13 +209,13 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
 
     def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
                  power: float = 1.5, window: int = 5, window_deg: float = WINDOW_DEG, views: int = 1):
-        self.views = len(consensus_transforms(views))  # (validates)
+        consensus_transforms(views)  # (validates)
         if not (isinstance(window, int) and window >= 1 and window % 2 == 1):
             raise ValueError(f"window: expected an odd positive int, got {window!r}")
         if not 0 <= window_deg < 90:
             raise ValueError(f"window_deg: expected degrees in [0, 90), got {window_deg!r}")
         super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=2)
-        self.window, self.window_deg = window, float(window_deg)
+        self.window, self.window_deg, self.views = window, float(window_deg), int(views)
         lat = 2 * channels
         self.lateral = nn.ModuleList(nn.Conv2d(ch, lat, 1) for ch in self.stage_channels)
         self.smooth = _cbr(lat, lat)

@@ -173,7 +173,10 @@ def _evaluate(argv: list[str]) -> int:
     import json
     from pathlib import Path
 
-    a = _eval_parser().parse_args(argv)
+    p = _eval_parser()
+    a = p.parse_args(argv)
+    if a.views is not None and not a.conditions:
+        p.error("--views: only with --conditions")
 
     def job():
         if a.conditions:

@@ -45,12 +45,11 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
     "n"}}}, printed as one table; writes each run's ``conditions.json`` and ``figures/conditions.png``.
     ``views``: the retina CNN's consensus read-out over that many views instead of its spec's (1: the
     plain image alone; nn/retina_cnn.py); the table's column names it."""
-    from warp_vision.nn.retina_cnn import consensus_transforms
-
     from warp_vision.data.foveation import synthesize
     from warp_vision.data.foveation_scenes import CONDITIONS
     from warp_vision.data.store import ChunkedStore
     from warp_vision.fileio import atomic_write
+    from warp_vision.nn.retina_cnn import consensus_transforms
     from warp_vision.nn.trained import build_net, onv_dtype, predict_targets, read_checkpoint
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
     from warp_vision.train.harness import pick_device

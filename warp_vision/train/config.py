@@ -141,8 +141,9 @@ class TrainConfig:
             raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
         if self.channels < 1:
             raise ValueError(f"channels: expected a positive integer, got {self.channels}")
-        if not 1 <= self.views <= 48:
-            raise ValueError(f"views: expected 1 to 48 (24 turns, plain and mirrored), got {self.views}")
+        from warp_vision.nn.retina_cnn import consensus_transforms
+
+        consensus_transforms(self.views)  # (validates: 1 to 48, the turns plain and mirrored)
         if not (0 < self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
             raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
         self.data_config().validate()

@@ -364,7 +364,7 @@ def render_in_processes(task: Task, workers: int, progress: bool) -> bool:
     written stay: run again to resume)."""
     import multiprocessing as mp
 
-    from warp_vision.kernels.launch import cpu_threads
+    from warp_vision.kernels.launch import cpu_threads, threads_set
 
     dirs = task.dataset_dirs()
     if workers <= 1 or not dirs or all(_store_complete(Path(d)) for d in dirs):
@@ -377,19 +377,14 @@ def render_in_processes(task: Task, workers: int, progress: bool) -> bool:
                for i in range(1, workers)]
     for h in helpers:
         h.start()
-    old = os.environ.get("WARP_VISION_THREADS")
-    os.environ["WARP_VISION_THREADS"] = str(threads)
     try:
-        task.render((0, workers), progress)
+        with threads_set(threads):
+            task.render((0, workers), progress)
     except BaseException:
         for h in helpers:
             h.terminate()
         raise
     finally:
-        if old is None:
-            os.environ.pop("WARP_VISION_THREADS", None)
-        else:
-            os.environ["WARP_VISION_THREADS"] = old
         for h in helpers:
             h.join()
     failed = [h.exitcode for h in helpers if h.exitcode != 0]
