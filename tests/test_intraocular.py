@@ -68,7 +68,8 @@ def test_pupil_samples_carry_the_luminance_their_exposure_gives_them():
 
 def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
     from warp_vision.sim.loop import load_pupil
-    from warp_vision.train.config import PUPIL_PRESETS, PupilTrainConfig, resolve
+    from warp_vision.train.config import resolve
+    from warp_vision.train.config_intraocular import PUPIL_PRESETS, PupilTrainConfig
     from warp_vision.train.pupil import run
 
     cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, PupilTrainConfig, PUPIL_PRESETS)
@@ -252,7 +253,8 @@ def test_lens_samples_fill_the_central_field_with_a_card_at_the_stated_defocus()
 def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path, monkeypatch):
     from warp_vision.sim.loop import load_lens
     from warp_vision.train import lens
-    from warp_vision.train.config import LENS_PRESETS, LensTrainConfig, resolve
+    from warp_vision.train.config import resolve
+    from warp_vision.train.config_intraocular import LENS_PRESETS, LensTrainConfig
     from warp_vision.train.lens import run
 
     monkeypatch.setattr(lens, "CALIBRATE_MIN_SAMPLES", 1)  # the smoke set is too small for the real threshold

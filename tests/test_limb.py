@@ -199,7 +199,7 @@ def test_range_errors_are_relative_absolute_and_split_by_distance_and_hand():
 def test_smoke_ranging_run_trains_on_balls_near_the_line_of_sight(tmp_path):
     from warp_vision.nn.retina_cnn import RANGE_GATE_DEG
     from warp_vision.nn.trained import load_net
-    from warp_vision.train.config import LimbTrainConfig
+    from warp_vision.train.config_body import LimbTrainConfig
     from warp_vision.train.limb import LimbTask
 
     run = tmp_path / "left"

@@ -12,7 +12,8 @@ from warp_vision.body import Body, BodyConfig
 from warp_vision.sim.oculomotor import HOLDING_VERSION, HoldingDataConfig, evaluate_on_body, load_oculomotor, transition_pairs
 from warp_vision.train import oculomotor
 from warp_vision.train.rundir import run_config
-from warp_vision.train.config import resolve, OCULOMOTOR_PRESETS, OculomotorTrainConfig
+from warp_vision.train.config import resolve
+from warp_vision.train.config_body import OCULOMOTOR_PRESETS, OculomotorTrainConfig
 
 
 def cfg_for(tmp_path, **kw):

@@ -245,7 +245,8 @@ def test_a_cnn_limb_run_saves_a_net_the_simulation_can_load(tmp_path):
     from warp_vision.nn.retina_cnn import RetinaCNNLimbNet
     from warp_vision.nn.trained import load_net
     from warp_vision.train import limb
-    from warp_vision.train.config import LIMB_PRESETS, LimbTrainConfig, resolve
+    from warp_vision.train.config import resolve
+    from warp_vision.train.config_body import LIMB_PRESETS, LimbTrainConfig
 
     cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data"), "model": "cnn", "channels": 4},
                   LimbTrainConfig, LIMB_PRESETS)

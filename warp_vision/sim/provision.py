@@ -33,7 +33,7 @@ from warp_vision.body import SIDES
 #: plus its training, the pupil and lens nets' datasets plus their training (the lens net's first run on
 #: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards); an arm's
 #: motor nets (holding activations, training, body checks) and an eye's limb vision net (rendering its
-#: ONVs, then training) as their presets' comments in :mod:`warp_vision.train.config` estimate them.
+#: ONVs, then training) as their presets' comments in :mod:`warp_vision.train.config_body` estimate them.
 MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 3.0,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
            ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 13.0, ("lens", "quick"): 3.0,

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from warp_vision.train import harness
-from warp_vision.train.config import ArmTrainConfig
+from warp_vision.train.config_body import ArmTrainConfig
 
 FIELDS = ["angles", "qpos", "act", "hand", "residual", "torque_A", "torque_b"]
 

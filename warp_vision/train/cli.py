@@ -6,6 +6,7 @@
     python -m warp_vision.train faces --resume RUN_DIR [--epochs N]                    continue a stopped AFR run
     python -m warp_vision.train oculomotor --eye left|right [--preset smoke|quick|default]   an eye's oculomotor net
     python -m warp_vision.train arm --side left|right [--preset smoke|quick|default]         an arm's motor nets
+    python -m warp_vision.train limb|pupil|lens --eye left|right [--preset ...]            an eye's limb vision, pupil or lens net
     python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
     python -m warp_vision.train evaluate RUN_DIR [RUN_DIR ...] --conditions            foveation nets on held-out conditions
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
@@ -19,6 +20,8 @@ import sys
 from warp_vision.errors import add_debug_flag as _debug_flag
 from warp_vision.errors import guarded
 from warp_vision.train import config as C
+from warp_vision.train import config_body as body
+from warp_vision.train import config_intraocular as intraocular
 
 
 def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -66,24 +69,24 @@ def _train_parser() -> argparse.ArgumentParser:
     return _run_flags(p)
 
 
-#: the commands that train a task besides the default (foveation): name -> (module, config class, presets, description)
+#: the commands that train a task besides the default (foveation): name -> (module, config class, its presets, description)
 TASKS = {
-    "faces": ("faces", "FaceTrainConfig", "FACE_PRESETS",
+    "faces": ("faces", C.FaceTrainConfig, C.FACE_PRESETS,
               "Active face recognition (the paper's Section VI.B): build identities with anny, synthesise (or reuse) "
               "ONVs of each face across yaw and pitch poses, train the two-headed liNet (identity and pose), evaluate, "
               "and write config, checkpoints, metrics and figures to --out. Runs under torchrun unchanged."),
-    "oculomotor": ("oculomotor", "OculomotorTrainConfig", "OCULOMOTOR_PRESETS",
+    "oculomotor": ("oculomotor", body.OculomotorTrainConfig, body.OCULOMOTOR_PRESETS,
                    "An eye's oculomotor net: solve (or reuse) the least-effort activations that hold gazes in a disc "
                    "on the MuJoCo body, train the net from (change of gaze, current activations) to the next "
                    "activations on transitions between them, check it on the body, and write config, checkpoints, "
                    "metrics and summary to --out (default runs/oculomotor/<eye>)."),
-    "arm": ("arm", "ArmTrainConfig", "ARM_PRESETS",
+    "arm": ("arm", body.ArmTrainConfig, body.ARM_PRESETS,
             "An arm's motor nets (the paper's Fig. 8): solve (or reuse) the least-effort activations of its 63 muscles "
             "that hold postures with the hand 0.2-0.6 m in front of the shoulder on the MuJoCo body, train the posture "
             "net (joint angles and velocities to activations that hold and damp) and the voluntary net (hand "
             "displacement, current activations, joint angles and velocities to the next activations), check both "
             "on the body, and write config, checkpoints, metrics and summary to --out (default runs/arm/<side>)."),
-    "limb": ("limb", "LimbTrainConfig", "LIMB_PRESETS",
+    "limb": ("limb", body.LimbTrainConfig, body.LIMB_PRESETS,
              "An eye's limb vision net (the paper's nets 3-10): synthesise (or reuse) ONVs of the closed loop's world "
              "with the body's arms at random postures and the cannon's ball near a hand or on a shot's path, the eye "
              "tracking it; train the ranging net (default: the ball's distance from its apparent size, for balls near the "
@@ -91,12 +94,12 @@ TASKS = {
              "--model linet|fc|cnn, a net from the ONV to each arm's hand-to-ball discrepancy (eye frame, m); "
              "measure it on rooms and shots training never saw, and write config, checkpoints, metrics, summary and "
              "figures to --out (default runs/limb/<eye>)."),
-    "pupil": ("pupil", "PupilTrainConfig", "PUPIL_PRESETS",
+    "pupil": ("pupil", intraocular.PupilTrainConfig, intraocular.PUPIL_PRESETS,
               "An eye's pupil net (the paper's SNNs for the iris): synthesise (or reuse) ONVs of everyday scenes seen "
               "through random pupils at light levels over five decades, train the net from (ONV, current pupil) to "
               "Watson & Yellott's pupil for the scene's adapting luminance, measure it on rooms training never saw, "
               "and write config, checkpoints, metrics, summary and figures to --out (default runs/pupil/<eye>)."),
-    "lens": ("lens", "LensTrainConfig", "LENS_PRESETS",
+    "lens": ("lens", intraocular.LensTrainConfig, intraocular.LENS_PRESETS,
              "An eye's lens net (the paper's SNNs for accommodation): synthesise (or reuse) central-field ONVs of "
              "textured cards at 0.2-5 m with the lens at random states near them, train the net from (ONV, current "
              "pupil) to the signed defocus (read from the colour channels' unequal blur), measure it on new "
@@ -108,7 +111,7 @@ TASKS = {
 def _task_parser(name: str) -> argparse.ArgumentParser:
     _, cls, presets, description = TASKS[name]
     p = argparse.ArgumentParser(prog=f"python -m warp_vision.train {name}", description=description)
-    C.add_arguments(p, getattr(C, cls), getattr(C, presets))
+    C.add_arguments(p, cls, presets)
     return _run_flags(p)
 
 
@@ -202,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         name, argv = argv[0], argv[1:]
         a = _task_parser(name).parse_args(argv)
         _, cls, presets, _ = TASKS[name]
-        make = lambda: C.from_args(a, getattr(C, cls), getattr(C, presets))  # noqa: E731
+        make = lambda: C.from_args(a, cls, presets)  # noqa: E731
     else:
         name = "foveation"
         a = _train_parser().parse_args(argv)

@@ -1,4 +1,7 @@
-"""Training configuration: one dataclass, three presets, and the command line generated from them."""
+"""Training configuration: the foveation and face-recognition runs' dataclasses and presets, the checks
+every task's config shares, and the command line generated from a dataclass. The body's nets' configs are in
+:mod:`warp_vision.train.config_body` (oculomotor, arm, limb vision), the intraocular nets' in
+:mod:`warp_vision.train.config_intraocular` (pupil, lens)."""
 
 from __future__ import annotations
 
@@ -18,10 +21,10 @@ CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn", "ra
            "ball": ["ordinary", "glowing"]}
 
 
-def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
+def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: bool = False) -> None:
     """The checks every training config shares: every number is finite, its preset, its fields with a
-    fixed set of values, the network's and the optimisation's positive integers (and ``positive``), lr and
-    device."""
+    fixed set of values, the network's and the optimisation's positive integers (and ``positive``), lr,
+    device, and the validation and test fractions (``test_may_be_empty``: a test fraction of 0 is allowed)."""
     for f in fields(cfg):
         v = getattr(cfg, f.name)
         if isinstance(v, float) and not math.isfinite(v):
@@ -36,6 +39,9 @@ def _check_common(cfg, presets: dict, positive: tuple = ()) -> None:
             raise ValueError(f"{name}: expected a positive integer, got {getattr(cfg, name)}")
     if not cfg.lr > 0:
         raise ValueError(f"lr: expected > 0, got {cfg.lr}")
+    test_ok = 0 <= cfg.test_fraction < 1 if test_may_be_empty else 0 < cfg.test_fraction < 1
+    if not (0 < cfg.val_fraction < 1 and test_ok and cfg.val_fraction + cfg.test_fraction < 1):
+        raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
     if cfg.device not in ("auto", "cpu", "cuda") and not cfg.device.startswith("cuda:"):
         raise ValueError(f"device: expected cpu, cuda or auto, got {cfg.device!r}")
     if hasattr(cfg, "onv_dtype") and cfg.model == "fc" and cfg.onv_dtype not in ("auto", "float32"):
@@ -129,7 +135,7 @@ class TrainConfig:
         )
 
     def validate(self) -> None:
-        _check_common(self, PRESETS, ("samples", "photoreceptors", "samples_per_receptor"))
+        _check_common(self, PRESETS, ("samples", "photoreceptors", "samples_per_receptor"), test_may_be_empty=True)
         if self.model == "range":
             raise ValueError("model: range is the limb vision task's (python -m warp_vision.train limb --model range); "
                              "foveation: linet, fc, conv or cnn")
@@ -144,8 +150,6 @@ class TrainConfig:
         from warp_vision.nn.retina_cnn import consensus_transforms
 
         consensus_transforms(self.views)  # (validates: 1 to 48, the turns plain and mirrored)
-        if not (0 < self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
-            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
         self.data_config().validate()
 
 
@@ -215,8 +219,6 @@ class FaceTrainConfig:
             raise ValueError(f"model: expected linet or fc for face recognition, got {self.model!r}")
         if self.identities < 2:
             raise ValueError(f"identities: expected at least 2 (a classifier needs classes), got {self.identities}")
-        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
-            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
         if not self.loss_lambda >= 0:
             raise ValueError(f"loss_lambda: expected >= 0, got {self.loss_lambda}")
         self.data_config().validate()
@@ -230,178 +232,6 @@ FACE_PRESETS: dict[str, dict] = {
     "default": {},
     # the paper's protocol: 50 identities x 30 x 30 poses (2-degree steps): 45,000 ONVs
     "paper": dict(pose_step_deg=2.0, epochs=200),
-}
-
-
-@dataclass
-class OculomotorTrainConfig:
-    """Everything an oculomotor-net run depends on (one eye; written to RUN_DIR/config.json)."""
-
-    preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
-    task: str = "oculomotor"  # fixed: tells evaluate which kind of run a directory holds
-    out: str = ""  # output directory; default: runs/oculomotor/<eye>
-    data_dir: str = ""  # holding-activation dataset directory; default: runs/datasets/oculomotor-<config hash>
-    eye: str = "left"  # which eye's muscles
-    # the dataset: gazes and the activations that hold them, solved on the body
-    gazes: int = 5000  # gazes whose holding activations are solved
-    max_gaze_deg: float = 35.0  # the disc they are drawn from
-    transitions: int = 120_000  # (current, next) gaze pairs drawn among the training gazes per run
-    # the model
-    hidden: int = 256  # units per hidden layer of the MLP
-    # optimisation
-    batch: int = 256
-    lr: float = 3e-3  # Adam learning rate (of the first epoch)
-    lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
-    epochs: int = 60  # at most
-    patience: int = 60  # early stopping: epochs without a better validation activation RMSE
-    val_fraction: float = 0.1  # of the gazes: transitions among them choose the best epoch
-    test_fraction: float = 0.15  # of the gazes: transitions among them, and the body check, measure the net
-    seed: int = 0  # gaze sampling, initialisation and shuffling
-    body_checks: int = 100  # held-out saccades settled on the body to measure the net (and a quarter as many pursuit chains)
-    device: str = "cpu"  # cpu, cuda, or auto (a small MLP: the CPU is as fast)
-
-    def data_config(self):
-        from warp_vision.sim.oculomotor import HoldingDataConfig
-
-        return HoldingDataConfig(eye=self.eye, gazes=self.gazes, max_gaze_deg=self.max_gaze_deg, seed=self.seed)
-
-    def validate(self) -> None:
-        _check_common(self, OCULOMOTOR_PRESETS, ("gazes", "transitions", "hidden", "body_checks"))
-        if self.task != "oculomotor":
-            raise ValueError(f"task: expected 'oculomotor', got {self.task!r}")
-        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
-            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
-        if not self.out:
-            self.out = f"runs/oculomotor/{self.eye}"
-        self.data_config().validate()
-
-
-OCULOMOTOR_PRESETS: dict[str, dict] = {
-    # seconds, for tests
-    "smoke": dict(gazes=80, transitions=2000, hidden=32, epochs=2, patience=2, body_checks=8),
-    # a first look (``python -m warp_vision.sim demo --quick``): both eyes in about 2 minutes on a 2-core CPU
-    "quick": dict(gazes=1500, transitions=40_000, epochs=25, patience=25, body_checks=30),
-    # both eyes in about 6 minutes on a 2-core CPU
-    "default": {},
-}
-
-
-@dataclass
-class PupilTrainConfig:
-    """Everything a pupil-net run depends on (one eye; written to RUN_DIR/config.json)."""
-
-    preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
-    task: str = "pupil"  # fixed: tells evaluate which kind of run a directory holds
-    out: str = ""  # output directory; default: runs/pupil/<eye>
-    data_dir: str = ""  # dataset directory; default: runs/datasets/pupil-<config hash>
-    eye: str = "left"  # which eye's retina
-    # the dataset (warp_vision.data.intraocular): v8 scenes through random pupils at random light levels
-    samples: int = 3000  # training ONVs (validation and test split off them)
-    heldout_samples: int = 500  # ONVs of held-out rooms (seeds offset by 1000), measured at the end
-    photoreceptors: int = 14_400  # P: the foveation nets' retina
-    samples_per_receptor: int = 4  # S rays per photoreceptor and channel
-    luminance_decades: float = 5.0  # the adapting luminances span this many decades
-    # the model
-    hidden: int = 32  # tanh units
-    rings: int = 4  # the fixed first layer's eccentricity rings
-    sectors: int = 8  # and polar sectors
-    # optimisation
-    batch: int = 64
-    lr: float = 3e-3  # Adam learning rate (of the first epoch)
-    lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
-    epochs: int = 150  # at most
-    patience: int = 150  # early stopping: epochs without a better validation error
-    val_fraction: float = 0.1
-    test_fraction: float = 0.1
-    seed: int = 0  # data, initialisation and shuffling
-    device: str = "cpu"  # cpu, cuda, or auto (a small net: the CPU is as fast)
-
-    def data_config(self):
-        from warp_vision.data.intraocular import PupilDataConfig
-
-        return PupilDataConfig(samples=self.samples, photoreceptors=self.photoreceptors, eye=self.eye,
-                               samples_per_receptor=self.samples_per_receptor,
-                               luminance_decades=self.luminance_decades, seed=self.seed)
-
-    def validate(self) -> None:
-        _check_common(self, PUPIL_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor",
-                                            "hidden", "rings", "sectors"))
-        if self.task != "pupil":
-            raise ValueError(f"task: expected 'pupil', got {self.task!r}")
-        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
-            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
-        if not self.out:
-            self.out = f"runs/pupil/{self.eye}"
-        self.data_config().validate()
-
-
-PUPIL_PRESETS: dict[str, dict] = {
-    # seconds, for tests
-    "smoke": dict(samples=48, heldout_samples=16, photoreceptors=400, samples_per_receptor=1, hidden=8, epochs=2,
-                  patience=2),
-    # a first look (``python -m warp_vision.sim demo --quick``): a minute per eye on a 2-core CPU
-    "quick": dict(samples=800, heldout_samples=200, epochs=100, patience=100),
-    # a few minutes per eye on a 2-core CPU
-    "default": {},
-}
-
-
-@dataclass
-class LensTrainConfig:
-    """Everything a lens-net run depends on (one eye; written to RUN_DIR/config.json)."""
-
-    preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
-    task: str = "lens"  # fixed: tells evaluate which kind of run a directory holds
-    out: str = ""  # output directory; default: runs/lens/<eye>
-    data_dir: str = ""  # dataset directory; default: runs/datasets/lens-<config hash>
-    eye: str = "left"  # which eye's retina
-    # the dataset (warp_vision.data.intraocular): textured cards at 0.2-5 m, the lens at random states near them
-    samples: int = 16000  # training ONVs (validation and test split off them)
-    heldout_samples: int = 1000  # ONVs of new textures, lamps and distances, measured at the end
-    photoreceptors: int = 14_400  # P: the foveation nets' retina
-    samples_per_receptor: int = 8  # S rays per photoreceptor and channel (the loop renders the net's field at this S)
-    central_deg: float = 2.0  # the net reads the photoreceptors within this eccentricity
-    defocus_range_D: float = 2.5  # |defocus| up to this
-    card_vertices: int = 384  # per side of each textured card's grid
-    # the model
-    hidden: int = 64  # tanh units per hidden layer
-    # optimisation
-    batch: int = 64
-    lr: float = 3e-3  # Adam learning rate (of the first epoch)
-    lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
-    epochs: int = 120  # at most
-    patience: int = 120  # early stopping: epochs without a better validation error
-    val_fraction: float = 0.1
-    test_fraction: float = 0.1
-    seed: int = 0  # data, initialisation and shuffling
-    device: str = "cpu"  # cpu, cuda, or auto (a small net: the CPU is as fast)
-
-    def data_config(self):
-        from warp_vision.data.intraocular import LensDataConfig
-
-        return LensDataConfig(samples=self.samples, photoreceptors=self.photoreceptors, eye=self.eye,
-                              samples_per_receptor=self.samples_per_receptor, central_deg=self.central_deg,
-                              defocus_range_D=self.defocus_range_D, card_vertices=self.card_vertices, seed=self.seed)
-
-    def validate(self) -> None:
-        _check_common(self, LENS_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor", "hidden"))
-        if self.task != "lens":
-            raise ValueError(f"task: expected 'lens', got {self.task!r}")
-        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
-            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
-        if not self.out:
-            self.out = f"runs/lens/{self.eye}"
-        self.data_config().validate()
-
-
-LENS_PRESETS: dict[str, dict] = {
-    # seconds, for tests
-    "smoke": dict(samples=48, heldout_samples=16, photoreceptors=1000, samples_per_receptor=1, card_vertices=48, hidden=8,
-                  epochs=2, patience=2),
-    # a first look (``python -m warp_vision.sim demo --quick``)
-    "quick": dict(samples=2000, heldout_samples=400, epochs=80, patience=80),
-    # about 13 minutes per eye on a 2-core CPU (README: why 16,000 ONVs rather than 6,000)
-    "default": {},
 }
 
 
@@ -428,8 +258,6 @@ def _help(cls, name: str) -> str:
         if s.startswith(f"{name}:") and "#" in s:
             return s.split("#", 1)[1].strip()
     return ""
-
-
 
 
 def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = None) -> None:
@@ -475,157 +303,3 @@ def asdict(cfg) -> dict:
     return dataclasses.asdict(cfg)
 
 
-@dataclass
-class ArmTrainConfig:
-    """Everything an arm motor-net run depends on (one arm: its posture and voluntary nets; written to
-    RUN_DIR/config.json)."""
-
-    preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
-    task: str = "arm"  # fixed: tells evaluate which kind of run a directory holds
-    out: str = ""  # output directory; default: runs/arm/<side>
-    data_dir: str = ""  # holding-activation dataset directory; default: runs/datasets/arm-<config hash>
-    side: str = "left"  # which arm: left or right
-    # the dataset: postures with the hand 0.2-0.6 m in front of the shoulder and the activations that hold them
-    postures: int = 4000  # postures whose holding activations are solved on the body
-    max_residual: float = 0.05  # N m: postures whose holding residual exceeds this are dropped (the muscles cannot hold them)
-    transitions: int = 100_000  # (current, next) posture pairs drawn among the training postures per run
-    torque_weight: float = 1.0  # 1/(N m): weight of the torque the nets' activations fall short by (a soft norm) in the loss
-    stiffness: float = 300.0  # N m/rad: the spring toward the goal posture the voluntary net learns
-    saturation: float = 0.5  # rad: where that spring saturates (its torque at most stiffness x saturation)
-    damping: float = 25.0  # N m s/rad: the damping the voluntary net learns (with the spring)
-    posture_damping: float = 8.0  # N m s/rad: the damping the posture net learns (more asks the muscles for more than they give when holding, and it drifts)
-    velocity_std: float = 1.0  # rad/s: the joint velocities drawn for half the samples
-    # the model
-    hidden: int = 256  # units per hidden layer of both MLPs
-    # optimisation
-    batch: int = 256
-    lr: float = 2e-3  # Adam learning rate (of the first epoch)
-    lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
-    epochs: int = 40  # at most
-    patience: int = 40  # early stopping: epochs without a better validation loss
-    val_fraction: float = 0.1  # of the postures: transitions among them choose the best epoch
-    test_fraction: float = 0.15  # of the postures: transitions among them, and the body checks, measure the nets
-    seed: int = 0  # posture sampling, initialisation and shuffling
-    body_checks: int = 60  # held-out reaches (and posture holds) simulated on the body to measure the nets
-    skip_teacher_feedback: bool = False  # do not measure the exact static optimisation in closed loop (the nets' teacher; the slowest check)
-    device: str = "cpu"  # cpu, cuda, or auto (small MLPs: the CPU is as fast)
-
-    def data_config(self):
-        from warp_vision.sim.arm import ArmDataConfig
-
-        return ArmDataConfig(side=self.side, postures=self.postures, seed=self.seed)
-
-    def validate(self) -> None:
-        _check_common(self, ARM_PRESETS, ("postures", "transitions", "hidden", "body_checks"))
-        if self.task != "arm":
-            raise ValueError(f"task: expected 'arm', got {self.task!r}")
-        if self.side not in ("left", "right"):
-            raise ValueError(f"side: expected one of ['left', 'right'], got {self.side!r}")
-        if not self.max_residual > 0:
-            raise ValueError(f"max_residual: expected > 0 N m, got {self.max_residual}")
-        if not self.saturation > 0:
-            raise ValueError(f"saturation: expected > 0 rad, got {self.saturation}")
-        for name in ("torque_weight", "stiffness", "damping", "posture_damping", "velocity_std"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
-        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
-            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
-        if not self.out:
-            self.out = f"runs/arm/{self.side}"
-        self.data_config().validate()
-
-
-ARM_PRESETS: dict[str, dict] = {
-    # seconds, for tests
-    "smoke": dict(postures=40, transitions=500, hidden=16, epochs=1, patience=1, body_checks=2),
-    # a first look: one arm in about 1.5 minutes on a 2-core CPU
-    "quick": dict(postures=1500, transitions=30_000, epochs=15, patience=15, body_checks=30),
-    # one arm in about 6 minutes on a 2-core CPU shared with another job (data synthesis, about 35 s, and the
-    # body checks, about 2 minutes, included)
-    "default": {},
-}
-
-
-@dataclass
-class LimbTrainConfig:
-    """Everything a limb vision run depends on (one eye's net: the ball's distance, or the hand-to-ball
-    discrepancy of both arms; written to RUN_DIR/config.json)."""
-
-    preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
-    task: str = "limb"  # fixed: tells evaluate which kind of run a directory holds
-    out: str = ""  # output directory; default: runs/limb/<eye>
-    data_dir: str = ""  # dataset directory; default: runs/datasets/limb-<config hash>
-    # the dataset (sim/limb.py): the loop's world, arms at random postures, the ball near a hand or on a shot's path
-    samples: int = 10_000  # ONVs (train + validation + test)
-    heldout_samples: int = 1000  # ONVs in rooms and of shots training never sees (the summary's held-out set)
-    photoreceptors: int = 14_400  # P per retina: the foveation net's retina (the loop renders one ONV for both)
-    eye: str = "left"  # left or right
-    samples_per_receptor: int = 4  # S rays per photoreceptor and channel (the loop's)
-    data_seed: int = 0  # seed of the dataset and of the train/val/test split
-    ball: str = "ordinary"  # the cannon's ball as the loop shows it (sim --ball): ordinary (lit by the room's lamps) or glowing (v7's, the room dimmed)
-    # the model
-    model: str = "linet"  # linet, fc: the fully-connected twin with the same hidden sizes, cnn: a CNN on the ONV binned to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py), or range: a CNN on the central 8 deg to the ball's distance (the loop adds the foveation net's direction and the hand's proprioception)
-    channels: int = 16  # cnn and range only: channels of its first stage (x1, 2, 4, 6 over its four stages)
-    layers: int = 3  # liNet hidden layers H
-    receptive_field: int = 20  # R, connections per unit
-    reduction: int = 5  # f, each layer has 1/f of the previous layer's units
-    onv_dtype: str = "auto"  # float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for fc)
-    # optimisation
-    near_weight_m: float = 0.25  # m: each arm's error is weighted by 1 / (this + its true hand-ball distance): near balls count most
-    batch: int = 64
-    lr: float = 1e-3  # Adam learning rate (of the first epoch)
-    lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
-    epochs: int = 30  # at most
-    patience: int = 8  # early stopping: epochs without a better validation median error (near balls; ranging: of the distance)
-    val_fraction: float = 0.1
-    test_fraction: float = 0.1
-    seed: int = 0  # initialisation and shuffling
-    device: str = "auto"  # cpu, cuda, or auto
-
-    #: Fields added after runs were saved without them: a saved config that lacks one had this value.
-    LEGACY_DEFAULTS = {"ball": "glowing"}
-
-    def data_config(self):
-        from warp_vision.sim.limb import LimbDataConfig
-
-        return LimbDataConfig(eye=self.eye, samples=self.samples, photoreceptors=self.photoreceptors,
-                              samples_per_receptor=self.samples_per_receptor, seed=self.data_seed, ball=self.ball)
-
-    def heldout_config(self):
-        from warp_vision.sim.limb import LimbDataConfig
-
-        return LimbDataConfig(eye=self.eye, samples=self.heldout_samples, photoreceptors=self.photoreceptors,
-                              samples_per_receptor=self.samples_per_receptor, seed=self.data_seed + 1,
-                              rooms="heldout", shots="heldout", ball=self.ball)
-
-    def epoch_lr(self, epoch: int) -> float:
-        return epoch_lr(self, epoch)
-
-    def validate(self) -> None:
-        _check_common(self, LIMB_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor"))
-        if self.task != "limb":
-            raise ValueError(f"task: expected 'limb', got {self.task!r}")
-        if not self.near_weight_m > 0:
-            raise ValueError(f"near_weight_m: expected > 0 m, got {self.near_weight_m}")
-        if self.model not in ("linet", "fc", "cnn", "range"):
-            raise ValueError(f"model: expected linet, fc, cnn or range for limb vision, got {self.model!r}")
-        if self.model in ("cnn", "range") and self.onv_dtype not in ("auto", "float32"):
-            raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
-        if not (0 < self.val_fraction < 1 and 0 < self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
-            raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
-        if not self.out:
-            self.out = f"runs/limb/{self.eye}"
-        self.data_config().validate()
-        self.heldout_config().validate()
-
-
-LIMB_PRESETS: dict[str, dict] = {
-    # seconds, for tests
-    "smoke": dict(samples=64, heldout_samples=16, photoreceptors=400, samples_per_receptor=1, layers=2,
-                  receptive_field=8, batch=16, epochs=2, patience=2),
-    # a first look: about 4 minutes on a 2-core CPU
-    "quick": dict(samples=2000, heldout_samples=300, model="range", lr=2e-3, epochs=12, patience=12),
-    # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training; 9-11 measured):
-    # the ranging net (the ONV-only nets find the ball but not the hands: README)
-    "default": dict(model="range", lr=2e-3, epochs=24, patience=24),
-}

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from warp_vision.train import harness
-from warp_vision.train.config import LensTrainConfig
+from warp_vision.train.config_intraocular import LensTrainConfig
 from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
 from warp_vision.train.intraocular import ShallowNetTask
 

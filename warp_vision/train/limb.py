@@ -38,7 +38,8 @@ from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standard
 from warp_vision.sim.limb import NEAR_M
 from warp_vision.sim.limb_errors import discrepancy_errors, range_errors
 from warp_vision.train import harness
-from warp_vision.train.config import LimbTrainConfig, onv_dtype_name
+from warp_vision.train.config import onv_dtype_name
+from warp_vision.train.config_body import LimbTrainConfig
 
 #: Huber threshold in standardised target units
 HUBER_DELTA = 0.1

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from warp_vision.train import harness
-from warp_vision.train.config import OculomotorTrainConfig
+from warp_vision.train.config_body import OculomotorTrainConfig
 
 
 class OculomotorTask(harness.Task):

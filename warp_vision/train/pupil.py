@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from warp_vision.train import harness
-from warp_vision.train.config import PupilTrainConfig
+from warp_vision.train.config_intraocular import PupilTrainConfig
 from warp_vision.train.intraocular import ShallowNetTask
 
 
