@@ -162,6 +162,37 @@ def test_bad_config_is_refused():
     assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
 
 
+def _task_configs():
+    from warp_vision.train import config, config_body, config_intraocular
+
+    return [(config.FaceTrainConfig, config.FACE_PRESETS), (config_body.OculomotorTrainConfig, config_body.OCULOMOTOR_PRESETS),
+            (config_body.ArmTrainConfig, config_body.ARM_PRESETS), (config_body.LimbTrainConfig, config_body.LIMB_PRESETS),
+            (config_intraocular.PupilTrainConfig, config_intraocular.PUPIL_PRESETS),
+            (config_intraocular.LensTrainConfig, config_intraocular.LENS_PRESETS)]
+
+
+@pytest.mark.parametrize("cls, presets", _task_configs(), ids=lambda x: getattr(x, "__name__", ""))
+def test_every_task_config_shares_the_checks_and_the_default_out(cls, presets):
+    """Each task's config refuses another task's name, fractions that leave no training data (a test
+    fraction of 0 too: only foveation may skip its test split) and a non-finite number; an empty --out
+    becomes runs/<task>/<eye or side>."""
+    cfg = resolve("smoke", {}, cls, presets)
+    task = cls.task
+    assert cfg.out == ("runs/faces" if task == "faces" else f"runs/{task}/left")
+    side = "side" if hasattr(cfg, "side") else "eye"
+    if task != "faces":
+        assert resolve("smoke", {side: "right"}, cls, presets).out == f"runs/{task}/right"
+    assert resolve("smoke", {"out": "elsewhere"}, cls, presets).out == "elsewhere"
+    with pytest.raises(ValueError, match="task: expected"):
+        resolve("smoke", {"task": "foveation"}, cls, presets)
+    for bad in ({"val_fraction": 0.0}, {"test_fraction": 0.0}, {"val_fraction": 0.5, "test_fraction": 0.5}):
+        with pytest.raises(ValueError, match="val_fraction and test_fraction"):
+            resolve("smoke", bad, cls, presets)
+    with pytest.raises(ValueError, match="lr"):
+        resolve("smoke", {"lr": float("nan")}, cls, presets)
+    assert resolve("smoke", {"test_fraction": 0.0}).test_fraction == 0.0  # foveation's test split may be empty
+
+
 def test_presets_pick_the_scene_generator_and_model_and_the_help_says_so():
     """quick and default train the retina CNN on v9, paper the paper's liNet on v9, smoke a small v7 liNet;
     --help gives the default preset's value and the others' where they differ."""

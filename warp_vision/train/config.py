@@ -24,7 +24,8 @@ CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn", "ra
 def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: bool = False) -> None:
     """The checks every training config shares: every number is finite, its preset, its fields with a
     fixed set of values, the network's and the optimisation's positive integers (and ``positive``), lr,
-    device, and the validation and test fractions (``test_may_be_empty``: a test fraction of 0 is allowed)."""
+    device, the validation and test fractions (``test_may_be_empty``: a test fraction of 0 is allowed), and a
+    task config's fixed ``task``. An empty ``out`` becomes the task's default, runs/<task>/<eye or side>."""
     for f in fields(cfg):
         v = getattr(cfg, f.name)
         if isinstance(v, float) and not math.isfinite(v):
@@ -42,6 +43,11 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
     test_ok = 0 <= cfg.test_fraction < 1 if test_may_be_empty else 0 < cfg.test_fraction < 1
     if not (0 < cfg.val_fraction < 1 and test_ok and cfg.val_fraction + cfg.test_fraction < 1):
         raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
+    task = getattr(type(cfg), "task", None)  # the class's default: fixed per config class
+    if task is not None and cfg.task != task:
+        raise ValueError(f"task: expected {task!r}, got {cfg.task!r}")
+    if task is not None and not cfg.out:
+        cfg.out = f"runs/{task}/{getattr(cfg, 'side', None) or cfg.eye}"
     if cfg.device not in ("auto", "cpu", "cuda") and not cfg.device.startswith("cuda:"):
         raise ValueError(f"device: expected cpu, cuda or auto, got {cfg.device!r}")
     if hasattr(cfg, "onv_dtype") and cfg.model == "fc" and cfg.onv_dtype not in ("auto", "float32"):
@@ -213,8 +219,6 @@ class FaceTrainConfig:
 
     def validate(self) -> None:
         _check_common(self, FACE_PRESETS)
-        if self.task != "faces":
-            raise ValueError(f"task: expected 'faces', got {self.task!r}")
         if self.model not in ("linet", "fc"):
             raise ValueError(f"model: expected linet or fc for face recognition, got {self.model!r}")
         if self.identities < 2:

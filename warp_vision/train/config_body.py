@@ -43,10 +43,6 @@ class OculomotorTrainConfig:
 
     def validate(self) -> None:
         _check_common(self, OCULOMOTOR_PRESETS, ("gazes", "transitions", "hidden", "body_checks"))
-        if self.task != "oculomotor":
-            raise ValueError(f"task: expected 'oculomotor', got {self.task!r}")
-        if not self.out:
-            self.out = f"runs/oculomotor/{self.eye}"
         self.data_config().validate()
 
 
@@ -102,8 +98,6 @@ class ArmTrainConfig:
 
     def validate(self) -> None:
         _check_common(self, ARM_PRESETS, ("postures", "transitions", "hidden", "body_checks"))
-        if self.task != "arm":
-            raise ValueError(f"task: expected 'arm', got {self.task!r}")
         if self.side not in ("left", "right"):
             raise ValueError(f"side: expected one of ['left', 'right'], got {self.side!r}")
         if not self.max_residual > 0:
@@ -113,8 +107,6 @@ class ArmTrainConfig:
         for name in ("torque_weight", "stiffness", "damping", "posture_damping", "velocity_std"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
-        if not self.out:
-            self.out = f"runs/arm/{self.side}"
         self.data_config().validate()
 
 
@@ -186,16 +178,12 @@ class LimbTrainConfig:
 
     def validate(self) -> None:
         _check_common(self, LIMB_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor"))
-        if self.task != "limb":
-            raise ValueError(f"task: expected 'limb', got {self.task!r}")
         if not self.near_weight_m > 0:
             raise ValueError(f"near_weight_m: expected > 0 m, got {self.near_weight_m}")
         if self.model not in ("linet", "fc", "cnn", "range"):
             raise ValueError(f"model: expected linet, fc, cnn or range for limb vision, got {self.model!r}")
         if self.model in ("cnn", "range") and self.onv_dtype not in ("auto", "float32"):
             raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
-        if not self.out:
-            self.out = f"runs/limb/{self.eye}"
         self.data_config().validate()
         self.heldout_config().validate()
 

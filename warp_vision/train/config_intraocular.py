@@ -49,10 +49,6 @@ class PupilTrainConfig:
     def validate(self) -> None:
         _check_common(self, PUPIL_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor",
                                             "hidden", "rings", "sectors"))
-        if self.task != "pupil":
-            raise ValueError(f"task: expected 'pupil', got {self.task!r}")
-        if not self.out:
-            self.out = f"runs/pupil/{self.eye}"
         self.data_config().validate()
 
 
@@ -106,10 +102,6 @@ class LensTrainConfig:
 
     def validate(self) -> None:
         _check_common(self, LENS_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor", "hidden"))
-        if self.task != "lens":
-            raise ValueError(f"task: expected 'lens', got {self.task!r}")
-        if not self.out:
-            self.out = f"runs/lens/{self.eye}"
         self.data_config().validate()
 
 
