@@ -289,6 +289,40 @@ def test_the_mse_is_split_into_missed_balls_and_the_rest(tmp_path, smoke_data, c
     assert 0 <= row["val_over_5deg"] <= 1
 
 
+def test_the_misses_are_broken_down_by_eccentricity_size_and_scene(tmp_path, smoke_data, capsys):
+    """Designed samples: each row counts its samples, the share off and its share of all the misses; the
+    CLI prints the table for a foveation run's split and refuses --misses with --conditions."""
+    from warp_vision.data.foveation import META_V9
+
+    deg = np.radians
+    target = np.array([[0.0, 0.0], [deg(35), 0.0], [0.0, deg(-15)], [deg(45), 0.0]])  # eccentricities 0, 35, 15, 45
+    err = np.array([1.0, 12.0, 6.0, 0.5])  # the second and third are off
+    meta = np.zeros((4, len(META_V9)), np.float32)
+    meta[:, 0] = 2.0                                            # 2 m away
+    meta[:, 1] = 2.0 * np.sin(deg(np.array([0.5, 3.0, 3.0, 9.0])))  # apparent radii 0.5, 3, 3, 9 deg
+    meta[1, META_V9.index("arm")] = meta[2, META_V9.index("arm")] = 1
+    meta[0, META_V9.index("decoy")] = 1
+    rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9)}
+    assert rows[("eccentricity (deg)", "0-10")] == {"group": "eccentricity (deg)", "bin": "0-10", "n": 1, "off": 0.0, "of_misses": 0.0}
+    assert rows[("eccentricity (deg)", "30-40")]["off"] == 1.0 and rows[("eccentricity (deg)", "30-40")]["of_misses"] == 0.5
+    assert rows[("eccentricity (deg)", ">= 40")]["n"] == 1 and ("eccentricity (deg)", "20-30") not in rows
+    assert rows[("apparent radius (deg)", "2-4")]["n"] == 2 and rows[("apparent radius (deg)", "2-4")]["of_misses"] == 1.0
+    assert rows[("apparent radius (deg)", "8-11")]["off"] == 0.0
+    assert rows[("arm", "yes")]["off"] == 1.0 and rows[("arm", "no")]["off"] == 0.0
+    assert rows[("decoy", "yes")]["n"] == 1 and rows[("decoy", "no")]["off"] == pytest.approx(2 / 3)
+    assert ("distance_m", "yes") not in rows and ("brightness", "yes") not in rows
+    # v7's meta has three columns: occluded is its only flag
+    assert {r["group"] for r in foveation.miss_breakdown(err, target, meta[:, :3], META_V9[:3])} == {
+        "eccentricity (deg)", "apparent radius (deg)", "occluded"}
+    foveation.run(smoke(tmp_path, smoke_data, epochs=1), progress=False, log=lambda *a: None)
+    capsys.readouterr()
+    assert train_main(["evaluate", str(tmp_path / "run"), "--misses"]) == 0
+    out = capsys.readouterr().out
+    assert "where the balls more than 5 deg off lie" in out and "| occluded | yes |" in out
+    with pytest.raises(SystemExit):
+        train_main(["evaluate", str(tmp_path / "run"), "--misses", "--conditions"])
+
+
 def test_a_failing_synthesis_helper_is_an_error(tmp_path, monkeypatch):
     import dataclasses
 

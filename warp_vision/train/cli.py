@@ -8,6 +8,7 @@
     python -m warp_vision.train arm --side left|right [--preset smoke|quick|default]         an arm's motor nets
     python -m warp_vision.train limb|pupil|lens --eye left|right [--preset ...]            an eye's limb vision, pupil or lens net
     python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
+    python -m warp_vision.train evaluate RUN_DIR --misses                              where a foveation net's misses lie
     python -m warp_vision.train evaluate RUN_DIR [RUN_DIR ...] --conditions            foveation nets on held-out conditions
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """
@@ -129,6 +130,10 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "table with every run side by side (median / 90th percentile, degrees, and the share more than "
                         "5 degrees off); writes RUN_DIR/conditions.json and "
                         "RUN_DIR/figures/conditions.png")
+    p.add_argument("--misses", action="store_true",
+                   help="foveation runs: also print where the balls more than 5 degrees off lie (the share off per "
+                        "eccentricity band, apparent-radius band and scene flag: occluded, glowing, distractor, arm, "
+                        "decoy)")
     p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="with --conditions: read the retina CNN out by the consensus of N turned and mirrored views "
@@ -180,6 +185,8 @@ def _evaluate(argv: list[str]) -> int:
     a = p.parse_args(argv)
     if a.views is not None and not a.conditions:
         p.error("--views: only with --conditions")
+    if a.misses and a.conditions:
+        p.error("--misses: of a run's own split (--split), not with --conditions")
 
     def job():
         if a.conditions:
@@ -190,7 +197,10 @@ def _evaluate(argv: list[str]) -> int:
         for run_dir in a.run_dirs:
             cfg_path = Path(run_dir) / "config.json"
             task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
-            _module(task).evaluate_run(run_dir, a.split)
+            if a.misses and task != "foveation":
+                raise ValueError(f"--misses: foveation runs only; {run_dir} is a {task} run")
+            kw = {"misses": True} if a.misses else {}
+            _module(task).evaluate_run(run_dir, a.split, **kw)
 
     return _guarded(job, a.debug)
 

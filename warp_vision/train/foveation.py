@@ -65,6 +65,52 @@ def mse_parts(se: torch.Tensor, err_deg: torch.Tensor) -> dict:
             "mse_within_5deg": float(se[~off].mean()) if bool((~off).any()) else nan}
 
 
+#: The bands :func:`miss_breakdown` groups the balls by: eccentricity of the ball's direction and its
+#: apparent radius (degrees, lower edges).
+ECC_BANDS_DEG = (0.0, 10.0, 20.0, 30.0, 40.0)
+RADIUS_BANDS_DEG = (0.0, 1.0, 2.0, 4.0, 6.0, 8.0, 11.0, 15.0)
+#: The dataset's meta columns that flag what else is in the scene (those the generator writes).
+SCENE_FLAGS = ("occluded", "glow", "distractor", "arm", "decoy")
+
+
+def miss_breakdown(err_deg, target, meta, columns) -> list[dict]:
+    """Where the balls more than :data:`OFF_DEG` off lie: one row per eccentricity band, apparent-radius
+    band and scene flag (on and off) with its samples ``n``, the share of them off (``off``) and their
+    share of all the misses (``of_misses``). ``err_deg`` [N], ``target`` [N, 2] (yaw, pitch, rad),
+    ``meta`` [N, C] with ``columns`` its names (:data:`warp_vision.data.foveation.META_V8`; v7's three
+    have no scene flags but occluded)."""
+    err, meta = np.asarray(err_deg, dtype=np.float64), np.asarray(meta, dtype=np.float64)
+    off = err > OFF_DEG
+    misses = max(int(off.sum()), 1)
+    axis = gaze_directions(torch.zeros(1, 2, dtype=torch.float64))
+    d = gaze_directions(torch.as_tensor(np.asarray(target), dtype=torch.float64))
+    ecc = np.degrees(np.arccos(np.clip((d * axis).sum(1).numpy(), -1.0, 1.0)))
+    col = {c: k for k, c in enumerate(columns)}
+    radius = np.degrees(np.arcsin(np.clip(meta[:, col["radius_m"]] / meta[:, col["distance_m"]], 0.0, 1.0)))
+
+    def row(group, label, m):
+        n = int(m.sum())
+        return {"group": group, "bin": label, "n": n, "off": float(off[m].mean()) if n else float("nan"),
+                "of_misses": float(off[m].sum()) / misses}
+
+    rows = []
+    for group, v, edges in (("eccentricity (deg)", ecc, ECC_BANDS_DEG), ("apparent radius (deg)", radius, RADIUS_BANDS_DEG)):
+        for lo, hi in zip(edges, edges[1:] + (np.inf,)):
+            rows.append(row(group, f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}", (v >= lo) & (v < hi)))
+    for flag in SCENE_FLAGS:
+        if flag in col:
+            on = meta[:, col[flag]] > 0.5
+            rows += [row(flag, "yes", on), row(flag, "no", ~on)]
+    return [r for r in rows if r["n"]]
+
+
+def miss_table(rows: list[dict]) -> str:
+    """:func:`miss_breakdown`'s rows as a markdown table."""
+    lines = [f"| group | bin | ONVs | > {OFF_DEG:g} deg off | share of the misses |", "|---|---|---|---|---|"]
+    lines += [f"| {r['group']} | {r['bin']} | {r['n']:,} | {100 * r['off']:.1f}% | {100 * r['of_misses']:.1f}% |" for r in rows]
+    return "\n".join(lines)
+
+
 class FoveationTask(harness.OnvTask):
     name = "foveation"
     config_cls = TrainConfig
@@ -212,6 +258,19 @@ def run(cfg: TrainConfig | None = None, **kw) -> dict:
     return harness.run(FoveationTask, cfg, **kw)
 
 
-def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
-    """Re-evaluate a foveation run's best checkpoint; prints the angular error."""
-    return harness.evaluate_run(FoveationTask, run_dir, split, log)
+def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = False) -> dict:
+    """Re-evaluate a foveation run's best checkpoint; prints the angular error. ``misses``: also where the
+    balls more than :data:`OFF_DEG` off lie (:func:`miss_breakdown`), printed as a table and returned as
+    ``"misses"``."""
+    return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=_misses if misses else None)
+
+
+def _misses(task: FoveationTask, idx, ev, log) -> dict:
+    from warp_vision.data.foveation import META_V8, META_V9
+    from warp_vision.data.store import ChunkedStore
+
+    columns = {7: META_V8[:3], 8: META_V8, 9: META_V9}[task.cfg.generator]
+    meta = ChunkedStore.open(task.ddir).load(["meta"])["meta"][np.asarray(idx)]
+    rows = miss_breakdown(ev["err_deg"].numpy(), task.target[torch.as_tensor(idx)].numpy(), meta, columns)
+    log(f"where the balls more than {OFF_DEG:g} deg off lie:\n{miss_table(rows)}")
+    return {"misses": rows}

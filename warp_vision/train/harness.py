@@ -542,8 +542,10 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     return summary
 
 
-def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print) -> dict:
-    """Re-evaluate a run's best checkpoint on one of its splits; prints the task's metrics."""
+def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None) -> dict:
+    """Re-evaluate a run's best checkpoint on one of its splits; prints the task's metrics. ``detail``:
+    ``detail(task, idx, ev, log) -> dict``, more analysis of the evaluation ``ev`` (its tensors included)
+    whose entries join the returned metrics."""
     out = Path(run_dir)
     if not (out / "best.pt").exists():
         raise FileNotFoundError(errno.ENOENT, "no best.pt: is this a training run directory?", str(out / "best.pt"))
@@ -558,4 +560,5 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print) -> dict
     model.load_state_dict(ck["model"])
     ev = task.evaluate(model, idx, ck["norm"], device)
     log(task.eval_line(run_dir, split, len(idx), ev))
-    return {k: v for k, v in ev.items() if not torch.is_tensor(v)}
+    more = detail(task, idx, ev, log) if detail is not None else {}
+    return {**{k: v for k, v in ev.items() if not torch.is_tensor(v)}, **more}
