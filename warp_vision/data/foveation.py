@@ -328,6 +328,11 @@ META_V8 = ("distance_m", "radius_m", "occluded", "glow", "distractor", "arm", "b
 META_V9 = META_V8 + ("decoy",)
 
 
+def meta_columns(generator: int) -> tuple[str, ...]:
+    """The names of a generator's meta columns (the dataset's ``meta`` field, in order)."""
+    return {7: META_V8[:3], 8: META_V8, 9: META_V9}[generator]
+
+
 def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cpu") -> dict:
     """v8 and v9: the samples grouped by room; each room's scene built once (the last one is kept for the
     next call). v9 adds each sample's decoys to v8's sample."""
@@ -382,7 +387,7 @@ _SCENE_V8: dict = {}
 
 
 def dataset_fields(cfg: FoveationDataConfig) -> dict:
-    meta = {7: 3, 8: len(META_V8), 9: len(META_V9)}[cfg.generator]
+    meta = len(meta_columns(cfg.generator))
     return {"onv": ((3 * cfg.photoreceptors,), "float16"), "target": ((2,), "float32"), "meta": ((meta,), "float32")}
 
 

@@ -77,8 +77,8 @@ def miss_breakdown(err_deg, target, meta, columns) -> list[dict]:
     """Where the balls more than :data:`OFF_DEG` off lie: one row per eccentricity band, apparent-radius
     band and scene flag (on and off) with its samples ``n``, the share of them off (``off``) and their
     share of all the misses (``of_misses``). ``err_deg`` [N], ``target`` [N, 2] (yaw, pitch, rad),
-    ``meta`` [N, C] with ``columns`` its names (:data:`warp_vision.data.foveation.META_V8`; v7's three
-    have no scene flags but occluded)."""
+    ``meta`` [N, C] with ``columns`` its names (:func:`warp_vision.data.foveation.meta_columns`; v7's
+    three have no scene flag but occluded)."""
     err, meta = np.asarray(err_deg, dtype=np.float64), np.asarray(meta, dtype=np.float64)
     off = err > OFF_DEG
     misses = max(int(off.sum()), 1)
@@ -266,11 +266,11 @@ def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = Fa
 
 
 def _misses(task: FoveationTask, idx, ev, log) -> dict:
-    from warp_vision.data.foveation import META_V8, META_V9
+    from warp_vision.data.foveation import meta_columns
     from warp_vision.data.store import ChunkedStore
 
-    columns = {7: META_V8[:3], 8: META_V8, 9: META_V9}[task.cfg.generator]
     meta = ChunkedStore.open(task.ddir).load(["meta"])["meta"][np.asarray(idx)]
-    rows = miss_breakdown(ev["err_deg"].numpy(), task.target[torch.as_tensor(idx)].numpy(), meta, columns)
+    rows = miss_breakdown(ev["err_deg"].numpy(), task.target[torch.as_tensor(idx)].numpy(), meta,
+                          meta_columns(task.cfg.generator))
     log(f"where the balls more than {OFF_DEG:g} deg off lie:\n{miss_table(rows)}")
     return {"misses": rows}
