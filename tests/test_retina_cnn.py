@@ -174,7 +174,7 @@ def test_eval_mode_reads_out_by_the_consensus_of_views_as_a_plain_reference_does
                           atol=1e-5)
 
 
-def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path):
+def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path, monkeypatch):
     from warp_vision.nn.trained import load_net
     from warp_vision.train import foveation
     from warp_vision.train.config import resolve
@@ -201,17 +201,12 @@ def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path):
     model.views = 8
     # evaluate --conditions --views N reads the net with N views and says so
     import json
-    import os
 
     from warp_vision.train.conditions import evaluate_conditions
 
-    cwd = os.getcwd()
-    os.chdir(tmp_path)  # the held-out sets are cached under ./runs/datasets
-    try:
-        res = evaluate_conditions([str(tmp_path / "run")], 10, conditions=["glow_dim"], progress=False,
-                                  log=lambda *a: None, views=2)
-    finally:
-        os.chdir(cwd)
+    monkeypatch.chdir(tmp_path)  # the held-out sets are cached under ./runs/datasets
+    res = evaluate_conditions([str(tmp_path / "run")], 10, conditions=["glow_dim"], progress=False,
+                              log=lambda *a: None, views=2)
     assert list(res) == [f"{tmp_path / 'run'} (views 2)"]
     assert json.loads((tmp_path / "run/conditions.json").read_text())["views"] == 2
     with pytest.raises(ValueError, match="head"):

@@ -21,10 +21,11 @@
                of the deflected fraction by speed and by target, and of the closest approaches.
 
 Demo, experiments and intraocular work from a fresh clone: each net the loop needs (both eyes' foveation
-nets (the train command's default preset: the retina CNN), oculomotor nets and, unless --intraocular analytic, pupil nets) that is missing is trained first,
-after a plan with time estimates, and cached (``runs/foveation_left``, ``runs/foveation_right``,
-``runs/oculomotor/<eye>``, ``runs/pupil/<eye>``; intercept also the arm's motor nets, ``runs/arm/<side>``, and
-both eyes' limb vision nets, ``runs/limb/<eye>``; with --quick, smaller nets in ``runs/quick/``). Each output
+nets, the train command's default preset's retina CNNs; oculomotor nets; unless --intraocular analytic,
+pupil nets) that is missing is trained first, after a plan with time estimates, and cached
+(``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``, ``runs/pupil/<eye>``;
+intercept also the arm's motor nets, ``runs/arm/<side>``, and both eyes' limb vision nets,
+``runs/limb/<eye>``; with --quick, smaller nets in ``runs/quick/``). Each output
 directory gets ``nets.json``: the nets used, with their training configs and checksums.
 """
 
