@@ -128,3 +128,15 @@ def test_readout_bench_writes_a_row_per_setting_with_its_ratio(tmp_path):
     assert [(r["batch"], r["views"]) for r in res["results"]] == [(2, 1), (2, 2)]
     assert res["results"][0]["ratio_to_1_views"] == 1.0 and res["results"][1]["median_ms"] > 0
     assert main(["readout", "--views", "0", "--out", str(out)]) == 2  # refused before any work
+
+
+def test_cnn_bench_times_both_precisions_per_width_with_the_speedup(tmp_path):
+    from warp_vision.bench.cli import main
+
+    out = tmp_path / "cnn.json"
+    assert main(["cnn", "--channels", "2", "--batch", "4", "--repeats", "1", "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert [(r["channels"], r["precision"]) for r in res["results"]] == [(2, "float32"), (2, "bfloat16")]
+    assert res["results"][0]["speedup_over_float32"] == 1.0 and res["results"][1]["median_ms"] > 0
+    assert isinstance(res["native_bfloat16"], bool) and res["photoreceptors"] == 14_400
+    assert main(["cnn", "--batch", "2", "--out", str(out)]) == 2  # refused before any work

@@ -99,6 +99,7 @@ def test_smoke_preset_end_to_end(tmp_path, smoke_data, capsys):
     assert train_main(["evaluate", str(run)]) == 0
     assert "angular error median" in capsys.readouterr().out
     assert summary["peak_rss_mib"] > 0 and summary["model_state_mib"] > 0
+    assert summary["train_precision"] == "float32"  # a liNet: precision auto leaves it in float32
     # a second run into the same directory is refused, not appended to the first's metrics
     with pytest.raises(ValueError, match="already holds a run"):
         foveation.run(smoke(tmp_path, smoke_data), progress=False, log=lambda *a: None)

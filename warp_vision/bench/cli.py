@@ -69,7 +69,13 @@ def _parser() -> argparse.ArgumentParser:
     rdo.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
     rdo.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     rdo.add_argument("--out", default="bench_results/readout.json", help="JSON output path")
-    for q in (lin, mem, rtp, lop, rdo):
+    cnn = sub.add_parser("cnn", help="the retina CNN's training step: float32 vs bfloat16 autocast (--precision)")
+    cnn.add_argument("--channels", type=int, nargs="+", default=[16, 32], help="widths (default 16, the default preset's, and 32)")
+    cnn.add_argument("--batch", type=int, default=64, help="ONVs per step (default 64)")
+    cnn.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
+    cnn.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    cnn.add_argument("--out", default="bench_results/cnn.json", help="JSON output path")
+    for q in (lin, mem, rtp, lop, rdo, cnn):
         add_debug_flag(q)
     return p
 
@@ -140,6 +146,12 @@ def _bench(args) -> int:
         if min(args.batch) < 1 or args.repeats < 1:
             raise ValueError("--batch and --repeats: expected positive integers")
         result = readout.run(args.views, args.batch, args.repeats, device=device)
+    elif args.bench == "cnn":
+        from warp_vision.bench import cnn
+
+        if min(args.channels) < 1 or args.batch < 4 or args.repeats < 1:
+            raise ValueError("--channels and --repeats: expected positive integers; --batch: at least 4 (four augmentation groups)")
+        result = cnn.run(args.channels, args.batch, args.repeats, device=device)
     elif args.bench == "loop":
         from warp_vision.bench import loop
 

@@ -25,10 +25,14 @@ the irregular layout (:mod:`warp_vision.nn.retina_conv`) shares its weights but 
   pull the estimate toward it; the angular part covers a near ball at the magnified centre, whose heat
   is a plateau many cells wide. Training adds a cross-entropy of the heat map against the cell of the
   true direction (:meth:`heatmap_loss`).
+- **Precision**: the image and the read-out are float32; in training the CNN (convolutions, batch norm,
+  the pyramid) may run under bfloat16 autocast (``train_precision``, :func:`training_autocast`), where
+  the hardware computes bfloat16 natively. Inference stays float32.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -59,6 +63,36 @@ RANGE_POWER = 1.2
 #: deg: the ranging net reads balls within this angle of the line of sight (trained on those only; at
 #: run time the foveation net's direction decides), so a near ball's disc stays inside its image
 RANGE_GATE_DEG = 5.6
+
+
+#: what the CNNs can train in (the training configs' ``precision``): auto is bfloat16 where the device
+#: computes it natively (:func:`native_bfloat16`), float32 elsewhere
+PRECISIONS = ("auto", "float32", "bfloat16")
+
+
+def native_bfloat16(device_type: str) -> bool:
+    """Whether ``device_type`` ("cpu", "cuda") runs bfloat16 convolutions in hardware: a CPU with AVX512-BF16
+    or AMX tiles, a CUDA GPU that torch says supports bfloat16 without emulation (compute capability 8.0 on).
+    Elsewhere torch emulates bfloat16, slower than float32."""
+    if device_type == "cpu":
+        probes = (getattr(torch.cpu, "_is_avx512_bf16_supported", None), getattr(torch.cpu, "_is_amx_tile_supported", None))
+        return any(bool(f()) for f in probes if f is not None)
+    if device_type == "cuda" and torch.cuda.is_available():
+        try:
+            return bool(torch.cuda.is_bf16_supported(including_emulation=False))
+        except TypeError:  # an older torch without the keyword
+            return torch.cuda.get_device_capability()[0] >= 8
+    return False
+
+
+def training_autocast(precision: str, device_type: str) -> torch.dtype | None:
+    """The autocast dtype a CNN trains in on ``device_type`` for ``precision`` (:data:`PRECISIONS`):
+    torch.bfloat16, or None for float32 (no autocast)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
+    if precision == "bfloat16" or (precision == "auto" and native_bfloat16(device_type)):
+        return torch.bfloat16
+    return None
 
 
 def transform_matrix(k: int) -> np.ndarray:
@@ -174,6 +208,15 @@ class RetinaImageCNN(StandardisedTargets):
         self.stem = nn.Sequential(_cbr(3, c[0], 2), _cbr(c[0], c[0]))
         self.down = nn.ModuleList([nn.Sequential(_cbr(c[i], c[i + 1], 2), _cbr(c[i + 1], c[i + 1])) for i in range(3)])
         self.init_target_norm(outputs)
+        #: the precision of the CNN in training (:data:`PRECISIONS`; set by the training task from its config's
+        #: ``precision``); evaluation and inference are always float32
+        self.train_precision = "float32"
+
+    def compute(self, device: torch.device):
+        """The context the CNN's layers run in: bfloat16 autocast while training at a ``train_precision`` that
+        resolves to it on ``device`` (:func:`training_autocast`), else nothing (float32)."""
+        dt = training_autocast(self.train_precision, device.type) if self.training else None
+        return torch.autocast(device.type, dtype=dt) if dt is not None else contextlib.nullcontext()
 
     def binning(self, k: int) -> tuple[Tensor, Tensor, Tensor]:
         if k not in self._binnings:
@@ -225,12 +268,13 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
                              persistent=False)
 
     def logits(self, img: Tensor) -> Tensor:
-        """Heat-map logits [B, cells^2] of a foveated image."""
-        feats = self.features(img)
-        p = self.lateral[-1](feats[-1])
-        for i in range(len(feats) - 2, -1, -1):
-            p = self.lateral[i](feats[i]) + nn.functional.interpolate(p, size=feats[i].shape[-2:], mode="nearest")
-        return self.heat(self.smooth(p)).flatten(1)
+        """Heat-map logits [B, cells^2] (float32) of a foveated image."""
+        with self.compute(img.device):
+            feats = self.features(img)
+            p = self.lateral[-1](feats[-1])
+            for i in range(len(feats) - 2, -1, -1):
+                p = self.lateral[i](feats[i]) + nn.functional.interpolate(p, size=feats[i].shape[-2:], mode="nearest")
+            return self.heat(self.smooth(p)).flatten(1).float()
 
     def read_out(self, logits: Tensor) -> Tensor:
         """(yaw, pitch) [B, 2] rad: the soft-arg-max of the heat map over the cells near its peak: within
@@ -296,7 +340,9 @@ class RetinaImageRegression(RetinaImageCNN):
         self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, outputs))
 
     def forward(self, x: Tensor, transform=0) -> Tensor:
-        return self.head(self.features(self.image(x, transform))[-1])
+        img = self.image(x, transform)
+        with self.compute(img.device):
+            return self.head(self.features(img)[-1]).float()
 
 
 class RetinaCNNLimbNet(RetinaImageRegression):

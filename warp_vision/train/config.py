@@ -15,7 +15,7 @@ from warp_vision.data.foveation import FoveationDataConfig
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
 CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn", "range"], "eye": ["left", "right"],
-           "onv_dtype": ["auto", "float16", "bfloat16", "float32"],
+           "onv_dtype": ["auto", "float16", "bfloat16", "float32"], "precision": ["auto", "float32", "bfloat16"],
            "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"],
            "input_norm": ["auto", "sample", "dataset"], "generator": [7, 8, 9],
            "ball": ["ordinary", "glowing"]}
@@ -52,6 +52,9 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
         raise ValueError(f"device: expected cpu, cuda or auto, got {cfg.device!r}")
     if hasattr(cfg, "onv_dtype") and cfg.model == "fc" and cfg.onv_dtype not in ("auto", "float32"):
         raise ValueError(f"onv_dtype: the fc baseline reads float32 ONVs, got {cfg.onv_dtype!r}")
+    if hasattr(cfg, "precision") and cfg.precision == "bfloat16" and cfg.model not in ("cnn", "range"):
+        raise ValueError(f"precision: bfloat16 training is the cnn and range nets'; the {cfg.model} net trains in float32 "
+                         "(use --precision auto or float32)")
 
 
 def onv_dtype_name(cfg) -> str:
@@ -105,6 +108,7 @@ class TrainConfig:
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
     lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs), plateau (x0.3 after every 3 epochs without a better validation loss) or constant
     onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored; standardised in the first layer), bfloat16, float32 (a standardised float32 copy of each batch), or auto (float16 for a liNet, float32 for fc)
+    precision: str = "auto"  # cnn only: the CNN's layers in training run in bfloat16 (autocast; the image, loss and read-out stay float32) or float32; auto: bfloat16 where the device computes it natively (a CPU with AVX512-BF16 or AMX, a GPU of compute capability 8 on), else float32. Evaluation is float32
     epochs: int = 40  # at most
     patience: int = 8  # early stopping: epochs without a better validation loss
     val_fraction: float = 0.1
@@ -113,7 +117,7 @@ class TrainConfig:
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.
-    LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset"}
+    LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset", "precision": "float32"}
 
     def per_sample_input(self) -> bool:
         """Whether the net's input is scaled by each ONV's own mean irradiance (``input_norm``, "auto" resolved)."""
@@ -164,9 +168,10 @@ PRESETS: dict[str, dict] = {
     "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1, layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
     # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 3 minutes on a 2-core CPU
     "quick": dict(samples=2000, epochs=12, patience=12, generator=9, model="cnn", lr=2e-3),
-    # the default run: the retina CNN on generator v9, about 14.5 minutes on a 2-core CPU (12,000 ONVs of
-    # P=14,400, S=4 rendered in about 4.5 by two processes; 20 epochs of about 29 s: README "20 epochs", fewer
-    # balls missed than with 12). v7's liNet: --generator 7 --model linet --lr 0.001 --epochs 40 --samples 8000
+    # the default run: the retina CNN on generator v9, about 11.7 minutes on a 2-core CPU that trains it in
+    # bfloat16, 14.6 in float32 (12,000 ONVs of P=14,400, S=4 rendered in about 4.5 by two processes; 20 epochs
+    # of about 20 s, 29 in float32: README "20 epochs", fewer balls missed than with 12, and "bfloat16
+    # training"). v7's liNet: --generator 7 --model linet --lr 0.001 --epochs 40 --samples 8000
     "default": dict(generator=9, model="cnn", samples=12_000, lr=2e-3, epochs=20),
     # the paper's set-up on v9: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
     "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10, generator=9),

@@ -145,6 +145,7 @@ class LimbTrainConfig:
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units
     onv_dtype: str = "auto"  # float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for fc)
+    precision: str = "auto"  # cnn and range only: their layers in training run in bfloat16 (autocast) or float32; auto: bfloat16 where the device computes it natively (a CPU with AVX512-BF16 or AMX, a GPU of compute capability 8 on), else float32. Evaluation is float32
     # optimisation
     near_weight_m: float = 0.25  # m: each arm's error is weighted by 1 / (this + its true hand-ball distance): near balls count most
     batch: int = 64
@@ -158,7 +159,7 @@ class LimbTrainConfig:
     device: str = "auto"  # cpu, cuda, or auto
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.
-    LEGACY_DEFAULTS = {"ball": "glowing"}
+    LEGACY_DEFAULTS = {"ball": "glowing", "precision": "float32"}
 
     def data_config(self):
         from warp_vision.sim.limb import LimbDataConfig
@@ -194,7 +195,8 @@ LIMB_PRESETS: dict[str, dict] = {
                   receptive_field=8, batch=16, epochs=2, patience=2),
     # a first look: about 4 minutes on a 2-core CPU
     "quick": dict(samples=2000, heldout_samples=300, model="range", lr=2e-3, epochs=12, patience=12),
-    # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training; 9-11 measured):
+    # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training, 3.2
+    # with bfloat16; 9-11 measured):
     # the ranging net (the ONV-only nets find the ball but not the hands: README)
     "default": dict(model="range", lr=2e-3, epochs=24, patience=24),
 }

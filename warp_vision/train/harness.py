@@ -394,6 +394,26 @@ def render_in_processes(task: Task, workers: int, progress: bool) -> bool:
     return True
 
 
+def train_precision(task: Task, model: torch.nn.Module, device: str) -> str:
+    """What ``model`` trains in on ``device``: "bfloat16" (a CNN whose config's ``precision`` resolves to
+    autocast there: :func:`warp_vision.nn.retina_cnn.training_autocast`) or "float32" (every other net)."""
+    if not (hasattr(model, "train_precision") and hasattr(task.cfg, "precision")):
+        return "float32"
+    from warp_vision.nn.retina_cnn import training_autocast
+
+    return "float32" if training_autocast(task.cfg.precision, torch.device(device).type) is None else "bfloat16"
+
+
+def set_train_precision(task: Task, model: torch.nn.Module, device: str) -> None:
+    """A CNN's training precision from its task's config (``precision``; :mod:`warp_vision.nn.retina_cnn`),
+    logged as it resolves on ``device``. Other nets train in float32 and are left alone."""
+    if hasattr(model, "train_precision") and hasattr(task.cfg, "precision"):
+        model.train_precision = task.cfg.precision
+        name = train_precision(task, model, device)
+        task.log(f"training precision: {'bfloat16 autocast' if name == 'bfloat16' else 'float32'} "
+                 f"(--precision {task.cfg.precision}; evaluation float32)")
+
+
 def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, progress: bool, workers: int = 1):
     """Load the data (synthesising a missing dataset in ``workers`` processes unless under torchrun, whose
     ranks render their own shards), fit the normalisation, build the net and optimiser, restore a resumed
@@ -411,6 +431,7 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
     if ck is None and getattr(cfg, "init", ""):
         warm_start(model, cfg.init)
     task.prepare(model, norm)
+    set_train_precision(task, model, device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
     state = _State(task.selection)
     if ck is not None:
@@ -482,6 +503,7 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
             **task.summary(test, h, model),
             "seconds_data": t_data, "seconds_total": time.perf_counter() - t_start,
             "seconds_per_epoch": _median_seconds(h),
+            "train_precision": train_precision(task, model, device),
             "peak_rss_mib": peak_rss_mib(),
             "model_state_mib": 16 * n_params / 2**20,  # weights, gradients and Adam's two moments, float32
         }
