@@ -3,7 +3,7 @@
 The net is the foveation CNN (:class:`warp_vision.nn.retina_cnn.RetinaCNNFoveationNet`, untrained: its cost
 does not depend on its weights) on the default foveation data config's retina (P = 14,400), at each width
 asked. One step is what the foveation task's training does for a batch: the ONVs binned through four
-augmentations, the heat map's cross-entropy plus the Huber loss, backward, Adam. Inputs are random
+augmentations, the heat map's cross-entropy plus a regression loss of the read-out, backward, Adam. Inputs are random
 standardised ONVs. The precisions are timed in interleaved rounds (:func:`warp_vision.bench.common.interleaved_ms`),
 so each ratio comes from one run. ``native_bfloat16`` says whether the device computes bfloat16 in hardware
 (where it does not, torch emulates it and bfloat16 is the slower).
@@ -21,7 +21,6 @@ PRECISIONS = ("float32", "bfloat16")
 def run(channels=(16, 32), batch: int = 64, repeats: int = 10, device: str = "cpu", log=print) -> dict:
     from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
     from warp_vision.nn.retina_cnn import RetinaCNNFoveationNet, native_bfloat16
-    from warp_vision.train.foveation import CNN_HEATMAP_WEIGHT, train_loss
 
     data = FoveationDataConfig()
     angles = make_retina(data).visual_angles(make_eye(data))
@@ -41,7 +40,7 @@ def run(channels=(16, 32), batch: int = 64, repeats: int = 10, device: str = "cp
             def step():
                 net.train_precision = precision
                 pred, logits = net(x, transform=ks, with_logits=True)
-                loss = train_loss("huber", pred, torch.zeros_like(pred)) + CNN_HEATMAP_WEIGHT * net.heatmap_loss(logits, target)
+                loss = pred.square().mean() + net.heatmap_loss(logits, target)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
