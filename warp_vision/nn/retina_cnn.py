@@ -73,7 +73,7 @@ PRECISIONS = ("auto", "float32", "bfloat16")
 def native_bfloat16(device_type: str) -> bool:
     """Whether ``device_type`` ("cpu", "cuda") runs bfloat16 convolutions in hardware: a CPU with AVX512-BF16
     or AMX tiles, a CUDA GPU that torch says supports bfloat16 without emulation (compute capability 8.0 on).
-    Elsewhere torch emulates bfloat16, slower than float32."""
+    Elsewhere torch would emulate bfloat16, so "auto" keeps float32 there."""
     if device_type == "cpu":
         probes = (getattr(torch.cpu, "_is_avx512_bf16_supported", None), getattr(torch.cpu, "_is_amx_tile_supported", None))
         return any(bool(f()) for f in probes if f is not None)
