@@ -313,7 +313,7 @@ def _grads(net, x, t):
     return out.detach(), logits.detach(), torch.cat([p.grad.flatten() for p in net.parameters()])
 
 
-def test_bfloat16_training_matches_float32_to_bfloat16_precision_and_inference_stays_float32():
+def test_bfloat16_training_matches_float32_to_bfloat16_precision_and_inference_stays_float32(device):
     """The reference is the same net in float32: the bfloat16 pass's logits agree with it to bfloat16's
     precision (and differ from it: the autocast did run), its gradients in direction. Their norms differ by
     10-30% on this random 4-channel net: batch norm's and the heat map softmax's gradients are small sums of
@@ -321,9 +321,9 @@ def test_bfloat16_training_matches_float32_to_bfloat16_precision_and_inference_s
     matters: the same MSE epoch by epoch). In eval mode the precision is ignored."""
     angles = Retina.log_polar(3000, seed=1).visual_angles()
     torch.manual_seed(0)
-    net = RetinaCNNFoveationNet(angles, size=32, channels=4, views=1).train()
-    x = torch.randn(4, 3 * net.P)
-    t = torch.tensor([[0.1, -0.2], [0.3, 0.0], [-0.25, 0.15], [0.0, 0.4]])
+    net = RetinaCNNFoveationNet(angles, size=32, channels=4, views=1).to(device).train()
+    x = torch.randn(4, 3 * net.P).to(device)
+    t = torch.tensor([[0.1, -0.2], [0.3, 0.0], [-0.25, 0.15], [0.0, 0.4]], device=device)
     out32, log32, g32 = _grads(net, x, t)
     net.train_precision = "bfloat16"
     out16, log16, g16 = _grads(net, x, t)
@@ -338,13 +338,13 @@ def test_bfloat16_training_matches_float32_to_bfloat16_precision_and_inference_s
         assert torch.equal(a, net(x))
 
 
-def test_the_limb_cnn_trains_in_bfloat16_and_returns_float32():
+def test_the_limb_cnn_trains_in_bfloat16_and_returns_float32(device):
     from warp_vision.nn.retina_cnn import RetinaCNNLimbNet
 
     angles = Retina.log_polar(3000, seed=1).visual_angles()
     torch.manual_seed(0)
-    net = RetinaCNNLimbNet(angles, size=32, channels=4, hidden=8).train()
-    x = torch.randn(4, 3 * net.P)
+    net = RetinaCNNLimbNet(angles, size=32, channels=4, hidden=8).to(device).train()
+    x = torch.randn(4, 3 * net.P).to(device)
     y32 = net(x)
     net.train_precision = "bfloat16"
     y16 = net(x)
