@@ -328,6 +328,8 @@ def test_bfloat16_training_matches_float32_to_bfloat16_precision_and_inference_s
     net.train_precision = "bfloat16"
     out16, log16, g16 = _grads(net, x, t)
     assert log16.dtype == torch.float32 and out16.dtype == torch.float32
+    # the read-out is float32's: the same soft-arg-max of those logits, outside the autocast
+    assert torch.equal(out16, (net.read_out(log16) - net.target_mean) / net.target_std)
     assert 0 < (log16 - log32).abs().max() < 0.05 * log32.abs().max()
     assert torch.nn.functional.cosine_similarity(g16, g32, dim=0) > 0.95
     assert 0 < (g16 - g32).norm() < 0.35 * g32.norm()
@@ -351,9 +353,12 @@ def test_the_limb_cnn_trains_in_bfloat16_and_returns_float32(device):
     assert y16.dtype == torch.float32 and 0 < (y16 - y32).abs().max() < 0.05 * y32.abs().max() + 0.05
 
 
-def test_precision_bfloat16_is_the_cnns_alone_and_old_runs_read_as_float32():
-    from warp_vision.train.config import TrainConfig, resolve
+def test_precision_bfloat16_is_the_cnns_alone_and_old_runs_read_as_float32(tmp_path):
+    from warp_vision.train.config import asdict, resolve
     from warp_vision.train.config_body import LIMB_PRESETS, LimbTrainConfig
+    from warp_vision.train.foveation import FoveationTask
+    from warp_vision.train.limb import LimbTask
+    from warp_vision.train.rundir import run_config
 
     with pytest.raises(ValueError, match="precision"):
         resolve("smoke", {"precision": "bfloat16"})  # the smoke preset's liNet
@@ -363,5 +368,8 @@ def test_precision_bfloat16_is_the_cnns_alone_and_old_runs_read_as_float32():
         resolve("smoke", {"precision": "half", "model": "cnn"})
     assert resolve("smoke", {"precision": "bfloat16", "model": "cnn"}).precision == "bfloat16"
     assert resolve("smoke", {"model": "linet"}).precision == "auto"  # auto: a liNet stays float32
-    # a run saved before the field existed trained in float32
-    assert TrainConfig.LEGACY_DEFAULTS["precision"] == LimbTrainConfig.LEGACY_DEFAULTS["precision"] == "float32"
+    # a run saved before the field existed trained in float32, and reads so from its checkpoint's config
+    for task_cls, cfg in ((FoveationTask, resolve("smoke", {"model": "cnn"})),
+                          (LimbTask, resolve("smoke", {"model": "cnn"}, LimbTrainConfig, LIMB_PRESETS))):
+        old = {k: v for k, v in asdict(cfg).items() if k != "precision"}
+        assert cfg.precision == "auto" and run_config(task_cls, tmp_path, {"config": old}).precision == "float32"

@@ -70,7 +70,7 @@ def _parser() -> argparse.ArgumentParser:
     rdo.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     rdo.add_argument("--out", default="bench_results/readout.json", help="JSON output path")
     cnn = sub.add_parser("cnn", help="the retina CNN's training step: float32 vs bfloat16 autocast (--precision)")
-    cnn.add_argument("--channels", type=int, nargs="+", default=[16, 32], help="widths (default 16, the default preset's, and 32)")
+    cnn.add_argument("--channels", type=int, nargs="+", default=[16, 24, 32], help="widths (default 16, the default preset's, 24 and 32)")
     cnn.add_argument("--batch", type=int, default=64, help="ONVs per step (default 64)")
     cnn.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
     cnn.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")

@@ -394,14 +394,14 @@ def render_in_processes(task: Task, workers: int, progress: bool) -> bool:
     return True
 
 
-def train_precision(task: Task, model: torch.nn.Module, device: str) -> str:
-    """What ``model`` trains in on ``device``: "bfloat16" (a CNN whose config's ``precision`` resolves to
-    autocast there: :func:`warp_vision.nn.retina_cnn.training_autocast`) or "float32" (every other net)."""
-    if not (hasattr(model, "train_precision") and hasattr(task.cfg, "precision")):
-        return "float32"
+def train_precision(model: torch.nn.Module, device: str) -> str:
+    """What ``model`` trains in on ``device``: "bfloat16" (a CNN whose ``train_precision``, set by
+    :func:`set_train_precision`, resolves to autocast there: :func:`warp_vision.nn.retina_cnn.training_autocast`)
+    or "float32" (every other net)."""
     from warp_vision.nn.retina_cnn import training_autocast
 
-    return "float32" if training_autocast(task.cfg.precision, torch.device(device).type) is None else "bfloat16"
+    p = getattr(model, "train_precision", "float32")
+    return "float32" if training_autocast(p, torch.device(device).type) is None else "bfloat16"
 
 
 def set_train_precision(task: Task, model: torch.nn.Module, device: str) -> None:
@@ -409,7 +409,7 @@ def set_train_precision(task: Task, model: torch.nn.Module, device: str) -> None
     logged as it resolves on ``device``. Other nets train in float32 and are left alone."""
     if hasattr(model, "train_precision") and hasattr(task.cfg, "precision"):
         model.train_precision = task.cfg.precision
-        name = train_precision(task, model, device)
+        name = train_precision(model, device)
         task.log(f"training precision: {'bfloat16 autocast' if name == 'bfloat16' else 'float32'} "
                  f"(--precision {task.cfg.precision}; evaluation float32)")
 
@@ -503,7 +503,7 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
             **task.summary(test, h, model),
             "seconds_data": t_data, "seconds_total": time.perf_counter() - t_start,
             "seconds_per_epoch": _median_seconds(h),
-            "train_precision": train_precision(task, model, device),
+            "train_precision": train_precision(model, device),
             "peak_rss_mib": peak_rss_mib(),
             "model_state_mib": 16 * n_params / 2**20,  # weights, gradients and Adam's two moments, float32
         }
