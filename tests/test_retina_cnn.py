@@ -41,6 +41,29 @@ def test_the_image_is_the_dense_binning_matrix_applied_to_each_channel(net):
     assert torch.allclose(net.image(x, [0, 5]), torch.cat([ref0, ref5]), atol=1e-5)
 
 
+def test_the_views_images_are_one_sparse_product_equal_to_the_dense_and_index_add_references(net):
+    """view_images (the consensus's binning: one CSR product for every view) against the dense matrix and
+    against the index_add_ of the entries that bench readout times it with; channels_last; a copy of the
+    net (whose CSR cache has no storage to copy) rebuilds it."""
+    import copy
+
+    from warp_vision.bench.readout import index_add_images
+
+    x = torch.randn(3, 3 * net.P)
+    ks = [0, 5, 7]
+    n = net.warp.size
+    dense = torch.cat([torch.einsum("qp,bpc->bcq", dense_binning(net, k), x.reshape(3, net.P, 3)).reshape(3, 3, n, n) for k in ks])
+    got = net.view_images(x, ks)
+    assert got.shape == (9, 3, n, n) and got.is_contiguous(memory_format=torch.channels_last)
+    assert torch.allclose(got, dense, atol=1e-5) and torch.allclose(got, index_add_images(net, x, ks), atol=1e-5)
+    assert torch.equal(net.image(x, 5), got[3:6])
+    assert torch.equal(copy.deepcopy(net).view_images(x, ks), got)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # the binning stays float32 under a caller's autocast
+        assert torch.equal(net.view_images(x, ks), got)
+    with pytest.raises(ValueError, match="onv"):
+        net.view_images(x[:, 1:], ks)
+
+
 @pytest.mark.parametrize("k", [0, 1, 6, 10, 2 * ROTATIONS - 1])
 def test_a_spot_appears_where_its_transformed_direction_says(net, k):
     target = torch.tensor([[0.35, -0.2]], dtype=torch.float64)

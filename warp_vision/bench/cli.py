@@ -63,7 +63,8 @@ def _parser() -> argparse.ArgumentParser:
     lop.add_argument("--quick", action="store_true", help="the --quick nets of python -m warp_vision.sim")
     lop.add_argument("--no-progress", action="store_true", help="no progress bars")
     lop.add_argument("--out", default="bench_results/loop.json", help="JSON output path")
-    rdo = sub.add_parser("readout", help="the foveation CNN's inference: the consensus of N views vs the plain image")
+    rdo = sub.add_parser("readout", help="the foveation CNN's inference: the consensus of N views vs the plain image, "
+                                         "float32 vs bfloat16, and the views' binning: CSR product vs index_add_")
     rdo.add_argument("--views", type=int, nargs="+", default=[1, 4, 8], help="settings (default 1 4 8; the first is the ratios' base)")
     rdo.add_argument("--batch", type=int, nargs="+", default=[1, 64], help="ONVs per call (default 1, as the loop's eyes, and 64)")
     rdo.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")

@@ -11,7 +11,8 @@ the irregular layout (:mod:`warp_vision.nn.retina_conv`) shares its weights but 
   centre as the retina does (about 0.55 deg a pixel at 2 deg, 1.5 deg at 45 deg for the defaults, where
   the photoreceptor spacing is 0.15 and 2.4 deg). Each pixel is the mean of the photoreceptors that fall
   in it; a pixel that none falls in takes the inverse-distance mean of its 4 nearest. Beyond the retina's
-  rim the image is 0. The map is a sparse [pixels, P] matrix, applied with one ``index_add_`` per batch.
+  rim the image is 0. The map is a sparse [pixels, P] matrix, applied as a CSR product (one product for
+  all the views of a consensus: :meth:`RetinaImageCNN.view_images`).
 - **Augmentation** (training only). The same binning with the pixel directions turned about the optical
   axis and mirrored (``transform``): the image of a rotated, mirrored world, whose target is turned the
   same way (:meth:`transform_targets`). A sphere stays a sphere, so the net sees every ball position,
@@ -35,6 +36,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -185,6 +187,17 @@ class FoveatedImage:
                 torch.as_tensor(np.concatenate(vals), dtype=torch.float32))
 
 
+class _Rebuilt(dict):
+    """A cache of values rebuilt on demand: a copy (``copy.deepcopy``, pickling) starts empty. It holds
+    sparse CSR tensors, which have no storage to copy."""
+
+    def __deepcopy__(self, memo):
+        return type(self)()
+
+    def __reduce__(self):
+        return type(self), ()
+
+
 def _cbr(i: int, o: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(i, o, 3, stride, 1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True))
 
@@ -205,6 +218,7 @@ class RetinaImageCNN(StandardisedTargets):
         self.P = len(a)
         self._dirs = gaze_directions(a)
         self._binnings: dict[int, tuple] = {0: self.warp.binning(self._dirs, np.eye(3))}
+        self._matrices = _Rebuilt()  # :meth:`binning_matrix`'s, per (augmentations, device)
         self.stage_channels = [channels, 2 * channels, 4 * channels, 6 * channels]
         c = self.stage_channels
         self.stem = nn.Sequential(_cbr(3, c[0], 2), _cbr(c[0], c[0]))
@@ -225,19 +239,44 @@ class RetinaImageCNN(StandardisedTargets):
             self._binnings[k] = self.warp.binning(self._dirs, transform_matrix(k))
         return self._binnings[k]
 
+    def binning_matrix(self, ks: tuple[int, ...], device: torch.device) -> Tensor:
+        """The sparse (CSR) [len(ks) * size^2, P] matrix that bins an ONV channel into the images of the
+        augmentations ``ks``, one below the other (rows v * size^2 to (v + 1) * size^2 - 1: ``ks[v]``'s
+        :meth:`binning`); built once per tuple and device. A CSR product sums each pixel's photoreceptors in a
+        row of its own: 4-8 times faster on the CPU than an ``index_add_`` of the entries (``bench readout``)."""
+        key = (tuple(int(k) for k in ks), str(device))
+        if key not in self._matrices:
+            parts = [self.binning(k) for k in key[0]]
+            n2 = self.warp.size ** 2
+            idx = torch.stack([torch.cat([pix + v * n2 for v, (pix, _, _) in enumerate(parts)]), torch.cat([pr for _, pr, _ in parts])])
+            coo = torch.sparse_coo_tensor(idx, torch.cat([w for _, _, w in parts]), (len(parts) * n2, self.P),
+                                          check_invariants=True).coalesce()
+            with warnings.catch_warnings():  # "sparse CSR support is in beta": used here for sparse @ dense only
+                warnings.simplefilter("ignore", UserWarning)
+                self._matrices[key] = coo.to_sparse_csr().to(device)
+        return self._matrices[key]
+
     def image(self, x: Tensor, k=0) -> Tensor:
         """ONV inputs [B, 3P] -> the foveated image [B, 3, size, size] of augmentation ``k`` (an int), or
         with a list of ints, the batch split into that many consecutive groups (``torch.tensor_split``),
-        group g binned through augmentation ``k[g]``."""
+        group g binned through augmentation ``k[g]``. channels_last."""
+        if not isinstance(k, (int, np.integer)):
+            img = torch.cat([self.image(part, kk) for part, kk in zip(torch.tensor_split(x, len(k)), k)])
+            return img.contiguous(memory_format=torch.channels_last)  # (cat of batches of 1 may return NCHW)
+        return self.view_images(x, [int(k)])
+
+    def view_images(self, x: Tensor, ks: list[int]) -> Tensor:
+        """ONV inputs [B, 3P] -> the foveated images of every augmentation in ``ks``, view by view: [len(ks) * B,
+        3, size, size], rows v * B to (v + 1) * B - 1 the images of ``ks[v]``, binned by one sparse product
+        (:meth:`binning_matrix`), channels_last."""
         if x.ndim != 2 or x.shape[1] != 3 * self.P:
             raise ValueError(f"onv: expected [B, {3 * self.P}], got {tuple(x.shape)}")
-        if not isinstance(k, (int, np.integer)):
-            return torch.cat([self.image(part, kk) for part, kk in zip(torch.tensor_split(x, len(k)), k)])
-        b, n = x.shape[0], self.warp.size
+        b, n, v = x.shape[0], self.warp.size, len(ks)
         cols = x.reshape(b, self.P, 3).permute(1, 0, 2).reshape(self.P, b * 3).float()
-        pix, pr, w = (t.to(x.device) for t in self.binning(int(k)))
-        img = cols.new_zeros(n * n, b * 3).index_add_(0, pix, cols[pr] * w[:, None])  # [n^2, B*3]
-        return img.reshape(n, n, b, 3).permute(2, 3, 0, 1).contiguous(memory_format=torch.channels_last)
+        with torch.autocast(x.device.type, enabled=False):  # float32 under any caller's autocast (no bfloat16 CSR product)
+            img = self.binning_matrix(tuple(ks), x.device) @ cols  # [V n^2, B*3]
+        # [V, n, n, B, 3] -> [V, B, n, n, 3] (the one copy) -> [V B, 3, n, n] with channels_last strides
+        return img.reshape(v, n, n, b, 3).permute(0, 3, 1, 2, 4).reshape(v * b, n, n, 3).permute(0, 3, 1, 2)
 
     def features(self, img: Tensor) -> list[Tensor]:
         """The four stages' feature maps (1/2, 1/4, 1/8, 1/16 of the image's size)."""
@@ -312,7 +351,7 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
         dirs = []
         for g in range(0, len(ks), per):
             group = ks[g : g + per]
-            ang = self.read_out(self.logits(torch.cat([self.image(x, k) for k in group])))  # each view's frame
+            ang = self.read_out(self.logits(self.view_images(x, group)))  # each view's frame
             m = torch.as_tensor(np.stack([transform_matrix(k) for k in group]), dtype=ang.dtype, device=ang.device)
             d = gaze_directions(ang).reshape(len(group), b, 3)
             dirs.append(torch.einsum("vbj,vij->vbi", d, m))  # back to the eye frame: m @ d
