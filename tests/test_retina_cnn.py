@@ -46,6 +46,7 @@ def test_the_views_images_are_one_sparse_product_equal_to_the_dense_and_index_ad
     against the index_add_ of the entries that bench readout times it with; channels_last; a copy of the
     net (whose CSR cache has no storage to copy) rebuilds it."""
     import copy
+    import pickle
 
     from warp_vision.bench.readout import index_add_images
 
@@ -58,6 +59,7 @@ def test_the_views_images_are_one_sparse_product_equal_to_the_dense_and_index_ad
     assert torch.allclose(got, dense, atol=1e-5) and torch.allclose(got, index_add_images(net, x, ks), atol=1e-5)
     assert torch.equal(net.image(x, 5), got[3:6])
     assert torch.equal(copy.deepcopy(net).view_images(x, ks), got)
+    assert torch.equal(pickle.loads(pickle.dumps(net)).view_images(x, ks), got)  # pickling copies it as it is
     with torch.autocast("cpu", dtype=torch.bfloat16):  # the binning stays float32 under a caller's autocast
         assert torch.equal(net.view_images(x, ks), got)
     with pytest.raises(ValueError, match="onv"):

@@ -188,14 +188,11 @@ class FoveatedImage:
 
 
 class _Rebuilt(dict):
-    """A cache of values rebuilt on demand: a copy (``copy.deepcopy``, pickling) starts empty. It holds
-    sparse CSR tensors, which have no storage to copy."""
+    """A cache of values rebuilt on demand: ``copy.deepcopy`` starts it empty. It holds sparse CSR tensors,
+    which deepcopy cannot copy (they have no storage)."""
 
     def __deepcopy__(self, memo):
         return type(self)()
-
-    def __reduce__(self):
-        return type(self), ()
 
 
 def _cbr(i: int, o: int, stride: int = 1) -> nn.Sequential:
