@@ -106,3 +106,47 @@ def test_flight_error_summary():
     assert s["at_0.2_s"] == 20.0 and s["at_0.4_s"] == 1.0
     with pytest.raises(ValueError, match="lengths"):
         flight_error_summary(t, err[:-1])
+
+
+def test_ball_signal_renders_the_dataset_s_onvs_and_measures_each_ball():
+    """ball_signal re-renders the samples as the dataset has them (the same ONVs), counts the
+    photoreceptors that see each ball, and tells what a direction from the eye reaches first."""
+    from warp_vision.frames import gaze_angles, gaze_directions
+
+    cfg = FoveationDataConfig(generator=9, samples=18, photoreceptors=3000, samples_per_receptor=1)
+    retina, eye = F.make_retina(cfg), F.make_eye(cfg)
+    idx = [17, 0, 3, 16, 1, 6, 2, 4]  # out of order, two rooms: the results follow the order given
+    data = render_samples(cfg, idx, None, retina, eye)
+    targets = data["target"].astype(np.float64)
+    sig = F.ball_signal(cfg, idx, retina, eye, directions=targets)
+    assert np.array_equal(sig["onv"].astype(np.float16), data["onv"])
+    assert (sig["receptors"] > 0).mean() >= 0.75 and np.isfinite(sig["contrast"]).all() and (sig["contrast"] >= 0).all()
+    assert (sig["receptors"] == 0).sum() == (sig["contrast"] == 0).sum()
+    assert (sig["landed_on"] == "ball").mean() >= 0.75  # the centre of a partly hidden ball may be behind something
+    # the way back: from the eye away from the ball reaches something else
+    away = gaze_angles(-gaze_directions(targets))
+    again = F.ball_signal(cfg, idx[::-1], retina, eye, directions=away[::-1])
+    assert np.array_equal(again["receptors"], sig["receptors"][::-1]) and np.array_equal(again["onv"], sig["onv"][::-1])
+    assert not (again["landed_on"] == "ball").any() and set(again["landed_on"]) <= set(F.LANDED_ON)
+    assert "landed_on" not in F.ball_signal(cfg, [0], retina, eye)
+
+
+def test_a_glowing_ball_stands_out_more_than_a_matte_one():
+    sizes = dict(samples=12, photoreceptors=3000, samples_per_receptor=1, rooms="heldout")
+    contrast = {}
+    for condition in ("glow_dim", "matte"):
+        cfg = FoveationDataConfig(generator=8, condition=condition, **sizes)
+        sig = F.ball_signal(cfg, range(12), F.make_retina(cfg), F.make_eye(cfg))
+        contrast[condition] = np.median(sig["contrast"][sig["receptors"] > 0])
+    assert contrast["glow_dim"] > 5 * contrast["matte"] and contrast["matte"] > 0.02
+
+
+def test_ball_signal_refuses_what_it_cannot_measure():
+    cfg = FoveationDataConfig(generator=9, samples=4, **SMALL)
+    retina, eye = F.make_retina(cfg), F.make_eye(cfg)
+    with pytest.raises(ValueError, match="v8 and v9"):
+        F.ball_signal(FoveationDataConfig(generator=7, samples=4, **SMALL), [0], retina, eye)
+    with pytest.raises(ValueError, match="distinct"):
+        F.ball_signal(cfg, [1, 1], retina, eye)
+    with pytest.raises(ValueError, match="directions"):
+        F.ball_signal(cfg, [0, 1], retina, eye, directions=np.zeros((3, 2)))

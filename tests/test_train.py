@@ -324,6 +324,49 @@ def test_the_misses_are_broken_down_by_eccentricity_size_and_scene(tmp_path, smo
         train_main(["evaluate", str(tmp_path / "run"), "--misses", "--conditions"])
 
 
+def test_the_misses_are_broken_down_by_the_balls_signal_and_where_the_estimates_land():
+    """With ball_signal's measures: rows per band of photoreceptors on the ball and of its contrast (NaN,
+    no ring seen, counts as 0), and per class of what the estimate lands on."""
+    from warp_vision.data.foveation import META_V9
+
+    target = np.zeros((4, 2))
+    err = np.array([30.0, 0.5, 12.0, 1.0])  # the first and third are off
+    meta = np.zeros((4, len(META_V9)), np.float32)
+    meta[:, 0], meta[:, 1] = 2.0, 0.1
+    signal = {"receptors": np.array([3, 50, 12, 400]), "contrast": np.array([0.03, 0.5, np.nan, 20.0]),
+              "landed_on": np.array(["room", "ball", "decoy", "ball"], dtype=object)}
+    rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9, signal=signal)}
+    assert rows[("photoreceptors on the ball", "0-5")] == {"group": "photoreceptors on the ball", "bin": "0-5", "n": 1,
+                                                           "off": 1.0, "of_misses": 0.5}
+    assert rows[("photoreceptors on the ball", "10-20")]["off"] == 1.0 and rows[("photoreceptors on the ball", ">= 320")]["off"] == 0.0
+    assert rows[("ball's contrast", "0-0.05")]["n"] == 2 and rows[("ball's contrast", "0-0.05")]["of_misses"] == 1.0
+    assert rows[("ball's contrast", ">= 10")]["off"] == 0.0
+    assert rows[("estimate lands on", "ball")] == {"group": "estimate lands on", "bin": "ball", "n": 2, "off": 0.0, "of_misses": 0.0}
+    assert rows[("estimate lands on", "decoy")]["off"] == 1.0 and ("estimate lands on", "arm") not in rows
+    b = foveation.barely_seen(err, signal)  # the first (3 photoreceptors) and third (NaN contrast) are barely seen
+    assert b == {"share": 0.5, "off": 1.0, "of_misses": 1.0, "others_off": 0.0}
+    assert foveation.barely_seen(err, {**signal, "receptors": np.full(4, 99), "contrast": np.ones(4)})["others_off"] == 0.5
+    without = {r["group"] for r in foveation.miss_breakdown(err, target, meta, META_V9)}
+    assert "photoreceptors on the ball" not in without and "estimate lands on" not in without
+
+
+def test_evaluate_signal_renders_the_split_again_for_v8_and_v9_runs(tmp_path, smoke_data, capsys):
+    """--signal: a v9 run's misses by the balls' signal; refused without --misses and for a v7 run."""
+    cfg = smoke(tmp_path, tmp_path / "data9", generator=9, samples=48, epochs=1)
+    foveation.run(cfg, progress=False, log=lambda *a: None)
+    capsys.readouterr()
+    assert train_main(["evaluate", str(tmp_path / "run"), "--misses", "--signal", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "| photoreceptors on the ball |" in out and "| estimate lands on |" in out and "barely seen" in out
+    with pytest.raises(SystemExit):
+        train_main(["evaluate", str(tmp_path / "run"), "--signal"])
+    foveation.run(smoke(tmp_path / "v7", smoke_data, epochs=1), progress=False, log=lambda *a: None)
+    assert train_main(["evaluate", str(tmp_path / "v7/run"), "--misses", "--signal"]) == 2
+    assert "v8 and v9 runs only" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="misses=True"):
+        foveation.evaluate_run(str(tmp_path / "run"), signal=True)
+
+
 def test_a_failing_synthesis_helper_is_an_error(tmp_path, monkeypatch):
     import dataclasses
 

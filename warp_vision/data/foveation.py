@@ -334,14 +334,32 @@ def meta_columns(generator: int) -> tuple[str, ...]:
 
 
 def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cpu") -> dict:
-    """v8 and v9: the samples grouped by room; each room's scene built once (the last one is kept for the
-    next call). v9 adds each sample's decoys to v8's sample."""
-    from warp_vision.data import foveation_decoys as D
-    from warp_vision.data import foveation_scenes as V
+    """v8 and v9: the samples grouped by room (:func:`_placed_v8`), each room's batch rendered at once; the
+    rows come back in the order of ``indices``."""
     from warp_vision.kernels.render import render_onv
 
+    out, order = {"onv": [], "target": [], "meta": []}, []
+    for scene, idx, ps in _placed_v8(cfg, indices, device):
+        onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed,
+                         device=device)
+        out["onv"].append(onv.cpu().numpy().astype(np.float16))
+        out["target"].append(np.stack([p["target"] for p in ps]))
+        out["meta"].append(np.stack([p["meta"] for p in ps]))
+        order += idx
+    row = {i: r for r, i in enumerate(order)}  # rendered room by room; returned in the order of ``indices``
+    take = [row[int(i)] for i in indices]
+    return {k: np.concatenate(v)[take] for k, v in out.items()}
+
+
+def _placed_v8(cfg: FoveationDataConfig, indices, device: str = "cpu"):
+    """Yield ``(scene, idx, ps)`` per room: the room's scene (built once; the last one is kept for the next
+    call) placed for its samples ``idx`` (ascending), whose parameters are ``ps``. A sample whose ball no
+    line of sight reaches (or, condition "decoy", with no decoy in sight) is redrawn. v9 adds each
+    sample's decoys to v8's sample."""
+    from warp_vision.data import foveation_decoys as D
+    from warp_vision.data import foveation_scenes as V
+
     indices = [int(i) for i in indices]
-    out = {"onv": [], "target": [], "meta": []}
     decoys = cfg.generator >= 9
     limits = lambda ecc: (min_apparent_diameter(cfg, ecc), np.radians(MAX_APPARENT_DIAMETER_DEG))  # noqa: E731
 
@@ -375,12 +393,99 @@ def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cp
                 if attempts[k] > 50:  # pragma: no cover - never seen
                     raise RuntimeError(f"sample {idx[k]}: no visible ball (or, condition decoy, no decoy in sight) in 50 draws")
                 ps[k] = draw(idx[k], attempts[k])
-        onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed,
-                         device=device)
-        out["onv"].append(onv.cpu().numpy().astype(np.float16))
-        out["target"].append(np.stack([p["target"] for p in ps]))
-        out["meta"].append(np.stack([p["meta"] for p in ps]))
-    return {k: np.concatenate(v) for k, v in out.items()}
+        yield scene, idx, ps
+
+
+#: What a line of sight from the eye can reach first, by class (:func:`ball_signal`'s ``landed_on``).
+LANDED_ON = ("ball", "decoy", "bright object", "arm", "panel", "room", "nothing")
+#: :func:`ball_signal`'s disc: the photoreceptors within this many apparent radii of the ball's centre.
+DISC_RADII = 1.1
+#: The ring :func:`ball_signal` compares the ball with: beyond the disc, out to this many apparent radii
+#: plus RING_MARGIN_DEG.
+RING_RADII = 2.0
+RING_MARGIN_DEG = 1.0
+
+
+def _landed_class(name: str | None) -> str:
+    from warp_vision.data.foveation_decoys import DECOYS
+    from warp_vision.data.foveation_scenes import DISTRACTORS
+
+    if name is None:
+        return "nothing"
+    if name.startswith("ball_"):
+        return "ball"
+    if name in DECOYS:
+        return "decoy"
+    if name in DISTRACTORS:
+        return "bright object"
+    if name.startswith("arm_"):
+        return "arm"
+    return "panel" if name == "occluder" else "room"
+
+
+def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu") -> dict:
+    """How much of each sample's ball its ONV holds: samples ``indices`` of ``cfg`` (v8 or v9) are rendered
+    as the dataset has them and again, everything placed alike, with the ball hidden. Per sample, in the
+    order of ``indices``:
+
+    - ``"receptors"`` [N] int: the photoreceptors that see the ball, those within :data:`DISC_RADII` of
+      its apparent radius of the target whose response the ball changes (a partly hidden ball counts its
+      visible part);
+    - ``"contrast"`` [N] float: how far the ball's mean colour on those photoreceptors lies from the mean
+      colour of the ring around the disc (out to :data:`RING_RADII` apparent radii plus
+      :data:`RING_MARGIN_DEG`), relative to the ring's: ``|rgb_ball - rgb_ring| / |rgb_ring|`` (0 where no
+      photoreceptor sees the ball, NaN where none sees the ring);
+    - ``"landed_on"`` [N] str, with ``directions`` ([N, 2] yaw, pitch in the eye frame, radians; a net's
+      estimates): the class (:data:`LANDED_ON`) of what each direction from the eye reaches first;
+    - ``"onv"`` [N, 3P] float32: the ONVs as rendered (the dataset stores them as float16).
+    """
+    from warp_vision.kernels.render import closest_hit, render_onv
+
+    if cfg.generator < 8:
+        raise ValueError(f"ball_signal: generator {cfg.generator}: v8 and v9 only (v7's balls glow in a fixed room)")
+    indices = [int(i) for i in indices]
+    if len(set(indices)) != len(indices):
+        raise ValueError("ball_signal: indices must be distinct")
+    if directions is not None:
+        directions = np.asarray(directions, dtype=np.float64)
+        if directions.shape != (len(indices), 2):
+            raise ValueError(f"directions: expected [{len(indices)}, 2] (yaw, pitch), got {directions.shape}")
+    where = {i: n for n, i in enumerate(indices)}
+    P = retina.P
+    seen = gaze_directions(retina.visual_angles(eye))  # [P, 3]; NaN where the chief ray is blocked
+    cols = {c: k for k, c in enumerate(meta_columns(cfg.generator))}
+    out = {"receptors": np.zeros(len(indices), np.int64), "contrast": np.zeros(len(indices)),
+           "onv": np.zeros((len(indices), 3 * P), np.float32)}
+    if directions is not None:
+        out["landed_on"] = np.empty(len(indices), dtype=object)
+    for scene, idx, ps in _placed_v8(cfg, indices, device):
+        poses = np.stack([p["eye_pose"] for p in ps])
+        render = lambda: render_onv(scene, retina, eye, poses, cfg.samples_per_receptor, seed=cfg.seed,  # noqa: E731
+                                    device=device).cpu().numpy()
+        with_ball = render()
+        if directions is not None:
+            for k, i in enumerate(idx):
+                d = poses[k, :3, :3] @ gaze_directions(directions[where[i]])
+                _, obj, _ = closest_hit(scene, poses[k, :3, 3][None], d[None], batch=k, device=device)
+                out["landed_on"][where[i]] = _landed_class(scene.objects[int(obj[0])].name if obj[0] >= 0 else None)
+        for name in (o.name for o in scene.objects if o.name.startswith("ball_")):  # place() shows them again
+            scene.set_visible(name, False)
+        without = render()
+        for k, (i, p) in enumerate(zip(idx, ps)):
+            n = where[i]
+            rgb, rgb0 = with_ball[k].reshape(P, 3), without[k].reshape(P, 3)
+            cos = seen @ gaze_directions(np.asarray(p["target"], np.float64))
+            radius = np.arcsin(min(1.0, p["meta"][cols["radius_m"]] / p["meta"][cols["distance_m"]]))
+            on_disc = cos > np.cos(DISC_RADII * radius)  # the disc's edge photoreceptors sample it in part
+            ball = on_disc & (np.abs(rgb - rgb0).sum(1) > 0)
+            ring = ~on_disc & (cos > np.cos(RING_RADII * radius + np.radians(RING_MARGIN_DEG)))
+            out["onv"][n] = with_ball[k]
+            out["receptors"][n] = int(ball.sum())
+            if ball.any():
+                ring_rgb = rgb[ring].mean(0) if ring.any() else np.full(3, np.nan)
+                with np.errstate(divide="ignore", invalid="ignore"):  # a black ring: infinite contrast
+                    out["contrast"][n] = float(np.linalg.norm(rgb[ball].mean(0) - ring_rgb) / np.linalg.norm(ring_rgb))
+    return out
 
 
 _SCENE_V8: dict = {}

@@ -9,6 +9,7 @@
     python -m warp_vision.train limb|pupil|lens --eye left|right [--preset ...]            an eye's limb vision, pupil or lens net
     python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
     python -m warp_vision.train evaluate RUN_DIR --misses                              where a foveation net's misses lie
+    python -m warp_vision.train evaluate RUN_DIR --misses --signal                     ... and how much of each ball the ONV holds
     python -m warp_vision.train evaluate RUN_DIR [RUN_DIR ...] --conditions            foveation nets on held-out conditions
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """
@@ -134,6 +135,11 @@ def _eval_parser() -> argparse.ArgumentParser:
                    help="foveation runs: also print where the balls more than 5 degrees off lie (the share off per "
                         "eccentricity band, apparent-radius band and scene flag: occluded, glowing, distractor, arm, "
                         "decoy)")
+    p.add_argument("--signal", action="store_true",
+                   help="with --misses, v8 and v9 runs: render the split again with and without its balls (about 0.1 s "
+                        "an ONV on a 2-core CPU) and add the share off per band of photoreceptors that see the ball and "
+                        "of its contrast with its surround, and what the estimates land on (the ball, a decoy, a bright "
+                        "object, the arm, the panel, the room)")
     p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="with --conditions: read the retina CNN out by the consensus of N turned and mirrored views "
@@ -187,6 +193,8 @@ def _evaluate(argv: list[str]) -> int:
         p.error("--views: only with --conditions")
     if a.misses and a.conditions:
         p.error("--misses: of a run's own split (--split), not with --conditions")
+    if a.signal and not a.misses:
+        p.error("--signal: a part of --misses")
 
     def job():
         if a.conditions:
@@ -199,7 +207,7 @@ def _evaluate(argv: list[str]) -> int:
             task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
             if a.misses and task != "foveation":
                 raise ValueError(f"--misses: foveation runs only; {run_dir} is a {task} run")
-            kw = {"misses": True} if a.misses else {}
+            kw = {"misses": True, "signal": a.signal, "progress": not a.no_progress} if a.misses else {}
             _module(task).evaluate_run(run_dir, a.split, **kw)
 
     return _guarded(job, a.debug)

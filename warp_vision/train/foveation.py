@@ -71,14 +71,36 @@ ECC_BANDS_DEG = (0.0, 10.0, 20.0, 30.0, 40.0)
 RADIUS_BANDS_DEG = (0.0, 1.0, 2.0, 4.0, 6.0, 8.0, 11.0, 15.0)
 #: The dataset's meta columns that flag what else is in the scene (those the generator writes).
 SCENE_FLAGS = ("occluded", "glow", "distractor", "arm", "decoy")
+#: :func:`miss_breakdown`'s bands of the ball's signal (:func:`warp_vision.data.foveation.ball_signal`):
+#: the photoreceptors that see it and its contrast with its surround (lower edges).
+RECEPTOR_BANDS = (0, 5, 10, 20, 40, 80, 160, 320)
+CONTRAST_BANDS = (0.0, 0.05, 0.1, 0.2, 0.4, 0.8, 1.6, 10.0)
+#: A ball "barely seen" (:func:`barely_seen`): fewer photoreceptors on it, or a lower contrast, than these.
+BARELY_RECEPTORS = 5
+BARELY_CONTRAST = 0.05
 
 
-def miss_breakdown(err_deg, target, meta, columns) -> list[dict]:
+def barely_seen(err_deg, signal: dict) -> dict:
+    """The balls the ONV barely holds (fewer than :data:`BARELY_RECEPTORS` photoreceptors see them, or their
+    contrast is under :data:`BARELY_CONTRAST`): their share of the balls (``share``), the share of them
+    more than :data:`OFF_DEG` off (``off``), their share of all the misses (``of_misses``), and the misses
+    among the other balls as a share of all balls (``others_off``): the least a net must find of the rest."""
+    err = np.asarray(err_deg, np.float64)
+    weak = (np.asarray(signal["receptors"]) < BARELY_RECEPTORS) | (np.nan_to_num(np.asarray(signal["contrast"], np.float64), nan=0.0) < BARELY_CONTRAST)
+    off = err > OFF_DEG
+    n = max(len(err), 1)
+    return {"share": float(weak.sum()) / n, "off": float(off[weak].mean()) if weak.any() else float("nan"),
+            "of_misses": float((off & weak).sum()) / max(int(off.sum()), 1), "others_off": float((off & ~weak).sum()) / n}
+
+
+def miss_breakdown(err_deg, target, meta, columns, signal: dict | None = None) -> list[dict]:
     """Where the balls more than :data:`OFF_DEG` off lie: one row per eccentricity band, apparent-radius
     band and scene flag (on and off) with its samples ``n``, the share of them off (``off``) and their
     share of all the misses (``of_misses``). ``err_deg`` [N], ``target`` [N, 2] (yaw, pitch, rad),
     ``meta`` [N, C] with ``columns`` its names (:func:`warp_vision.data.foveation.meta_columns`; v7's
-    three have no scene flag but occluded)."""
+    three have no scene flag but occluded). ``signal``: the samples' :func:`~warp_vision.data.foveation.
+    ball_signal` (with the estimates as ``directions``), which adds rows per band of photoreceptors on the
+    ball and of its contrast, and per class of what the estimate lands on."""
     err, meta = np.asarray(err_deg, dtype=np.float64), np.asarray(meta, dtype=np.float64)
     off = err > OFF_DEG
     misses = max(int(off.sum()), 1)
@@ -101,6 +123,17 @@ def miss_breakdown(err_deg, target, meta, columns) -> list[dict]:
         if flag in col:
             on = meta[:, col[flag]] > 0.5
             rows += [row(flag, "yes", on), row(flag, "no", ~on)]
+    if signal is not None:
+        from warp_vision.data.foveation import LANDED_ON
+
+        bands = (("photoreceptors on the ball", np.asarray(signal["receptors"], np.float64), RECEPTOR_BANDS),
+                 ("ball's contrast", np.nan_to_num(np.asarray(signal["contrast"], np.float64), nan=0.0), CONTRAST_BANDS))
+        for group, v, edges in bands:
+            for lo, hi in zip(edges, edges[1:] + (np.inf,)):
+                rows.append(row(group, f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}", (v >= lo) & (v < hi)))
+        if "landed_on" in signal:
+            landed = np.asarray(signal["landed_on"], dtype=object)
+            rows += [row("estimate lands on", c, landed == c) for c in LANDED_ON]
     return [r for r in rows if r["n"]]
 
 
@@ -258,19 +291,49 @@ def run(cfg: TrainConfig | None = None, **kw) -> dict:
     return harness.run(FoveationTask, cfg, **kw)
 
 
-def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = False) -> dict:
+def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = False, signal: bool = False,
+                 progress: bool = True) -> dict:
     """Re-evaluate a foveation run's best checkpoint; prints the angular error. ``misses``: also where the
     balls more than :data:`OFF_DEG` off lie (:func:`miss_breakdown`), printed as a table and returned as
-    ``"misses"``."""
-    return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=_misses if misses else None)
+    ``"misses"``. ``signal`` (with ``misses``; v8 and v9 runs): the split is rendered again with and
+    without its balls (:func:`warp_vision.data.foveation.ball_signal`; about 0.1 s an ONV here), which
+    adds the bands of the ball's signal and what the missed estimates land on."""
+    if signal and not misses:
+        raise ValueError("signal: a part of the misses' breakdown; pass misses=True too")
+    detail = (lambda task, idx, ev, log: _misses(task, idx, ev, log, signal, progress)) if misses else None
+    return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=detail)
 
 
-def _misses(task: FoveationTask, idx, ev, log) -> dict:
-    from warp_vision.data.foveation import meta_columns
+def _misses(task: FoveationTask, idx, ev, log, signal: bool = False, progress: bool = True) -> dict:
+    from tqdm import tqdm
+
+    from warp_vision.data.foveation import ball_signal, make_eye, meta_columns
     from warp_vision.data.store import ChunkedStore
 
-    meta = ChunkedStore.open(task.ddir).load(["meta"])["meta"][np.asarray(idx)]
+    idx = np.asarray(idx)
+    meta = ChunkedStore.open(task.ddir).load(["meta"])["meta"][idx]
+    sig = None
+    if signal:
+        cfg = task.cfg.data_config()
+        if cfg.generator < 8:
+            raise ValueError(f"signal: generator {cfg.generator}: v8 and v9 runs only (v7's ball glows in a fixed room)")
+        order = np.argsort(idx, kind="stable")  # room by room: each room's scene is built once
+        pred = ev["pred"].numpy()[order]
+        parts, step = [], 64
+        bar = tqdm(total=len(idx), desc="rendering with and without the balls", unit="ONV", disable=not progress)
+        for s in range(0, len(idx), step):
+            parts.append(ball_signal(cfg, idx[order[s : s + step]], task.retina, make_eye(cfg), directions=pred[s : s + step]))
+            bar.update(len(parts[-1]["receptors"]))
+        bar.close()
+        back = np.argsort(order, kind="stable")
+        sig = {k: np.concatenate([q[k] for q in parts])[back] for k in ("receptors", "contrast", "landed_on")}
     rows = miss_breakdown(ev["err_deg"].numpy(), task.target[torch.as_tensor(idx)].numpy(), meta,
-                          meta_columns(task.cfg.generator))
+                          meta_columns(task.cfg.generator), signal=sig)
     log(f"where the balls more than {OFF_DEG:g} deg off lie:\n{miss_table(rows)}")
-    return {"misses": rows}
+    if sig is None:
+        return {"misses": rows}
+    b = barely_seen(ev["err_deg"].numpy(), sig)
+    log(f"barely seen (fewer than {BARELY_RECEPTORS} photoreceptors on the ball, or contrast under {BARELY_CONTRAST:g}): "
+        f"{100 * b['share']:.1f}% of the balls, {100 * b['off']:.0f}% of them off, {100 * b['of_misses']:.1f}% of the misses; "
+        f"the balls seen better are missed in {100 * b['others_off']:.1f}% of all samples")
+    return {"misses": rows, "barely_seen": b}
