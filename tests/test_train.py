@@ -320,6 +320,7 @@ def test_the_misses_are_broken_down_by_eccentricity_size_and_scene(tmp_path, smo
     assert train_main(["evaluate", str(tmp_path / "run"), "--misses"]) == 0
     out = capsys.readouterr().out
     assert "where the balls more than 5 deg off lie" in out and "| occluded | yes |" in out
+    assert (tmp_path / "run/figures/misses_test.png").exists()
     with pytest.raises(SystemExit):
         train_main(["evaluate", str(tmp_path / "run"), "--misses", "--conditions"])
 
@@ -358,6 +359,7 @@ def test_evaluate_signal_renders_the_split_again_for_v8_and_v9_runs(tmp_path, sm
     assert train_main(["evaluate", str(tmp_path / "run"), "--misses", "--signal", "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "| photoreceptors on the ball |" in out and "| estimate lands on |" in out and "barely seen" in out
+    assert (tmp_path / "run/figures/misses_test.png").stat().st_size > 10_000
     with pytest.raises(SystemExit):
         train_main(["evaluate", str(tmp_path / "run"), "--signal"])
     foveation.run(smoke(tmp_path / "v7", smoke_data, epochs=1), progress=False, log=lambda *a: None)

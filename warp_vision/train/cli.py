@@ -134,7 +134,7 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--misses", action="store_true",
                    help="foveation runs: also print where the balls more than 5 degrees off lie (the share off per "
                         "eccentricity band, apparent-radius band and scene flag: occluded, glowing, distractor, arm, "
-                        "decoy)")
+                        "decoy), drawn in RUN_DIR/figures/misses_<split>.png")
     p.add_argument("--signal", action="store_true",
                    help="with --misses, v8 and v9 runs: render the split again with and without its balls (about 0.1 s "
                         "an ONV on a 2-core CPU) and add the share off per band of photoreceptors that see the ball and "

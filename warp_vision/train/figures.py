@@ -42,6 +42,42 @@ def plot_curves(histories: dict, title: str = "foveation training") -> Figure:
     return fig
 
 
+def plot_misses(rows: list[dict], title: str) -> Figure:
+    """:func:`warp_vision.train.foveation.miss_breakdown`'s rows, a panel per group (the scene flags' yes and
+    no rows together in one): the share of each bin's balls more than 5 degrees off, on one scale, with
+    the share of all the balls dotted; the group "estimate lands on" as each class's share of the misses."""
+    panels: dict[str, list] = {}
+    for r in rows:
+        flag = r["bin"] in ("yes", "no")
+        label = f"{r['group']}: {r['bin']} ({r['n']:,})" if flag else f"{r['bin']} ({r['n']:,})"
+        panels.setdefault("in the scene" if flag else r["group"], []).append((label, r))
+    cols = 2 if len(panels) > 1 else 1
+    nrows = (len(panels) + cols - 1) // cols
+    tallest = max(len(v) for v in panels.values())
+    fig = Figure(figsize=(5.4 * cols, nrows * (0.8 + 0.22 * tallest) + 0.6))
+    top = max(100 * r["off"] for r in rows if r["group"] != "estimate lands on")
+    first = [r for r in rows if r["group"] == rows[0]["group"]]  # every group covers all the balls
+    overall = 100 * sum(r["n"] * r["off"] for r in first) / max(sum(r["n"] for r in first), 1)
+    for k, (g, items) in enumerate(panels.items()):
+        ax = fig.add_subplot(nrows, cols, k + 1)
+        landing = g == "estimate lands on"
+        v = [100 * (r["of_misses"] if landing else r["off"]) for _, r in items]
+        y = np.arange(len(items))
+        ax.barh(y, v, color="C3" if landing else "C0", height=0.7)
+        if not landing:
+            ax.axvline(overall, color="0.3", lw=0.8, ls=":", label=f"all balls: {overall:.1f}%")
+            ax.legend(fontsize=7, loc="lower right")
+        ax.set_yticks(y, [label for label, _ in items], fontsize=8)
+        ax.invert_yaxis()
+        ax.set_xlim(0, 100 if landing else 1.05 * max(top, 1.0))
+        ax.set_title(g, fontsize=9)
+        ax.set_xlabel("share of the misses (%)" if landing else "balls > 5 deg off (%)", fontsize=8)
+        ax.tick_params(axis="x", labelsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
+    return fig
+
+
 def write_figures(out: Path, history, retina, onv16, target, idx, pred, cfg) -> None:
     from warp_vision import viz
     from warp_vision.data.foveation import make_eye

@@ -12,6 +12,8 @@ The run itself (directories, resume, DDP, checkpoints, early stopping) is :mod:`
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -295,16 +297,29 @@ def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = Fa
                  progress: bool = True) -> dict:
     """Re-evaluate a foveation run's best checkpoint; prints the angular error. ``misses``: also where the
     balls more than :data:`OFF_DEG` off lie (:func:`miss_breakdown`), printed as a table and returned as
-    ``"misses"``. ``signal`` (with ``misses``; v8 and v9 runs): the split is rendered again with and
-    without its balls (:func:`warp_vision.data.foveation.ball_signal`; about 0.1 s an ONV here), which
-    adds the bands of the ball's signal and what the missed estimates land on."""
+    ``"misses"``, and drawn in ``RUN/figures/misses_<split>.png``. ``signal`` (with ``misses``; v8 and v9
+    runs): the split is rendered again with and without its balls
+    (:func:`warp_vision.data.foveation.ball_signal`; about 0.1 s an ONV here), which adds the bands of the
+    ball's signal, what the estimates land on and the :func:`barely_seen` summary (``"barely_seen"``)."""
     if signal and not misses:
         raise ValueError("signal: a part of the misses' breakdown; pass misses=True too")
-    detail = (lambda task, idx, ev, log: _misses(task, idx, ev, log, signal, progress)) if misses else None
+    detail = (lambda task, idx, ev, log: _misses(task, idx, ev, log, run_dir, split, signal, progress)) if misses else None
     return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=detail)
 
 
-def _misses(task: FoveationTask, idx, ev, log, signal: bool = False, progress: bool = True) -> dict:
+def write_miss_figure(run_dir, split: str, rows: list[dict], n: int) -> Path:
+    """``RUN/figures/misses_<split>.png``: :func:`warp_vision.train.figures.plot_misses` of ``rows``."""
+    from warp_vision.fileio import atomic_write
+    from warp_vision.train.figures import plot_misses
+
+    path = Path(run_dir) / "figures" / f"misses_{split}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig = plot_misses(rows, f"{Path(run_dir).name}: where the balls more than {OFF_DEG:g} deg off lie ({split}, {n:,} ONVs)")
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110, bbox_inches="tight"))
+    return path
+
+
+def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool = False, progress: bool = True) -> dict:
     from tqdm import tqdm
 
     from warp_vision.data.foveation import ball_signal, make_eye, meta_columns
@@ -330,6 +345,8 @@ def _misses(task: FoveationTask, idx, ev, log, signal: bool = False, progress: b
     rows = miss_breakdown(ev["err_deg"].numpy(), task.target[torch.as_tensor(idx)].numpy(), meta,
                           meta_columns(task.cfg.generator), signal=sig)
     log(f"where the balls more than {OFF_DEG:g} deg off lie:\n{miss_table(rows)}")
+    fig = write_miss_figure(run_dir, split, rows, len(idx))
+    log(f"wrote {fig}")
     if sig is None:
         return {"misses": rows}
     b = barely_seen(ev["err_deg"].numpy(), sig)
