@@ -335,7 +335,7 @@ def test_the_misses_are_broken_down_by_the_balls_signal_and_where_the_estimates_
     meta = np.zeros((4, len(META_V9)), np.float32)
     meta[:, 0], meta[:, 1] = 2.0, 0.1
     signal = {"receptors": np.array([3, 50, 12, 400]), "contrast": np.array([0.03, 0.5, np.nan, 20.0]),
-              "landed_on": np.array(["room", "ball", "decoy", "ball"], dtype=object)}
+              "landed_on": np.array(["furniture", "ball", "decoy", "ball"], dtype=object)}
     rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9, signal=signal)}
     assert rows[("photoreceptors on the ball", "0-5")] == {"group": "photoreceptors on the ball", "bin": "0-5", "n": 1,
                                                            "off": 1.0, "of_misses": 0.5}
@@ -344,6 +344,7 @@ def test_the_misses_are_broken_down_by_the_balls_signal_and_where_the_estimates_
     assert rows[("ball's contrast", ">= 10")]["off"] == 0.0
     assert rows[("estimate lands on", "ball")] == {"group": "estimate lands on", "bin": "ball", "n": 2, "off": 0.0, "of_misses": 0.0}
     assert rows[("estimate lands on", "decoy")]["off"] == 1.0 and ("estimate lands on", "arm") not in rows
+    assert rows[("estimate lands on", "furniture")]["of_misses"] == 0.5
     b = foveation.barely_seen(err, signal)  # the first (3 photoreceptors) and third (NaN contrast) are barely seen
     assert b == {"share": 0.5, "off": 1.0, "of_misses": 1.0, "others_off": 0.0}
     assert foveation.barely_seen(err, {**signal, "receptors": np.full(4, 99), "contrast": np.ones(4)})["others_off"] == 0.5

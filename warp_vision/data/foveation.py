@@ -397,7 +397,7 @@ def _placed_v8(cfg: FoveationDataConfig, indices, device: str = "cpu"):
 
 
 #: What a line of sight from the eye can reach first, by class (:func:`ball_signal`'s ``landed_on``).
-LANDED_ON = ("ball", "decoy", "bright object", "arm", "panel", "room", "nothing")
+LANDED_ON = ("ball", "decoy", "bright object", "arm", "panel", "furniture", "wall, floor or ceiling", "nothing")
 #: :func:`ball_signal`'s disc: the photoreceptors within this many apparent radii of the ball's centre.
 DISC_RADII = 1.1
 #: The ring :func:`ball_signal` compares the ball with: beyond the disc, out to this many apparent radii
@@ -420,7 +420,9 @@ def _landed_class(name: str | None) -> str:
         return "bright object"
     if name.startswith("arm_"):
         return "arm"
-    return "panel" if name == "occluder" else "room"
+    if name == "occluder":
+        return "panel"
+    return "furniture" if name.startswith("object_") else "wall, floor or ceiling"
 
 
 def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu") -> dict:
