@@ -353,7 +353,7 @@ def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cp
 
 def _placed_v8(cfg: FoveationDataConfig, indices, device: str = "cpu"):
     """Yield ``(scene, idx, ps)`` per room: the room's scene (built once; the last one is kept for the next
-    call) placed for its samples ``idx`` (ascending), whose parameters are ``ps``. A sample whose ball no
+    call) placed for its samples ``idx`` (in the order given), whose parameters are ``ps``. A sample whose ball no
     line of sight reaches (or, condition "decoy", with no decoy in sight) is redrawn. v9 adds each
     sample's decoys to v8's sample."""
     from warp_vision.data import foveation_decoys as D
@@ -430,8 +430,8 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
     as the dataset has them and again, everything placed alike, with the ball hidden. Per sample, in the
     order of ``indices``:
 
-    - ``"receptors"`` [N] int: the photoreceptors that see the ball, those within :data:`DISC_RADII` of
-      its apparent radius of the target whose response the ball changes (a partly hidden ball counts its
+    - ``"receptors"`` [N] int: the photoreceptors that see the ball: those within :data:`DISC_RADII`
+      apparent radii of its centre whose response the ball changes (a partly hidden ball counts its
       visible part);
     - ``"contrast"`` [N] float: how far the ball's mean colour on those photoreceptors lies from the mean
       colour of the ring around the disc (out to :data:`RING_RADII` apparent radii plus

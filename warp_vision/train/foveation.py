@@ -84,7 +84,7 @@ BARELY_CONTRAST = 0.05
 
 def barely_seen(err_deg, signal: dict) -> dict:
     """The balls the ONV barely holds (fewer than :data:`BARELY_RECEPTORS` photoreceptors see them, or their
-    contrast is under :data:`BARELY_CONTRAST`): their share of the balls (``share``), the share of them
+    contrast is under :data:`BARELY_CONTRAST`, or NaN: no ring around them seen): their share of the balls (``share``), the share of them
     more than :data:`OFF_DEG` off (``off``), their share of all the misses (``of_misses``), and the misses
     among the other balls as a share of all balls (``others_off``): the least a net must find of the rest."""
     err = np.asarray(err_deg, np.float64)
