@@ -118,17 +118,17 @@ def test_ball_signal_renders_the_dataset_s_onvs_and_measures_each_ball():
     idx = [17, 0, 3, 16, 1, 6, 2, 4]  # out of order, two rooms: the results follow the order given
     data = render_samples(cfg, idx, None, retina, eye)
     targets = data["target"].astype(np.float64)
-    sig = F.ball_signal(cfg, idx, retina, eye, directions=targets)
+    sig = F.ball_signal(cfg, idx, retina, eye, directions=targets, with_onv=True)
     assert np.array_equal(sig["onv"].astype(np.float16), data["onv"])
     assert (sig["receptors"] > 0).mean() >= 0.75 and np.isfinite(sig["contrast"]).all() and (sig["contrast"] >= 0).all()
     assert (sig["receptors"] == 0).sum() == (sig["contrast"] == 0).sum()
     assert (sig["landed_on"] == "ball").mean() >= 0.75  # the centre of a partly hidden ball may be behind something
     # the way back: from the eye away from the ball reaches something else
     away = gaze_angles(-gaze_directions(targets))
-    again = F.ball_signal(cfg, idx[::-1], retina, eye, directions=away[::-1])
+    again = F.ball_signal(cfg, idx[::-1], retina, eye, directions=away[::-1], with_onv=True)
     assert np.array_equal(again["receptors"], sig["receptors"][::-1]) and np.array_equal(again["onv"], sig["onv"][::-1])
     assert not (again["landed_on"] == "ball").any() and set(again["landed_on"]) <= set(F.LANDED_ON)
-    assert "landed_on" not in F.ball_signal(cfg, [0], retina, eye)
+    assert "landed_on" not in F.ball_signal(cfg, [0], retina, eye) and "onv" not in F.ball_signal(cfg, [0], retina, eye)
 
 
 def test_a_glowing_ball_stands_out_more_than_a_matte_one():

@@ -1,7 +1,8 @@
-"""The foveation CNN's read-out: inference time of the consensus of N views against the plain image's,
-in float32 (what inference runs in) and under bfloat16 autocast (the alternative, not adopted: README,
-"bfloat16 inference"; here the whole call runs under it, read-out included, whose cost is negligible), and the binning of the views' images (one CSR product) against an ``index_add_``
-of the same entries (what it replaced).
+"""The foveation CNN's read-out: inference time of the consensus of N views against the plain image's, in
+float32 (what inference runs in) and under bfloat16 autocast (the alternative, not adopted: README,
+"bfloat16 inference"; here the whole call runs under it, read-out included, whose cost is negligible),
+and the binning of the views' images (one CSR product) against an ``index_add_`` of the same entries
+(what it replaced).
 
 The net is the default preset's retina CNN (untrained: its cost does not depend on its weights) on the
 default foveation data config's retina (P = 14,400); inputs are random standardised ONVs. Each group of

@@ -333,16 +333,20 @@ def meta_columns(generator: int) -> tuple[str, ...]:
     return {7: META_V8[:3], 8: META_V8, 9: META_V9}[generator]
 
 
+def _render_placed(cfg: FoveationDataConfig, scene, ps: list, retina, eye, device: str = "cpu") -> np.ndarray:
+    """The ONVs [B, 3P] float32 of a room's scene placed for the samples ``ps`` (:func:`_placed_v8`)."""
+    from warp_vision.kernels.render import render_onv
+
+    poses = np.stack([p["eye_pose"] for p in ps])
+    return render_onv(scene, retina, eye, poses, cfg.samples_per_receptor, seed=cfg.seed, device=device).cpu().numpy()
+
+
 def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cpu") -> dict:
     """v8 and v9: the samples grouped by room (:func:`_placed_v8`), each room's batch rendered at once; the
     rows come back in the order of ``indices``."""
-    from warp_vision.kernels.render import render_onv
-
     out, order = {"onv": [], "target": [], "meta": []}, []
     for scene, idx, ps in _placed_v8(cfg, indices, device):
-        onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed,
-                         device=device)
-        out["onv"].append(onv.cpu().numpy().astype(np.float16))
+        out["onv"].append(_render_placed(cfg, scene, ps, retina, eye, device).astype(np.float16))
         out["target"].append(np.stack([p["target"] for p in ps]))
         out["meta"].append(np.stack([p["meta"] for p in ps]))
         order += idx
@@ -425,10 +429,11 @@ def _landed_class(name: str | None) -> str:
     return "furniture" if name.startswith("object_") else "wall, floor or ceiling"
 
 
-def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu") -> dict:
+def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu", with_onv: bool = False,
+                progress: bool = False) -> dict:
     """How much of each sample's ball its ONV holds: samples ``indices`` of ``cfg`` (v8 or v9) are rendered
-    as the dataset has them and again, everything placed alike, with the ball hidden. Per sample, in the
-    order of ``indices``:
+    room by room as the dataset has them and again, everything placed alike, with the ball hidden. Per
+    sample, in the order of ``indices``:
 
     - ``"receptors"`` [N] int: the photoreceptors that see the ball: those within :data:`DISC_RADII`
       apparent radii of its centre whose response the ball changes (a partly hidden ball counts its
@@ -439,9 +444,13 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
       photoreceptor sees the ball, NaN where none sees the ring);
     - ``"landed_on"`` [N] str, with ``directions`` ([N, 2] yaw, pitch in the eye frame, radians; a net's
       estimates): the class (:data:`LANDED_ON`) of what each direction from the eye reaches first;
-    - ``"onv"`` [N, 3P] float32: the ONVs as rendered (the dataset stores them as float16).
+    - ``"onv"`` [N, 3P] float32, with ``with_onv``: the ONVs as rendered (the dataset stores them as float16).
+
+    ``progress``: a progress bar over the samples.
     """
-    from warp_vision.kernels.render import closest_hit, render_onv
+    from tqdm import tqdm
+
+    from warp_vision.kernels.render import closest_hit
 
     if cfg.generator < 8:
         raise ValueError(f"ball_signal: generator {cfg.generator}: v8 and v9 only (v7's balls glow in a fixed room)")
@@ -456,23 +465,22 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
     P = retina.P
     seen = gaze_directions(retina.visual_angles(eye))  # [P, 3]; NaN where the chief ray is blocked
     cols = {c: k for k, c in enumerate(meta_columns(cfg.generator))}
-    out = {"receptors": np.zeros(len(indices), np.int64), "contrast": np.zeros(len(indices)),
-           "onv": np.zeros((len(indices), 3 * P), np.float32)}
+    out = {"receptors": np.zeros(len(indices), np.int64), "contrast": np.zeros(len(indices))}
+    if with_onv:
+        out["onv"] = np.zeros((len(indices), 3 * P), np.float32)
     if directions is not None:
         out["landed_on"] = np.empty(len(indices), dtype=object)
+    bar = tqdm(total=len(indices), desc="rendering with and without the balls", unit="ONV", disable=not progress)
     for scene, idx, ps in _placed_v8(cfg, indices, device):
-        poses = np.stack([p["eye_pose"] for p in ps])
-        render = lambda: render_onv(scene, retina, eye, poses, cfg.samples_per_receptor, seed=cfg.seed,  # noqa: E731
-                                    device=device).cpu().numpy()
-        with_ball = render()
+        with_ball = _render_placed(cfg, scene, ps, retina, eye, device)
         if directions is not None:
-            for k, i in enumerate(idx):
-                d = poses[k, :3, :3] @ gaze_directions(directions[where[i]])
-                _, obj, _ = closest_hit(scene, poses[k, :3, 3][None], d[None], batch=k, device=device)
+            for k, (i, p) in enumerate(zip(idx, ps)):
+                d = p["eye_pose"][:3, :3] @ gaze_directions(directions[where[i]])
+                _, obj, _ = closest_hit(scene, p["eye_pose"][:3, 3][None], d[None], batch=k, device=device)
                 out["landed_on"][where[i]] = _landed_class(scene.objects[int(obj[0])].name if obj[0] >= 0 else None)
         for name in (o.name for o in scene.objects if o.name.startswith("ball_")):  # place() shows them again
             scene.set_visible(name, False)
-        without = render()
+        without = _render_placed(cfg, scene, ps, retina, eye, device)
         for k, (i, p) in enumerate(zip(idx, ps)):
             n = where[i]
             rgb, rgb0 = with_ball[k].reshape(P, 3), without[k].reshape(P, 3)
@@ -481,12 +489,15 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
             on_disc = cos > np.cos(DISC_RADII * radius)  # the disc's edge photoreceptors sample it in part
             ball = on_disc & (np.abs(rgb - rgb0).sum(1) > 0)
             ring = ~on_disc & (cos > np.cos(RING_RADII * radius + np.radians(RING_MARGIN_DEG)))
-            out["onv"][n] = with_ball[k]
+            if with_onv:
+                out["onv"][n] = with_ball[k]
             out["receptors"][n] = int(ball.sum())
             if ball.any():
                 ring_rgb = rgb[ring].mean(0) if ring.any() else np.full(3, np.nan)
                 with np.errstate(divide="ignore", invalid="ignore"):  # a black ring: infinite contrast
                     out["contrast"][n] = float(np.linalg.norm(rgb[ball].mean(0) - ring_rgb) / np.linalg.norm(ring_rgb))
+        bar.update(len(idx))
+    bar.close()
     return out
 
 

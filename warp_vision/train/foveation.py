@@ -320,8 +320,6 @@ def write_miss_figure(run_dir, split: str, rows: list[dict], n: int) -> Path:
 
 
 def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool = False, progress: bool = True) -> dict:
-    from tqdm import tqdm
-
     from warp_vision.data.foveation import ball_signal, make_eye, meta_columns
     from warp_vision.data.store import ChunkedStore
 
@@ -332,16 +330,7 @@ def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool
         cfg = task.cfg.data_config()
         if cfg.generator < 8:
             raise ValueError(f"signal: generator {cfg.generator}: v8 and v9 runs only (v7's ball glows in a fixed room)")
-        order = np.argsort(idx, kind="stable")  # room by room: each room's scene is built once
-        pred = ev["pred"].numpy()[order]
-        parts, step = [], 64
-        bar = tqdm(total=len(idx), desc="rendering with and without the balls", unit="ONV", disable=not progress)
-        for s in range(0, len(idx), step):
-            parts.append(ball_signal(cfg, idx[order[s : s + step]], task.retina, make_eye(cfg), directions=pred[s : s + step]))
-            bar.update(len(parts[-1]["receptors"]))
-        bar.close()
-        back = np.argsort(order, kind="stable")
-        sig = {k: np.concatenate([q[k] for q in parts])[back] for k in ("receptors", "contrast", "landed_on")}
+        sig = ball_signal(cfg, idx, task.retina, make_eye(cfg), directions=ev["pred"].numpy(), progress=progress)
     rows = miss_breakdown(ev["err_deg"].numpy(), task.target[torch.as_tensor(idx)].numpy(), meta,
                           meta_columns(task.cfg.generator), signal=sig)
     log(f"where the balls more than {OFF_DEG:g} deg off lie:\n{miss_table(rows)}")
