@@ -60,6 +60,9 @@ def test_pupil_samples_carry_the_luminance_their_exposure_gives_them():
     again = render_pupil_samples(cfg, [17], retina)  # a sample does not depend on its batch
     np.testing.assert_array_equal(again["onv"][0], d["onv"][3])
     assert again["exposure"][0] == d["exposure"][3]
+    shuffled = render_pupil_samples(cfg, [18, 14, 17, 15], retina)  # rows in the order asked, across blocks
+    for k in d:
+        np.testing.assert_array_equal(shuffled[k], d[k][[4, 0, 3, 1]])
     with pytest.raises(ValueError, match="luminance_decades"):
         PupilDataConfig(luminance_decades=0).validate()
     with pytest.raises(ValueError, match="rooms"):

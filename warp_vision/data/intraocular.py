@@ -115,14 +115,15 @@ def pupil_fields(cfg: PupilDataConfig) -> dict:
 
 
 def render_pupil_samples(cfg: PupilDataConfig, indices, retina, device: str = "cpu") -> dict:
-    """Samples ``indices``: the rendered ONV, its exposure, the current pupil (mm), the adapting luminance."""
+    """Samples ``indices``: the rendered ONV, its exposure, the current pupil (mm), the adapting luminance;
+    rendered a room block at a time (each block has its own pupil), the rows in the order of ``indices``."""
     from warp_vision.data.foveation import _render_v8
     from warp_vision.data.foveation_scenes import ROOM_BLOCK
     from warp_vision.eye.optics import NavarroEye
     from warp_vision.eye.pupil import adapting_luminance
 
     fcfg = cfg.scene_config()
-    out = {k: [] for k in pupil_fields(cfg)}
+    out, order = {k: [] for k in pupil_fields(cfg)}, []
     indices = [int(i) for i in indices]
     for block in sorted({i // ROOM_BLOCK for i in indices}):
         idx = [i for i in indices if i // ROOM_BLOCK == block]
@@ -134,7 +135,10 @@ def render_pupil_samples(cfg: PupilDataConfig, indices, retina, device: str = "c
         out["exposure"].append((lum / adapting_luminance(raw, d)).astype(np.float32))
         out["pupil"].append(np.full(len(idx), d, np.float32))
         out["luminance"].append(lum.astype(np.float32))
-    return {k: np.concatenate(v) for k, v in out.items()}
+        order += idx
+    row = {i: r for r, i in enumerate(order)}
+    take = [row[i] for i in indices]
+    return {k: np.concatenate(v)[take] for k, v in out.items()}
 
 
 def synthesize_pupil(out_dir, cfg: PupilDataConfig, shard=(0, 1), batch: int = 16, device: str = "cpu",
