@@ -180,3 +180,18 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     with pytest.raises(SystemExit):
         train_main(["evaluate", runs[0], "--views", "8"])
     assert "only with --conditions" in capsys.readouterr().err
+
+
+def test_furniture_shape_names_each_piece_of_a_room():
+    from warp_vision.scene.room import furniture_shape, make_room
+
+    room = make_room(n_objects=5, seed=3)
+    pieces = [o for o in room.objects if o.name.startswith("object_")]
+    assert len(pieces) == 5
+    for o in pieces:  # a box has 8 corners; a cylinder is round
+        assert (len(o.mesh.vertices) == 8) == (furniture_shape(o.name) == "box"), o.name
+    assert [furniture_shape(o.name) for o in pieces] == ["box", "cylinder", "box", "cylinder", "box"]
+    assert F._landed_class("object_1") == "furniture: cylinder" and F._landed_class("wall_north") == "wall, floor or ceiling"
+    for bad in ("wall_north", "object_", "object_x"):
+        with pytest.raises(ValueError, match="furniture"):
+            furniture_shape(bad)

@@ -125,9 +125,12 @@ def test_ball_signal_renders_the_dataset_s_onvs_and_measures_each_ball():
     assert (sig["landed_on"] == "ball").mean() >= 0.75  # the centre of a partly hidden ball may be behind something
     # the way back: from the eye away from the ball reaches something else
     away = gaze_angles(-gaze_directions(targets))
-    again = F.ball_signal(cfg, idx[::-1], retina, eye, directions=away[::-1], with_onv=True)
+    again = F.ball_signal(cfg, idx[::-1], retina, eye, directions=away[::-1], with_onv=True, chance_directions=targets[::-1])
     assert np.array_equal(again["receptors"], sig["receptors"][::-1]) and np.array_equal(again["onv"], sig["onv"][::-1])
     assert not (again["landed_on"] == "ball").any() and set(again["landed_on"]) <= set(F.LANDED_ON)
+    assert np.array_equal(again["chance_landed_on"], sig["landed_on"][::-1])  # chance directions are followed alike
+    with pytest.raises(ValueError, match="chance_directions"):
+        F.ball_signal(cfg, [0, 1], retina, eye, chance_directions=targets[:1])
     assert "landed_on" not in F.ball_signal(cfg, [0], retina, eye) and "onv" not in F.ball_signal(cfg, [0], retina, eye)
 
 

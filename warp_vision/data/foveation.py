@@ -401,7 +401,8 @@ def _placed_v8(cfg: FoveationDataConfig, indices, device: str = "cpu"):
 
 
 #: What a line of sight from the eye can reach first, by class (:func:`ball_signal`'s ``landed_on``).
-LANDED_ON = ("ball", "decoy", "bright object", "arm", "panel", "furniture", "wall, floor or ceiling", "nothing")
+LANDED_ON = ("ball", "decoy", "bright object", "arm", "panel", "furniture: box", "furniture: cylinder",
+             "wall, floor or ceiling", "nothing")
 #: :func:`ball_signal`'s disc: the photoreceptors within this many apparent radii of the ball's centre.
 DISC_RADII = 1.1
 #: The ring :func:`ball_signal` compares the ball with: beyond the disc, out to this many apparent radii
@@ -413,6 +414,7 @@ RING_MARGIN_DEG = 1.0
 def _landed_class(name: str | None) -> str:
     from warp_vision.data.foveation_decoys import DECOYS
     from warp_vision.data.foveation_scenes import DISTRACTORS
+    from warp_vision.scene.room import furniture_shape
 
     if name is None:
         return "nothing"
@@ -426,11 +428,11 @@ def _landed_class(name: str | None) -> str:
         return "arm"
     if name == "occluder":
         return "panel"
-    return "furniture" if name.startswith("object_") else "wall, floor or ceiling"
+    return f"furniture: {furniture_shape(name)}" if name.startswith("object_") else "wall, floor or ceiling"
 
 
 def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu", with_onv: bool = False,
-                progress: bool = False) -> dict:
+                progress: bool = False, chance_directions=None) -> dict:
     """How much of each sample's ball its ONV holds: samples ``indices`` of ``cfg`` (v8 or v9) are rendered
     room by room as the dataset has them and again, everything placed alike, with the ball hidden. Per
     sample, in the order of ``indices``:
@@ -444,6 +446,8 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
       photoreceptor sees the ball, NaN where none sees the ring);
     - ``"landed_on"`` [N] str, with ``directions`` ([N, 2] yaw, pitch in the eye frame, radians; a net's
       estimates): the class (:data:`LANDED_ON`) of what each direction from the eye reaches first;
+    - ``"chance_landed_on"`` [N] str, with ``chance_directions`` (the same form): the same for directions that
+      owe nothing to the ONV (for example other samples' targets), what an estimate would land on by chance;
     - ``"onv"`` [N, 3P] float32, with ``with_onv``: the ONVs as rendered (the dataset stores them as float16).
 
     ``progress``: a progress bar over the samples.
@@ -457,10 +461,12 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
     indices = [int(i) for i in indices]
     if len(set(indices)) != len(indices):
         raise ValueError("ball_signal: indices must be distinct")
-    if directions is not None:
-        directions = np.asarray(directions, dtype=np.float64)
-        if directions.shape != (len(indices), 2):
-            raise ValueError(f"directions: expected [{len(indices)}, 2] (yaw, pitch), got {directions.shape}")
+    probes = {}  # out key -> [N, 2] directions followed from the eye
+    for key, name, v in (("landed_on", "directions", directions), ("chance_landed_on", "chance_directions", chance_directions)):
+        if v is not None:
+            probes[key] = np.asarray(v, dtype=np.float64)
+            if probes[key].shape != (len(indices), 2):
+                raise ValueError(f"{name}: expected [{len(indices)}, 2] (yaw, pitch), got {probes[key].shape}")
     where = {i: n for n, i in enumerate(indices)}
     P = retina.P
     seen = gaze_directions(retina.visual_angles(eye))  # [P, 3]; NaN where the chief ray is blocked
@@ -468,16 +474,16 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
     out = {"receptors": np.zeros(len(indices), np.int64), "contrast": np.zeros(len(indices))}
     if with_onv:
         out["onv"] = np.zeros((len(indices), 3 * P), np.float32)
-    if directions is not None:
-        out["landed_on"] = np.empty(len(indices), dtype=object)
+    for key in probes:
+        out[key] = np.empty(len(indices), dtype=object)
     bar = tqdm(total=len(indices), desc="rendering with and without the balls", unit="ONV", disable=not progress)
     for scene, idx, ps in _placed_v8(cfg, indices, device):
         with_ball = _render_placed(cfg, scene, ps, retina, eye, device)
-        if directions is not None:
+        for key, dirs in probes.items():
             for k, (i, p) in enumerate(zip(idx, ps)):
-                d = p["eye_pose"][:3, :3] @ gaze_directions(directions[where[i]])
+                d = p["eye_pose"][:3, :3] @ gaze_directions(dirs[where[i]])
                 _, obj, _ = closest_hit(scene, p["eye_pose"][:3, 3][None], d[None], batch=k, device=device)
-                out["landed_on"][where[i]] = _landed_class(scene.objects[int(obj[0])].name if obj[0] >= 0 else None)
+                out[key][where[i]] = _landed_class(scene.objects[int(obj[0])].name if obj[0] >= 0 else None)
         for name in (o.name for o in scene.objects if o.name.startswith("ball_")):  # place() shows them again
             scene.set_visible(name, False)
         without = _render_placed(cfg, scene, ps, retina, eye, device)

@@ -7,6 +7,17 @@ import numpy as np
 from warp_vision.frames import translation
 from warp_vision.scene.scene import Material, Scene
 
+#: The shapes of :func:`make_room`'s furniture, in turn: ``object_0`` is a box, ``object_1`` a cylinder, ...
+FURNITURE_SHAPES = ("box", "cylinder")
+
+
+def furniture_shape(name: str) -> str:
+    """The shape (:data:`FURNITURE_SHAPES`) of :func:`make_room`'s piece of furniture called ``name``."""
+    prefix, _, number = name.partition("_")
+    if prefix != "object" or not number.isdigit():
+        raise ValueError(f"furniture_shape: {name!r} is not one of make_room's pieces of furniture (object_<n>)")
+    return FURNITURE_SHAPES[int(number) % len(FURNITURE_SHAPES)]
+
 
 def make_room(
     size=(6.0, 6.0, 3.0),
@@ -43,7 +54,7 @@ def make_room(
         col = tuple(float(v) for v in rng.uniform(0.1, 0.9, 3))
         h = float(rng.uniform(0.3, 1.2))
         x, y = rng.uniform(-0.4, 0.4, 2) * np.array([sx, sy])
-        if i % 2 == 0:
+        if furniture_shape(f"object_{i}") == "box":
             w = rng.uniform(0.2, 0.6, 2)
             mesh = trimesh.creation.box((w[0], w[1], h))
         else:

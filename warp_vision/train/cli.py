@@ -139,7 +139,8 @@ def _eval_parser() -> argparse.ArgumentParser:
                    help="with --misses, v8 and v9 runs: render the split again with and without its balls (about 0.1 s "
                         "an ONV on a 2-core CPU) and add the share off per band of photoreceptors that see the ball and "
                         "of its contrast with its surround, and what the estimates land on (the ball, a decoy, a bright "
-                        "object, the arm, the panel, furniture, a wall, the floor or the ceiling)")
+                        "object, the arm, the panel, a box or cylinder of the furniture, a wall, the floor or the ceiling), "
+                        "beside what each class would get by chance (each scene probed along another ball's direction)")
     p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="with --conditions: read the retina CNN out by the consensus of N turned and mirrored views "

@@ -45,7 +45,8 @@ def plot_curves(histories: dict, title: str = "foveation training") -> Figure:
 def plot_misses(rows: list[dict], title: str) -> Figure:
     """:func:`warp_vision.train.foveation.miss_breakdown`'s rows, a panel per group (the scene flags' yes and
     no rows together in one): the share of each bin's balls more than 5 degrees off, on one scale, with
-    the share of all the balls dotted; the group "estimate lands on" as each class's share of the misses."""
+    the share of all the balls dotted; the group "estimate lands on" as each class's share of the misses, with
+    the share landing there by chance marked where the rows carry it."""
     panels: dict[str, list] = {}
     for r in rows:
         flag = r["bin"] in ("yes", "no")
@@ -66,6 +67,10 @@ def plot_misses(rows: list[dict], title: str) -> Figure:
         ax.barh(y, v, color="C3" if landing else "C0", height=0.7)
         if not landing:
             ax.axvline(overall, color="0.3", lw=0.8, ls=":", label=f"all balls: {overall:.1f}%")
+            ax.legend(fontsize=7, loc="lower right")
+        elif any("chance" in r for _, r in items):
+            ax.scatter([100 * r.get("chance", np.nan) for _, r in items], y, marker="|", s=120, color="k", zorder=3,
+                       label="by chance (another ball's direction)")
             ax.legend(fontsize=7, loc="lower right")
         ax.set_yticks(y, [label for label, _ in items], fontsize=8)
         ax.invert_yaxis()

@@ -102,7 +102,8 @@ def miss_breakdown(err_deg, target, meta, columns, signal: dict | None = None) -
     ``meta`` [N, C] with ``columns`` its names (:func:`warp_vision.data.foveation.meta_columns`; v7's
     three have no scene flag but occluded). ``signal``: the samples' :func:`~warp_vision.data.foveation.
     ball_signal` (with the estimates as ``directions``), which adds rows per band of photoreceptors on the
-    ball and of its contrast, and per class of what the estimate lands on."""
+    ball and of its contrast, and per class of what the estimate lands on; with ``chance_landed_on`` as well,
+    those rows carry ``chance``: the share of the chance directions landing on that class."""
     err, meta = np.asarray(err_deg, dtype=np.float64), np.asarray(meta, dtype=np.float64)
     off = err > OFF_DEG
     misses = max(int(off.sum()), 1)
@@ -135,14 +136,19 @@ def miss_breakdown(err_deg, target, meta, columns, signal: dict | None = None) -
                 rows.append(row(group, f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}", (v >= lo) & (v < hi)))
         if "landed_on" in signal:
             landed = np.asarray(signal["landed_on"], dtype=object)
-            rows += [row("estimate lands on", c, landed == c) for c in LANDED_ON]
+            chance = np.asarray(signal["chance_landed_on"], dtype=object) if "chance_landed_on" in signal else None
+            for c in LANDED_ON:
+                rows.append(row("estimate lands on", c, landed == c))
+                if chance is not None:
+                    rows[-1]["chance"] = float((chance == c).mean()) if len(chance) else float("nan")
     return [r for r in rows if r["n"]]
 
 
 def miss_table(rows: list[dict]) -> str:
     """:func:`miss_breakdown`'s rows as a markdown table."""
     lines = [f"| group | bin | ONVs | > {OFF_DEG:g} deg off | share of the misses |", "|---|---|---|---|---|"]
-    lines += [f"| {r['group']} | {r['bin']} | {r['n']:,} | {100 * r['off']:.1f}% | {100 * r['of_misses']:.1f}% |" for r in rows]
+    lines += [f"| {r['group']} | {r['bin']} | {r['n']:,} | {100 * r['off']:.1f}% | {100 * r['of_misses']:.1f}%"
+              + (f" (chance {100 * r['chance']:.1f}%)" if "chance" in r else "") + " |" for r in rows]
     return "\n".join(lines)
 
 
@@ -330,7 +336,10 @@ def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool
         cfg = task.cfg.data_config()
         if cfg.generator < 8:
             raise ValueError(f"signal: generator {cfg.generator}: v8 and v9 runs only (v7's ball glows in a fixed room)")
-        sig = ball_signal(cfg, idx, task.retina, make_eye(cfg), directions=ev["pred"].numpy(), progress=progress)
+        # chance: each scene probed along the next sample's ball direction, drawn as the targets are
+        chance = task.target[torch.as_tensor(np.roll(idx, -1))].numpy()
+        sig = ball_signal(cfg, idx, task.retina, make_eye(cfg), directions=ev["pred"].numpy(), progress=progress,
+                          chance_directions=chance)
     rows = miss_breakdown(ev["err_deg"].numpy(), task.target[torch.as_tensor(idx)].numpy(), meta,
                           meta_columns(task.cfg.generator), signal=sig)
     log(f"where the balls more than {OFF_DEG:g} deg off lie:\n{miss_table(rows)}")
