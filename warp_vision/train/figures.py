@@ -71,7 +71,7 @@ def plot_misses(rows: list[dict], title: str) -> Figure:
         elif any("chance" in r for _, r in items):
             ax.scatter([100 * r.get("chance", np.nan) for _, r in items], y, marker="|", s=120, color="k", zorder=3,
                        label="by chance (another ball's direction)")
-            ax.legend(fontsize=7, loc="lower right")
+            ax.legend(fontsize=7, loc="upper right")  # the first rows' bars (the ball) are short
         ax.set_yticks(y, [label for label, _ in items], fontsize=8)
         ax.invert_yaxis()
         ax.set_xlim(0, 100 if landing else 1.05 * max(top, 1.0))
