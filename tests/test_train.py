@@ -432,3 +432,45 @@ def test_the_liNet_reads_the_stores_float16_onvs_and_float32_stays_available(tmp
     assert abs(half["test_median_deg"] - full["test_median_deg"]) < 0.5, (half, full)
     with pytest.raises(ValueError, match="onv_dtype: the fc baseline reads float32"):
         smoke(tmp_path, smoke_data, model="fc", head="linear", onv_dtype="float16")
+
+
+def test_miss_agreement_tells_shared_misses_from_independent_ones():
+    """Designed estimates: nets A and B miss the same two balls (one on the same wrong thing, one apart);
+    C misses another one; the oracle takes the best net per ball."""
+    target = np.zeros((5, 2))
+    far, other = [0.5, 0.0], [-0.5, 0.0]  # about 29 degrees off, on either side
+    a = np.array([far, far, [0, 0], [0, 0], [0, 0]])
+    b = np.array([far, other, [0, 0], [0.001, 0], [0, 0]])
+    c = np.array([[0, 0], [0, 0], far, [0, 0], [0, 0]])
+    r = foveation.miss_agreement(["a", "b", "c"], [a, b, c], target)
+    assert r["off"] == [0.4, 0.4, 0.2] and r["n"] == 5
+    ab, ac, bc = r["pairs"]
+    assert (ab["a"], ab["b"]) == ("a", "b")
+    assert ab["both"] == 0.4 and ab["shared"] == 1.0 and ab["same_wrong"] == 0.2 and ab["independent"] == pytest.approx(0.16)
+    assert ac["both"] == 0.0 and ac["shared"] == 0.0 and bc["same_wrong"] == 0.0
+    assert r["best_of"] == 0.0  # C finds the first two, A the third
+    assert foveation.miss_agreement(["a", "b"], [a, b], target)["best_of"] == 0.4
+    table = foveation.agreement_table(r)
+    assert "| a | b | 40.0% | 40.0% | 40.0% | 16.0% | 100% | 20.0% |" in table and "oracle): 0.0% of the 5 balls" in table
+    with pytest.raises(ValueError, match="two or more"):
+        foveation.miss_agreement(["a"], [a], target)
+    with pytest.raises(ValueError, match="shaped like"):
+        foveation.miss_agreement(["a", "b"], [a, b[:4]], target)
+
+
+def test_evaluate_agreement_needs_runs_on_one_split(tmp_path, smoke_data, capsys):
+    """A run given twice agrees with itself entirely; runs on different datasets are refused."""
+    foveation.run(smoke(tmp_path, smoke_data, epochs=1), progress=False, log=lambda *a: None)
+    capsys.readouterr()
+    run = str(tmp_path / "run")
+    assert train_main(["evaluate", run, run, "--agreement", "--split", "val"]) == 0
+    out = capsys.readouterr().out
+    assert "| net A | net B |" in out and "an oracle" in out
+    r = foveation.evaluate_agreement([run, run], "val", log=lambda *a: None)
+    assert r["pairs"][0]["both"] == r["off"][0] == r["best_of"] and r["pairs"][0]["same_wrong"] == r["off"][0]
+    other = tmp_path / "other"
+    foveation.run(smoke(other, tmp_path / "data_other", data_seed=1, epochs=1), progress=False, log=lambda *a: None)
+    assert train_main(["evaluate", run, str(other / "run"), "--agreement"]) == 2
+    assert "does not share" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        train_main(["evaluate", run, "--agreement"])

@@ -11,6 +11,7 @@
     python -m warp_vision.train evaluate RUN_DIR --misses                              where a foveation net's misses lie
     python -m warp_vision.train evaluate RUN_DIR --misses --signal                     ... and how much of each ball the ONV holds
     python -m warp_vision.train evaluate RUN_DIR [RUN_DIR ...] --conditions            foveation nets on held-out conditions
+    python -m warp_vision.train evaluate RUN_DIR RUN_DIR [...] --agreement             do foveation nets miss the same balls?
     python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
 """
 
@@ -141,6 +142,11 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "of its contrast with its surround, and what the estimates land on (the ball, a decoy, a bright "
                         "object, the arm, the panel, a box or cylinder of the furniture, a wall, the floor or the ceiling), "
                         "beside what each class would get by chance (each scene probed along another ball's direction)")
+    p.add_argument("--agreement", action="store_true",
+                   help="two or more foveation runs on one dataset: whether they miss the same balls of the split (per "
+                        "pair: both more than 5 degrees off, against what independent nets would give; the share of "
+                        "one's misses the other shares; both on the same wrong thing), and the share off if the best "
+                        "net were taken for every ball")
     p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="with --conditions: read the retina CNN out by the consensus of N turned and mirrored views "
@@ -196,12 +202,19 @@ def _evaluate(argv: list[str]) -> int:
         p.error("--misses: of a run's own split (--split), not with --conditions")
     if a.signal and not a.misses:
         p.error("--signal: a part of --misses")
+    if a.agreement and (a.misses or a.conditions or len(a.run_dirs) < 2):
+        p.error("--agreement: of two or more runs' own split, not with --misses or --conditions")
 
     def job():
         if a.conditions:
             from warp_vision.train.conditions import evaluate_conditions
 
             evaluate_conditions(a.run_dirs, a.samples, progress=not a.no_progress, views=a.views)
+            return
+        if a.agreement:
+            from warp_vision.train.foveation import evaluate_agreement
+
+            evaluate_agreement(a.run_dirs, a.split)
             return
         for run_dir in a.run_dirs:
             cfg_path = Path(run_dir) / "config.json"

@@ -152,6 +152,48 @@ def miss_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def miss_agreement(names, preds, target) -> dict:
+    """Whether several nets miss the same balls: ``preds`` [K] of [N, 2] (yaw, pitch, rad), each net's
+    estimates for the same ``target`` [N, 2]. Returns ``off`` (each net's share more than :data:`OFF_DEG`
+    off), ``pairs`` (per pair: ``both`` off as a share of all, ``independent``, the product of the two shares,
+    what two nets missing independently would give, ``shared``, the share of the first's misses the second
+    also misses, ``same_wrong``, the share of all where both are off and within :data:`OFF_DEG` of each
+    other: the same wrong thing) and ``best_of`` (the share off when, for every ball, the best of the nets
+    is taken: what no way of choosing among them can beat)."""
+    if len(names) != len(preds) or len(names) < 2:
+        raise ValueError(f"miss_agreement: two or more nets, one name each; got {len(names)} names, {len(preds)} estimates")
+    true = torch.as_tensor(np.asarray(target), dtype=torch.float64)
+    pred = [torch.as_tensor(np.asarray(p), dtype=torch.float64) for p in preds]
+    if any(p.shape != true.shape for p in pred):
+        raise ValueError(f"miss_agreement: every net's estimates must be shaped like the targets {tuple(true.shape)}")
+    err = [angular_error_deg(p, true).double().numpy() for p in pred]
+    off = [e > OFF_DEG for e in err]
+    pairs = []
+    for a in range(len(names)):
+        for b in range(a + 1, len(names)):
+            near = angular_error_deg(pred[a], pred[b]).double().numpy() <= OFF_DEG
+            both = off[a] & off[b]
+            pairs.append({"a": names[a], "b": names[b], "both": float(both.mean()),
+                          "independent": float(off[a].mean() * off[b].mean()),
+                          "shared": float(both.sum() / off[a].sum()) if off[a].any() else float("nan"),
+                          "same_wrong": float((both & near).mean())})
+    return {"names": list(names), "n": len(true), "off": [float(o.mean()) for o in off], "pairs": pairs,
+            "best_of": float((np.min(err, axis=0) > OFF_DEG).mean())}
+
+
+def agreement_table(r: dict) -> str:
+    """:func:`miss_agreement`'s pairs as a markdown table, its best-of line below."""
+    lines = [f"| net A | net B | A off | B off | both off | if independent | A's misses B shares | the same wrong thing |",
+             "|---|---|---|---|---|---|---|---|"]
+    off = dict(zip(r["names"], r["off"]))
+    for q in r["pairs"]:
+        lines.append(f"| {q['a']} | {q['b']} | {100 * off[q['a']]:.1f}% | {100 * off[q['b']]:.1f}% | {100 * q['both']:.1f}% | "
+                     f"{100 * q['independent']:.1f}% | {100 * q['shared']:.0f}% | {100 * q['same_wrong']:.1f}% |")
+    lines.append(f"the best of the {len(r['names'])} nets for every ball (an oracle): {100 * r['best_of']:.1f}% of the "
+                 f"{r['n']:,} balls more than {OFF_DEG:g} deg off")
+    return "\n".join(lines)
+
+
 class FoveationTask(harness.OnvTask):
     name = "foveation"
     config_cls = TrainConfig
@@ -311,6 +353,30 @@ def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = Fa
         raise ValueError("signal: a part of the misses' breakdown; pass misses=True too")
     detail = (lambda task, idx, ev, log: _misses(task, idx, ev, log, run_dir, split, signal, progress)) if misses else None
     return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=detail)
+
+
+def evaluate_agreement(run_dirs, split: str = "test", log=print) -> dict:
+    """Whether foveation runs trained on one dataset miss the same balls of its ``split``
+    (:func:`miss_agreement`; each run's best checkpoint, read out as it is for its test)."""
+    if len(run_dirs) < 2:
+        raise ValueError("agreement: give two or more runs")
+    got = []
+    for run_dir in run_dirs:
+        def keep(task, idx, ev, log):
+            got.append((str(Path(task.ddir).resolve()), np.asarray(idx), ev["pred"].numpy(),
+                        task.target[torch.as_tensor(np.asarray(idx))].numpy()))
+            return {}
+
+        harness.evaluate_run(FoveationTask, run_dir, split, log, detail=keep)
+    for run_dir, (ddir, idx, _, _) in zip(run_dirs[1:], got[1:]):
+        if ddir != got[0][0] or not np.array_equal(idx, got[0][1]):
+            raise ValueError(f"agreement: {run_dir} does not share {run_dirs[0]}'s dataset and {split} split "
+                             f"({ddir} against {got[0][0]}): the nets must see the same balls")
+    short = [Path(r).name for r in run_dirs]
+    names = short if len(set(short)) == len(short) else [str(r) for r in run_dirs]
+    r = miss_agreement(names, [g[2] for g in got], got[0][3])
+    log(f"whether the nets miss the same balls ({split}, {r['n']:,} ONVs; more than {OFF_DEG:g} deg off):\n{agreement_table(r)}")
+    return r
 
 
 def write_miss_figure(run_dir, split: str, rows: list[dict], n: int) -> Path:
