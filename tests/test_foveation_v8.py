@@ -192,6 +192,7 @@ def test_furniture_shape_names_each_piece_of_a_room():
         assert (len(o.mesh.vertices) == 8) == (furniture_shape(o.name) == "box"), o.name
     assert [furniture_shape(o.name) for o in pieces] == ["box", "cylinder", "box", "cylinder", "box"]
     assert F._landed_class("object_1") == "furniture: cylinder" and F._landed_class("wall_north") == "wall, floor or ceiling"
+    assert [F._landed_class(n) for n in ("decoy_barrel", "decoy_drum", "decoy_plate")] == ["decoy: barrel", "decoy: drum", "decoy: plate"]
     for bad in ("wall_north", "object_", "object_x"):
         with pytest.raises(ValueError, match="furniture"):
             furniture_shape(bad)

@@ -335,7 +335,7 @@ def test_the_misses_are_broken_down_by_the_balls_signal_and_where_the_estimates_
     meta = np.zeros((4, len(META_V9)), np.float32)
     meta[:, 0], meta[:, 1] = 2.0, 0.1
     signal = {"receptors": np.array([3, 50, 12, 400]), "contrast": np.array([0.03, 0.5, np.nan, 20.0]),
-              "landed_on": np.array(["furniture: box", "ball", "decoy", "ball"], dtype=object)}
+              "landed_on": np.array(["furniture: box", "ball", "decoy: plate", "ball"], dtype=object)}
     rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9, signal=signal)}
     assert rows[("photoreceptors on the ball", "0-5")] == {"group": "photoreceptors on the ball", "bin": "0-5", "n": 1,
                                                            "off": 1.0, "of_misses": 0.5}
@@ -343,14 +343,14 @@ def test_the_misses_are_broken_down_by_the_balls_signal_and_where_the_estimates_
     assert rows[("ball's contrast", "0-0.05")]["n"] == 2 and rows[("ball's contrast", "0-0.05")]["of_misses"] == 1.0
     assert rows[("ball's contrast", ">= 10")]["off"] == 0.0
     assert rows[("estimate lands on", "ball")] == {"group": "estimate lands on", "bin": "ball", "n": 2, "off": 0.0, "of_misses": 0.0}
-    assert rows[("estimate lands on", "decoy")]["off"] == 1.0 and ("estimate lands on", "arm") not in rows
+    assert rows[("estimate lands on", "decoy: plate")]["off"] == 1.0 and ("estimate lands on", "arm") not in rows
     assert rows[("estimate lands on", "furniture: box")]["of_misses"] == 0.5 and ("estimate lands on", "furniture: cylinder") not in rows
     assert all("chance" not in r for r in rows.values())
-    chance = np.array(["wall, floor or ceiling", "wall, floor or ceiling", "decoy", "furniture: box"], dtype=object)
+    chance = np.array(["wall, floor or ceiling", "wall, floor or ceiling", "decoy: plate", "furniture: box"], dtype=object)
     rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9,
                                                                          signal={**signal, "chance_landed_on": chance})}
-    assert rows[("estimate lands on", "decoy")]["chance"] == 0.25 and rows[("estimate lands on", "ball")]["chance"] == 0.0
-    assert "| 50.0% (chance 25.0%) |" in foveation.miss_table([rows[("estimate lands on", "decoy")]])
+    assert rows[("estimate lands on", "decoy: plate")]["chance"] == 0.25 and rows[("estimate lands on", "ball")]["chance"] == 0.0
+    assert "| 50.0% (chance 25.0%) |" in foveation.miss_table([rows[("estimate lands on", "decoy: plate")]])
     assert "chance" not in rows[("ball's contrast", ">= 10")] and "chance" not in foveation.miss_table([rows[("ball's contrast", ">= 10")]])
     b = foveation.barely_seen(err, signal)  # the first (3 photoreceptors) and third (NaN contrast) are barely seen
     assert b == {"share": 0.5, "off": 1.0, "of_misses": 1.0, "others_off": 0.0}

@@ -401,8 +401,8 @@ def _placed_v8(cfg: FoveationDataConfig, indices, device: str = "cpu"):
 
 
 #: What a line of sight from the eye can reach first, by class (:func:`ball_signal`'s ``landed_on``).
-LANDED_ON = ("ball", "decoy", "bright object", "arm", "panel", "furniture: box", "furniture: cylinder",
-             "wall, floor or ceiling", "nothing")
+LANDED_ON = ("ball", "decoy: barrel", "decoy: drum", "decoy: plate", "bright object", "arm", "panel", "furniture: box",
+             "furniture: cylinder", "wall, floor or ceiling", "nothing")
 #: :func:`ball_signal`'s disc: the photoreceptors within this many apparent radii of the ball's centre.
 DISC_RADII = 1.1
 #: The ring :func:`ball_signal` compares the ball with: beyond the disc, out to this many apparent radii
@@ -421,7 +421,7 @@ def _landed_class(name: str | None) -> str:
     if name.startswith("ball_"):
         return "ball"
     if name in DECOYS:
-        return "decoy"
+        return f"decoy: {name.removeprefix('decoy_')}"
     if name in DISTRACTORS:
         return "bright object"
     if name.startswith("arm_"):
