@@ -350,9 +350,15 @@ def _render_v8(cfg: FoveationDataConfig, indices, retina, eye, device: str = "cp
         out["target"].append(np.stack([p["target"] for p in ps]))
         out["meta"].append(np.stack([p["meta"] for p in ps]))
         order += idx
-    row = {i: r for r, i in enumerate(order)}  # rendered room by room; returned in the order of ``indices``
+    return in_order(out, order, indices)
+
+
+def in_order(parts: dict, order: list, indices) -> dict:
+    """``parts`` ({field: [row blocks]}) rendered group by group, their rows the samples ``order``, as one
+    array per field whose rows follow ``indices`` (each of them in ``order``)."""
+    row = {i: r for r, i in enumerate(order)}
     take = [row[int(i)] for i in indices]
-    return {k: np.concatenate(v)[take] for k, v in out.items()}
+    return {k: np.concatenate(v)[take] for k, v in parts.items()}
 
 
 def _placed_v8(cfg: FoveationDataConfig, indices, device: str = "cpu"):

@@ -117,7 +117,7 @@ def pupil_fields(cfg: PupilDataConfig) -> dict:
 def render_pupil_samples(cfg: PupilDataConfig, indices, retina, device: str = "cpu") -> dict:
     """Samples ``indices``: the rendered ONV, its exposure, the current pupil (mm), the adapting luminance;
     rendered a room block at a time (each block has its own pupil), the rows in the order of ``indices``."""
-    from warp_vision.data.foveation import _render_v8
+    from warp_vision.data.foveation import _render_v8, in_order
     from warp_vision.data.foveation_scenes import ROOM_BLOCK
     from warp_vision.eye.optics import NavarroEye
     from warp_vision.eye.pupil import adapting_luminance
@@ -136,9 +136,7 @@ def render_pupil_samples(cfg: PupilDataConfig, indices, retina, device: str = "c
         out["pupil"].append(np.full(len(idx), d, np.float32))
         out["luminance"].append(lum.astype(np.float32))
         order += idx
-    row = {i: r for r, i in enumerate(order)}
-    take = [row[i] for i in indices]
-    return {k: np.concatenate(v)[take] for k, v in out.items()}
+    return in_order(out, order, indices)
 
 
 def synthesize_pupil(out_dir, cfg: PupilDataConfig, shard=(0, 1), batch: int = 16, device: str = "cpu",

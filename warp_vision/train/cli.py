@@ -139,9 +139,10 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--signal", action="store_true",
                    help="with --misses, v8 and v9 runs: render the split again with and without its balls (about 0.1 s "
                         "an ONV on a 2-core CPU) and add the share off per band of photoreceptors that see the ball and "
-                        "of its contrast with its surround, and what the estimates land on (the ball, a decoy, a bright "
-                        "object, the arm, the panel, a box or cylinder of the furniture, a wall, the floor or the ceiling; decoys by kind), "
-                        "beside what each class would get by chance (each scene probed along another ball's direction)")
+                        "of its contrast with its surround, and what the estimates land on (the ball, a decoy by kind, "
+                        "a bright object, the arm, the panel, a box or cylinder of the furniture, a wall, the floor or "
+                        "the ceiling), beside what each class would get by chance (each scene probed along another "
+                        "ball's direction)")
     p.add_argument("--agreement", action="store_true",
                    help="two or more foveation runs on one dataset: whether they miss the same balls of the split (per "
                         "pair: both more than 5 degrees off, against what independent nets would give; the share of "

@@ -84,11 +84,13 @@ BARELY_CONTRAST = 0.05
 
 def barely_seen(err_deg, signal: dict) -> dict:
     """The balls the ONV barely holds (fewer than :data:`BARELY_RECEPTORS` photoreceptors see them, or their
-    contrast is under :data:`BARELY_CONTRAST`, or NaN: no ring around them seen): their share of the balls (``share``), the share of them
-    more than :data:`OFF_DEG` off (``off``), their share of all the misses (``of_misses``), and the misses
-    among the other balls as a share of all balls (``others_off``): the least a net must find of the rest."""
+    contrast is under :data:`BARELY_CONTRAST`, or NaN: no ring around them seen): their share of the balls
+    (``share``), the share of them more than :data:`OFF_DEG` off (``off``), their share of all the misses
+    (``of_misses``), and the misses among the other balls as a share of all balls (``others_off``): the
+    least a net must find of the rest."""
     err = np.asarray(err_deg, np.float64)
-    weak = (np.asarray(signal["receptors"]) < BARELY_RECEPTORS) | (np.nan_to_num(np.asarray(signal["contrast"], np.float64), nan=0.0) < BARELY_CONTRAST)
+    contrast = np.nan_to_num(np.asarray(signal["contrast"], np.float64), nan=0.0)
+    weak = (np.asarray(signal["receptors"]) < BARELY_RECEPTORS) | (contrast < BARELY_CONTRAST)
     off = err > OFF_DEG
     n = max(len(err), 1)
     return {"share": float(weak.sum()) / n, "off": float(off[weak].mean()) if weak.any() else float("nan"),
@@ -183,7 +185,7 @@ def miss_agreement(names, preds, target) -> dict:
 
 def agreement_table(r: dict) -> str:
     """:func:`miss_agreement`'s pairs as a markdown table, its best-of line below."""
-    lines = [f"| net A | net B | A off | B off | both off | if independent | A's misses B shares | the same wrong thing |",
+    lines = ["| net A | net B | A off | B off | both off | if independent | A's misses B shares | the same wrong thing |",
              "|---|---|---|---|---|---|---|---|"]
     off = dict(zip(r["names"], r["off"]))
     for q in r["pairs"]:
