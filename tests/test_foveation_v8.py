@@ -26,7 +26,7 @@ def test_v7_stays_reproducible_by_its_version():
     m = v7.manifest()
     assert m["generator_version"] == 7 and "rooms" not in m and "condition" not in m and "generator" not in m
     assert v7.key() == "b804806c800c"  # the key v7 gave this config (the default left eye's 8,000 ONVs)
-    assert FoveationDataConfig().manifest()["generator_version"] == 7  # still the default (README: why)
+    assert FoveationDataConfig().manifest()["generator_version"] == 7  # still the default (docs/RESULTS.md: why)
     assert FoveationDataConfig(samples=8000, generator=8).key() != v7.key()
 
 

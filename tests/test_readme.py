@@ -1,5 +1,6 @@
 """The README's snippets run: every ```python block executes as written, and every command line of a
-```bash block names a command and flags that exist (its --help parses them)."""
+```bash block, in the README and in docs/RESULTS.md (the commands behind the measurements), names a
+command and flags that exist (its --help parses them)."""
 
 from __future__ import annotations
 
@@ -13,16 +14,17 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
+RESULTS = (ROOT / "docs" / "RESULTS.md").read_text()
 
 
-def blocks(lang: str) -> list[str]:
-    return re.findall(rf"^```{lang}\n(.*?)^```", README, flags=re.S | re.M)
+def blocks(lang: str, text: str = README) -> list[str]:
+    return re.findall(rf"^```{lang}\n(.*?)^```", text, flags=re.S | re.M)
 
 
-def commands() -> list[list[str]]:
-    """``python -m warp_vision.X ...`` lines of the bash blocks (comments dropped), as argv lists."""
+def commands(text: str = README) -> list[list[str]]:
+    """``python -m warp_vision.X ...`` lines of the bash blocks of ``text`` (comments dropped), as argv lists."""
     out = []
-    for block in blocks("bash"):
+    for block in blocks("bash", text):
         for line in block.splitlines():
             line = line.split("#", 1)[0].strip()
             if "warp_vision." in line and line.startswith(("python -m", "torchrun")):
@@ -32,6 +34,7 @@ def commands() -> list[list[str]]:
 
 def test_the_readme_has_snippets():
     assert len(blocks("python")) >= 2 and len(commands()) >= 10
+    assert len(commands(RESULTS)) >= 10
 
 
 @pytest.mark.parametrize("k", range(len(blocks("python"))))
@@ -51,7 +54,7 @@ def _help_argv(argv: list[str]) -> list[str]:
     return [sys.executable, "-m", module, *sub, "--help"]
 
 
-@pytest.mark.parametrize("argv", commands(), ids=lambda a: " ".join(a)[:60])
+@pytest.mark.parametrize("argv", commands() + commands(RESULTS), ids=lambda a: " ".join(a)[:60])
 def test_bash_command_exists(argv, tmp_path):
     """The command and subcommand exist, and each --flag the README passes is in its --help."""
     r = subprocess.run(_help_argv(argv), cwd=ROOT, capture_output=True, text=True, timeout=300)

@@ -342,7 +342,7 @@ def test_bfloat16_training_matches_float32_to_bfloat16_precision_and_inference_s
     """The reference is the same net in float32: the bfloat16 pass's logits agree with it to bfloat16's
     precision (and differ from it: the autocast did run), its gradients in direction. Their norms differ by
     10-30% on this random 4-channel net: batch norm's and the heat map softmax's gradients are small sums of
-    cancelling terms, each rounded to 8 bits (measured; the training run in README is the check that
+    cancelling terms, each rounded to 8 bits (measured; the training run in docs/RESULTS.md is the check that
     matters: the same MSE epoch by epoch). In eval mode the precision is ignored."""
     angles = Retina.log_polar(3000, seed=1).visual_angles()
     torch.manual_seed(0)

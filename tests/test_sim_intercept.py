@@ -1,7 +1,7 @@
 """``python -m warp_vision.sim intercept``: its arguments, the nets it provides, its figures and frames.
 
 Nothing here simulates a shot in the closed loop or trains a net: the command's runs are minutes long
-(README). What needs trained nets skips, with the reason, where they are absent.
+(docs/RESULTS.md). What needs trained nets skips, with the reason, where they are absent.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The foveation CNN's read-out: inference time of the consensus of N views against the plain image's, in
-float32 (what inference runs in) and under bfloat16 autocast (the alternative, not adopted: README,
+float32 (what inference runs in) and under bfloat16 autocast (the alternative, not adopted: docs/RESULTS.md,
 "bfloat16 inference"; here the whole call runs under it, read-out included, whose cost is negligible),
 and the binning of the views' images (one CSR product) against an ``index_add_`` of the same entries
 (what it replaced).

@@ -20,7 +20,7 @@ does not depend on the batch, chunk or shard that renders it: the same seed give
 
 ONVs are stored as float16, which halves the dataset: the relative rounding error is at most 2^-11
 (4.9e-4), which moves the net's standardised inputs by at most 0.003 of their spread, and a trained
-foveation net's predictions by far less than its error (README has the measurement).
+foveation net's predictions by far less than its error (docs/RESULTS.md has the measurement).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ BALL_RADII = tuple(float(r) for r in np.geomspace(0.04, 0.2, 8))
 #: as in the paper's set-up (Fig. 7: a white ball on a dark retina) rather than one grey among many: a
 #: point lamp's inverse-square fall-off otherwise makes a wall near the lamp brighter than a lit ball
 #: far from it. With the room's full albedo and no emission the brightest photoreceptor missed the ball
-#: in most samples; with these values it nearly always lies on it (README has the measurement).
+#: in most samples; with these values it nearly always lies on it (docs/RESULTS.md has the measurement).
 ROOM_ALBEDO = 0.1
 BALL_EMISSION = 2.0
 _HIDDEN = np.array([0.0, 0.0, -10.0])

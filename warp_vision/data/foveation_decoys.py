@@ -2,7 +2,7 @@
 are not the ball.
 
 v8's nets take a cannon's muzzle seen end-on (a dark disc of about the ball's apparent size) for the ball
-(README, "Ordinary objects": in the cannon scenario the right eye fixated the muzzle for 0.45 s). v8
+(docs/RESULTS.md, "Ordinary objects": in the cannon scenario the right eye fixated the muzzle for 0.45 s). v8
 never shows them a round thing that is not a sphere, so nothing in their data tells a disc from a ball.
 v9 adds, in a share of the samples, one or two **decoys**: solid cylinders (a cannon-like barrel, a
 drum, a thin plate) of everyday albedo, mostly seen end-on (their axis within 25 degrees of the line of

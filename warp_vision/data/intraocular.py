@@ -185,7 +185,7 @@ EYE_RAY_SEED = 0
 #: set of textures (same geometry, so the cards' BVHs are built once) every TEXTURE_SET_BLOCKS blocks of
 #: 16 samples: the default 16,000 samples see 400 textures. The texel's angular size (card size / CARD_VERTICES / d)
 #: tells the distance within a size bin; the nets are therefore not given the accommodation, which with
-#: the distance would give the defocus away (README: measured).
+#: the distance would give the defocus away (docs/RESULTS.md: measured).
 CARD_SIZES_M = tuple(float(s) for s in 3 * 0.021 * 1.58 ** np.arange(8))
 CARD_TEXTURES = 2
 CARD_VERTICES = 384
@@ -206,7 +206,7 @@ class LensDataConfig:
     eye: str = "left"
     #: S rays per photoreceptor and channel: the loop renders the lens net's central field at its data's S.
     #: With the foveation ONV's 4, a blurred image is sampled at too few pupil points to tell its blur
-    #: apart (README: 0.28 D held-out against 0.16 D at 8)
+    #: apart (docs/RESULTS.md: 0.28 D held-out against 0.16 D at 8)
     samples_per_receptor: int = 8
     central_deg: float = 2.0  # only photoreceptors within this eccentricity are rendered and read
     defocus_range_D: float = 2.5  # |accommodation - the card's vergence| up to this

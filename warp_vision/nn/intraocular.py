@@ -190,7 +190,7 @@ class LensNet(torch.nn.Module):
 
     The central field is rendered for this net with ``samples_per_receptor`` rays per photoreceptor and
     channel (the lens data's, more than the foveation ONV's 4: with 4 pupil points a blurred image is
-    sampled too sparsely to tell its blur apart, README), so it is usually given just those photoreceptors
+    sampled too sparsely to tell its blur apart, docs/RESULTS.md), so it is usually given just those photoreceptors
     (``central_only``)."""
 
     def __init__(self, domain_xy: np.ndarray, central: np.ndarray, photoreceptors: int, hidden: int = 64,

@@ -3,7 +3,7 @@
 The liNet (:mod:`warp_vision.nn.linet`) gives every connection its own weight and, on generator v8's
 ordinary balls among furniture, lamps and arms, memorises its training set; the stencil convolution on
 the irregular layout (:mod:`warp_vision.nn.retina_conv`) shares its weights but stays shallow and coarse
-(README has both measurements). This module takes the route of image detectors instead:
+(docs/RESULTS.md has both measurements). This module takes the route of image detectors instead:
 
 - **Resampling** (fixed, no weights). The ONV is binned onto a ``size`` x ``size`` image whose pixel at
   (u, v) in [-1, 1]^2 shows the direction at eccentricity ``max_ecc * |(u, v)| ** power`` and polar
@@ -54,7 +54,7 @@ WINDOW_DEG = 6.0
 ROTATIONS = 24
 #: The foveation CNN's read-out at inference (eval mode): the ball's direction found in this many views
 #: (:func:`consensus_transforms`) and mapped back, then the mean of the directions within CONSENSUS_DEG of
-#: the view that most others agree with. Measured on held-out conditions (README "Decoys"): every median
+#: the view that most others agree with. Measured on held-out conditions (docs/RESULTS.md "Decoys"): every median
 #: lower than one view's, and fewer balls missed (a view caught by a decoy is outvoted).
 CONSENSUS_VIEWS = 8
 CONSENSUS_DEG = 2.0

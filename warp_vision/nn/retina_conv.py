@@ -4,7 +4,7 @@ A liNet (:mod:`warp_vision.nn.linet`) gives every connection its own weight. Tha
 cheap, and what makes it learn "where is the brightest blob" from a few thousand ONVs; but a target that
 is defined by its *shape* (an ordinary ball among furniture, lamps and arms, generator v8) must then be
 learnt anew at every place on the retina, and a liNet trained on 8,000 v8 ONVs memorises its training
-set without generalising (README has the measurement). This module is the weight-shared alternative:
+set without generalising (docs/RESULTS.md has the measurement). This module is the weight-shared alternative:
 
 - **Sites.** Layer 0's sites are the photoreceptors (3 channels each: the ONV's element 3p + c). Layer
   h's sites are every ``stride``-th of layer h - 1's, drawn with a seeded generator, so each layer keeps

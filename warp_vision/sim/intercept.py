@@ -344,7 +344,7 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
 FIXATE_S = 0.4
 #: ``sim intercept`` renders every INTERCEPT_FRAME_EVERY control periods: 50 frames a second. A fast shot
 #: leaves the ranging gate after about 0.13 s of its 0.2-0.3 s flight; at 25 frames a second that is
-#: four observations (measured on 50 held-out shots: 38 deflected at 25 Hz, 42 at 50 Hz; README)
+#: four observations (measured on 50 held-out shots: 38 deflected at 25 Hz, 42 at 50 Hz; docs/RESULTS.md)
 INTERCEPT_FRAME_EVERY = 2
 
 

@@ -49,7 +49,7 @@ CONTROL_DT = 0.01  # s
 #: The eyes render (and the foveation nets run) every FRAME_EVERY control periods: 25 frames a second.
 #: Human visual latency is 50-100 ms and flicker fusion in the periphery 20-60 Hz. At 40 ms a frame the
 #: loop renders a quarter as often; its saccades are as fast as with a frame every period, its tracking
-#: errors somewhat larger (``python -m warp_vision.bench loop`` measures both; README has the numbers).
+#: errors somewhat larger (``python -m warp_vision.bench loop`` measures both; docs/RESULTS.md has the numbers).
 FRAME_EVERY = 4
 SACCADE_DEG = 2.0
 EYE_MODEL_TAU = 0.03  # s
@@ -57,7 +57,7 @@ LEAD = 0.03  # s
 #: The bias integrator's gain per period: a time constant of 0.5 s. It takes out the muscles' static error,
 #: which changes slowly with the gaze; at 0.05 (0.2 s) it also integrated the foveation nets' frame-to-frame
 #: error, and at 25 frames a second (a gain of 0.2 a frame) set the gaze oscillating about the ball at about
-#: 5 Hz (``python -m warp_vision.bench loop``; README has the numbers).
+#: 5 Hz (``python -m warp_vision.bench loop``; docs/RESULTS.md has the numbers).
 BIAS_GAIN = 0.02
 VELOCITY_SMOOTHING = 0.15  # weight of the newest velocity sample in its running estimate
 MAX_TARGET_SPEED = np.radians(90.0)  # rad/s: the velocity estimate is clipped to this

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 from warp_vision.body import SIDES
 
-#: Wall minutes of each training on the 2-core reference CPU (measured; README has the runs): the
+#: Wall minutes of each training on the 2-core reference CPU (measured; docs/RESULTS.md has the runs): the
 #: foveation net's dataset synthesis plus its training, the oculomotor net's holding-activation dataset
 #: plus its training, the pupil and lens nets' datasets plus their training (the lens net's first run on
 #: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards); an arm's

@@ -227,7 +227,7 @@ FOCUS_PHASES = ((1.5, 2.0), (2.0, 1.0 / 3.0), (2.0, 2.0))
 FOCUS_TOLERANCE_D = 0.25
 #: The cards' texture seed: none of the lens datasets' (their seeds are 0 and 1000).
 FOCUS_CARD_SEED = 2024
-#: The goal a focus step is measured against (README): in focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
+#: The goal a focus step is measured against (docs/RESULTS.md): in focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
 FOCUS_GOAL_S = 1.2
 
 

@@ -170,7 +170,7 @@ PRESETS: dict[str, dict] = {
     "quick": dict(samples=2000, epochs=12, patience=12, generator=9, model="cnn", lr=2e-3),
     # the default run: the retina CNN on generator v9, about 11.7 minutes on a 2-core CPU that trains it in
     # bfloat16, 14.6 in float32 (12,000 ONVs of P=14,400, S=4 rendered in about 4.5 by two processes; 20 epochs
-    # of about 20 s, 29 in float32: README "20 epochs", fewer balls missed than with 12, and "bfloat16
+    # of about 20 s, 29 in float32: docs/RESULTS.md "20 epochs", fewer balls missed than with 12, and "bfloat16
     # training"). v7's liNet: --generator 7 --model linet --lr 0.001 --epochs 40 --samples 8000
     "default": dict(generator=9, model="cnn", samples=12_000, lr=2e-3, epochs=20),
     # the paper's set-up on v9: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64

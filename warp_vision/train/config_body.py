@@ -197,6 +197,6 @@ LIMB_PRESETS: dict[str, dict] = {
     "quick": dict(samples=2000, heldout_samples=300, model="range", lr=2e-3, epochs=12, patience=12),
     # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training, 3.2
     # with bfloat16; 9-11 measured):
-    # the ranging net (the ONV-only nets find the ball but not the hands: README)
+    # the ranging net (the ONV-only nets find the ball but not the hands: docs/RESULTS.md)
     "default": dict(model="range", lr=2e-3, epochs=24, patience=24),
 }

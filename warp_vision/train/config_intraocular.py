@@ -111,6 +111,6 @@ LENS_PRESETS: dict[str, dict] = {
                   epochs=2, patience=2),
     # a first look (``python -m warp_vision.sim demo --quick``)
     "quick": dict(samples=2000, heldout_samples=400, epochs=80, patience=80),
-    # about 13 minutes per eye on a 2-core CPU (README: why 16,000 ONVs rather than 6,000)
+    # about 13 minutes per eye on a 2-core CPU (docs/RESULTS.md: why 16,000 ONVs rather than 6,000)
     "default": {},
 }

@@ -18,7 +18,7 @@ shots training never saw), and by distance.
 ``--model range`` (:class:`warp_vision.nn.retina_cnn.RetinaCNNRangeNet`): the net reads the ball's
 distance from the eye (log m) on the same ONVs, those whose ball lies within
 :data:`~warp_vision.nn.retina_cnn.RANGE_GATE_DEG` of the line of sight. The nets above find the ball but
-not the hands (README: the hands are dim, thin and peripheral, and every ONV-only net stays at chance on
+not the hands (docs/RESULTS.md: the hands are dim, thin and peripheral, and every ONV-only net stays at chance on
 them), so the loop's limb vision (:class:`warp_vision.sim.limb.LimbVision`) puts the discrepancy
 together: the ball's direction from the eye's foveation net, its distance from this net, the hand from
 proprioception. The loss is a Huber loss on the standardised log distance; the best epoch has the
