@@ -363,12 +363,13 @@ def evaluate_agreement(run_dirs, split: str = "test", log=print) -> dict:
     if len(run_dirs) < 2:
         raise ValueError("agreement: give two or more runs")
     got = []
-    for run_dir in run_dirs:
-        def keep(task, idx, ev, log):
-            got.append((str(Path(task.ddir).resolve()), np.asarray(idx), ev["pred"].numpy(),
-                        task.target[torch.as_tensor(np.asarray(idx))].numpy()))
-            return {}
 
+    def keep(task, idx, ev, log):
+        got.append((str(Path(task.ddir).resolve()), np.asarray(idx), ev["pred"].numpy(),
+                    task.target[torch.as_tensor(np.asarray(idx))].numpy()))
+        return {}
+
+    for run_dir in run_dirs:
         harness.evaluate_run(FoveationTask, run_dir, split, log, detail=keep)
     for run_dir, (ddir, idx, _, _) in zip(run_dirs[1:], got[1:]):
         if ddir != got[0][0] or not np.array_equal(idx, got[0][1]):
