@@ -398,3 +398,48 @@ def test_precision_bfloat16_is_the_cnns_alone_and_old_runs_read_as_float32(tmp_p
                           (LimbTask, resolve("smoke", {"model": "cnn"}, LimbTrainConfig, LIMB_PRESETS))):
         old = {k: v for k, v in asdict(cfg).items() if k != "precision"}
         assert cfg.precision == "auto" and run_config(task_cls, tmp_path, {"config": old}).precision == "float32"
+
+
+@pytest.mark.parametrize("no_augment", [False, True])
+def test_training_batches_are_turned_and_mirrored_unless_no_augment(monkeypatch, no_augment):
+    """Each training batch goes through the net in four groups, each binned through a random turn or mirror
+    with its targets turned alike; ``--no-augment`` bins every group as the plain image, targets as they are."""
+    from warp_vision.train import foveation
+    from warp_vision.train.config import resolve
+
+    cfg = resolve("smoke", {"model": "cnn", "no_augment": no_augment or None})
+    task = foveation.FoveationTask(cfg, log=lambda *a: None)
+    task.target = torch.tensor([[0.1 * i, -0.05 * i] for i in range(8)])
+    task.onv16 = torch.zeros(8, 6)
+    monkeypatch.setattr(foveation, "net_input", lambda onv, *a: onv.float())
+    seen = {}
+
+    class Spy(torch.nn.Module):
+        transform_targets = staticmethod(lambda t, k: t + k)  # a turn that moves every target by k
+
+        def forward(self, x, transform=0, with_logits=False):
+            seen["ks"] = transform
+            return torch.zeros(len(x), 2, requires_grad=True), torch.zeros(len(x), 4)
+
+        def heatmap_loss(self, logits, true):
+            seen["true"] = true
+            return torch.zeros(())
+
+    torch.manual_seed(3)
+    task.batch_loss(Spy(), torch.arange(8), {"target_mean": torch.zeros(2), "target_std": torch.ones(2)}, "cpu")
+    ks = seen["ks"]
+    assert len(ks) == 4
+    expected = torch.cat([task.target[2 * g : 2 * g + 2] + k for g, k in enumerate(ks)])
+    assert torch.equal(seen["true"], expected)
+    if no_augment:
+        assert ks == [0, 0, 0, 0] and torch.equal(seen["true"], task.target)
+    else:
+        assert all(0 <= k < 2 * ROTATIONS for k in ks) and any(k != 0 for k in ks)
+
+
+def test_no_augment_is_the_cnns_alone():
+    from warp_vision.train.config import resolve
+
+    with pytest.raises(ValueError, match="no_augment"):
+        resolve("smoke", {"no_augment": True})  # the smoke preset's liNet
+    assert resolve("smoke", {"model": "cnn", "no_augment": True}).no_augment

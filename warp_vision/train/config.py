@@ -100,6 +100,7 @@ class TrainConfig:
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units (conv: of its sites)
     channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
+    no_augment: bool = False  # cnn only: train on the plain image alone, without the turned and mirrored copies (an ablation: the net then memorises its training set, docs/RESULTS.md "Where the paper's MSE goal stands")
     views: int = 8  # cnn only: its read-out at inference (the test, evaluate, the simulation; the epochs' validation reads one view) is the consensus of this many turned and mirrored views (nn/retina_cnn.py: CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
     # optimisation
     init: str = ""  # a foveation run directory whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
@@ -157,6 +158,8 @@ class TrainConfig:
             raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
         if self.channels < 1:
             raise ValueError(f"channels: expected a positive integer, got {self.channels}")
+        if self.no_augment and self.model != "cnn":
+            raise ValueError(f"no_augment: the turned and mirrored copies are the cnn's; the {self.model} net trains without them")
         from warp_vision.nn.retina_cnn import consensus_transforms
 
         consensus_transforms(self.views)  # (validates: 1 to 48, the turns plain and mirrored)

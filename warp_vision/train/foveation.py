@@ -266,12 +266,15 @@ class FoveationTask(harness.OnvTask):
 
     def _cnn_batch_loss(self, net, idx, norm, device, groups: int = 4):
         """The cnn's loss: the batch in ``groups`` consecutive groups, each binned through a random
-        augmentation with its targets turned alike, in one forward pass (one pass under DDP, and batch
-        norm sees the whole batch)."""
+        augmentation with its targets turned alike (``cfg.no_augment``: every group the plain image), in one
+        forward pass (one pass under DDP, and batch norm sees the whole batch)."""
         from warp_vision.nn.retina_cnn import ROTATIONS
 
         inner = getattr(net, "module", net)  # under DDP
-        ks = [int(k) for k in torch.randint(2 * ROTATIONS, (groups,))]
+        if self.cfg.no_augment:
+            ks = [0] * groups
+        else:
+            ks = [int(k) for k in torch.randint(2 * ROTATIONS, (groups,))]
         target = self.target[idx]
         true = torch.cat([inner.transform_targets(t, k) for t, k in zip(torch.tensor_split(target, groups), ks)])
         y = ((true - norm["target_mean"]) / norm["target_std"]).to(device)
