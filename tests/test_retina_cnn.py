@@ -407,7 +407,7 @@ def test_training_batches_are_turned_and_mirrored_unless_no_augment(monkeypatch,
     from warp_vision.train import foveation
     from warp_vision.train.config import resolve
 
-    cfg = resolve("smoke", {"model": "cnn", "no_augment": no_augment or None})
+    cfg = resolve("smoke", {"model": "cnn", "no_augment": no_augment or None, "views": 1 if no_augment else None})
     task = foveation.FoveationTask(cfg, log=lambda *a: None)
     task.target = torch.tensor([[0.1 * i, -0.05 * i] for i in range(8)])
     task.onv16 = torch.zeros(8, 6)
@@ -442,4 +442,6 @@ def test_no_augment_is_the_cnns_alone():
 
     with pytest.raises(ValueError, match="no_augment"):
         resolve("smoke", {"no_augment": True})  # the smoke preset's liNet
-    assert resolve("smoke", {"model": "cnn", "no_augment": True}).no_augment
+    with pytest.raises(ValueError, match="views 1"):
+        resolve("smoke", {"model": "cnn", "no_augment": True})  # the consensus reads turned views it never saw
+    assert resolve("smoke", {"model": "cnn", "no_augment": True, "views": 1}).no_augment

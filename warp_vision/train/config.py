@@ -160,6 +160,9 @@ class TrainConfig:
             raise ValueError(f"channels: expected a positive integer, got {self.channels}")
         if self.no_augment and self.model != "cnn":
             raise ValueError(f"no_augment: the turned and mirrored copies are the cnn's; the {self.model} net trains without them")
+        if self.no_augment and self.views != 1:
+            raise ValueError(f"views: a net trained without the turned and mirrored copies reads the plain image alone; "
+                             f"use --views 1 with --no-augment (got {self.views})")
         from warp_vision.nn.retina_cnn import consensus_transforms
 
         consensus_transforms(self.views)  # (validates: 1 to 48, the turns plain and mirrored)
