@@ -407,6 +407,26 @@ def test_compare_figure(tmp_path, smoke_data):
     assert train_main(["compare", str(tmp_path / "run"), "--out", str(fig)]) == 0
     assert fig.stat().st_size > 1000
     assert train_main(["compare", str(tmp_path / "nope"), "--out", str(fig)]) == 2
+    assert train_main(["compare", str(tmp_path / "run"), str(tmp_path / "run"), "--out", str(fig)]) == 2  # twice
+
+
+def test_compare_labels_every_run_by_its_directory_and_titles_the_figure(tmp_path, monkeypatch):
+    """Runs of one model and retina size still get a curve each, named by their directories."""
+    import json
+
+    from warp_vision.train import figures
+
+    for d in ("a/plain", "b/plain", "copies"):
+        (tmp_path / d).mkdir(parents=True)
+        (tmp_path / d / "config.json").write_text(json.dumps({"model": "cnn", "photoreceptors": 14400}))
+        (tmp_path / d / "metrics.jsonl").write_text(json.dumps({"epoch": 1, "train_mse": 0.5, "val_mse": 0.6}) + "\n")
+    seen = {}
+    real = figures.plot_curves
+    monkeypatch.setattr(figures, "plot_curves", lambda h, title: seen.update(labels=list(h), title=title) or real(h, title))
+    runs = [str(tmp_path / d) for d in ("a/plain", "b/plain", "copies")]
+    assert train_main(["compare", *runs, "--out", str(tmp_path / "c.png"), "--title", "with and without"]) == 0
+    assert seen == {"labels": [f"{runs[0]} (cnn, P=14,400)", f"{runs[1]} (cnn, P=14,400)", "copies (cnn, P=14,400)"],
+                    "title": "with and without"}
 
 
 def test_the_liNet_reads_the_stores_float16_onvs_and_float32_stays_available(tmp_path, smoke_data, monkeypatch):

@@ -167,6 +167,7 @@ def _compare(argv: list[str]) -> int:
                                 description="Plot several foveation runs' training and validation MSE curves in one figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="figure path (.png)")
+    p.add_argument("--title", default="training and validation MSE", help="the figure's title (default: %(default)r)")
     a = _debug_flag(p).parse_args(argv)
 
     def job():
@@ -178,13 +179,18 @@ def _compare(argv: list[str]) -> int:
         from warp_vision.train.figures import plot_curves
 
         hists = {}
-        for r in a.runs:
+        names = [Path(r).name for r in a.runs]
+        for i, r in enumerate(a.runs):
             m = Path(r) / "metrics.jsonl"
             if not m.exists():
                 raise FileNotFoundError(errno.ENOENT, "not found (is this a training run directory?)", str(m))
             cfg = json.loads((Path(r) / "config.json").read_text())
-            hists[f"{cfg['model']} P={cfg['photoreceptors']:,}"] = [json.loads(x) for x in m.read_text().splitlines()]
-        fig = plot_curves(hists, "liNet vs fully connected")
+            name = names[i] if names.count(names[i]) == 1 else str(r)  # the directory's name, its path where names repeat
+            label = f"{name} ({cfg['model']}, P={cfg['photoreceptors']:,})"
+            if label in hists:
+                raise ValueError(f"runs: {r} is given twice")
+            hists[label] = [json.loads(x) for x in m.read_text().splitlines()]
+        fig = plot_curves(hists, a.title)
         atomic_write(a.out, lambda f: fig.savefig(f, format="png", dpi=120, bbox_inches="tight"))
         print(f"wrote {a.out}")
 

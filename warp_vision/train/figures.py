@@ -38,7 +38,8 @@ def plot_curves(histories: dict, title: str = "foveation training") -> Figure:
     ax.set_xlabel("epoch")
     ax.set_ylabel("MSE (standardised targets)")
     ax.set_title(title)
-    ax.legend()
+    # below the axes, where it hides no curve (a run's validation curve may lie anywhere)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, frameon=False)
     return fig
 
 
