@@ -240,7 +240,24 @@ def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path, monke
     with pytest.raises(ValueError, match="head"):
         resolve("smoke", {"model": "cnn", "head": "linear"}).validate()
 
-    # --init: another run (the other eye) starts from these weights; a net of other sizes is refused
+    # evaluate --checkpoint latest --views 1: the last epoch's weights, read out from the plain image alone
+    from warp_vision.nn.trained import build_net, read_checkpoint
+    from warp_vision.train.cli import main as train_main
+
+    latest = read_checkpoint(tmp_path / "run/latest.pt")
+    assert latest["epoch"] == 1
+    plain = build_net({**latest["net"], "views": 1})
+    plain.load_state_dict(latest["model"])
+    _, _, te = task.splits()
+    want = task.evaluate(plain, te, latest["norm"], "cpu")
+    lines = []
+    got = foveation.evaluate_run(str(tmp_path / "run"), "test", log=lines.append, checkpoint="latest", views=1)
+    assert got["median_deg"] == want["median_deg"] and got["mse"] == want["mse"]
+    assert lines[0].startswith(f"{tmp_path / 'run'} (latest.pt, epoch 2; views 1) (test, ")
+    assert train_main(["evaluate", str(tmp_path / "run"), "--checkpoint", "latest", "--views", "1"]) == 0
+    with pytest.raises(ValueError, match="checkpoint"):
+        foveation.evaluate_run(str(tmp_path / "run"), checkpoint="previous")
+
     from warp_vision.nn.trained import build_net
     from warp_vision.train.harness import warm_start
 

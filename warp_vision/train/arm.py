@@ -186,6 +186,6 @@ def run(cfg: ArmTrainConfig | None = None, **kw) -> dict:
     return harness.run(ArmTask, cfg, **kw)
 
 
-def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
-    """Re-evaluate an arm run's best checkpoint on its held-out transitions."""
-    return harness.evaluate_run(ArmTask, run_dir, split, log)
+def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
+    """Re-evaluate an arm run's ``checkpoint`` (best or latest) on its held-out transitions."""
+    return harness.evaluate_run(ArmTask, run_dir, split, log, checkpoint=checkpoint)

@@ -120,7 +120,7 @@ def _task_parser(name: str) -> argparse.ArgumentParser:
 
 def _eval_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m warp_vision.train evaluate",
-                                description="Re-evaluate a run's best checkpoint: for a foveation run the angular error "
+                                description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular error "
                                             "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
                                             "the pose error.")
     p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="training run directories (with best.pt)")
@@ -150,8 +150,12 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "net were taken for every ball")
     p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
     p.add_argument("--views", type=int, default=None, metavar="N",
-                   help="with --conditions: read the retina CNN out by the consensus of N turned and mirrored views "
-                        "instead of the net's own (default: its spec's, 8; 1: the plain image alone)")
+                   help="foveation CNN runs: read the net out by the consensus of N turned and mirrored views instead "
+                        "of its own (default: its spec's, 8; 1: the plain image alone)")
+    p.add_argument("--checkpoint", choices=["best", "latest"], default="best",
+                   help="the weights read on the run's split: the best validation epoch's (best.pt) or the last "
+                        "epoch's (latest.pt: what a run that memorises its training set has learnt by its end) "
+                        "(default best)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return _debug_flag(p)
 
@@ -203,8 +207,10 @@ def _evaluate(argv: list[str]) -> int:
 
     p = _eval_parser()
     a = p.parse_args(argv)
-    if a.views is not None and not a.conditions:
-        p.error("--views: only with --conditions")
+    if a.views is not None and a.agreement:
+        p.error("--views: with --conditions or a run's own split, not with --agreement")
+    if a.checkpoint != "best" and (a.conditions or a.agreement):
+        p.error("--checkpoint: of a run's own split; --conditions and --agreement read the best checkpoint")
     if a.misses and a.conditions:
         p.error("--misses: of a run's own split (--split), not with --conditions")
     if a.signal and not a.misses:
@@ -229,7 +235,11 @@ def _evaluate(argv: list[str]) -> int:
             if a.misses and task != "foveation":
                 raise ValueError(f"--misses: foveation runs only; {run_dir} is a {task} run")
             kw = {"misses": True, "signal": a.signal, "progress": not a.no_progress} if a.misses else {}
-            _module(task).evaluate_run(run_dir, a.split, **kw)
+            if a.views is not None:
+                if task != "foveation":
+                    raise ValueError(f"--views: foveation CNN runs only; {run_dir} is a {task} run")
+                kw["views"] = a.views
+            _module(task).evaluate_run(run_dir, a.split, checkpoint=a.checkpoint, **kw)
 
     return _guarded(job, a.debug)
 

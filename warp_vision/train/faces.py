@@ -149,6 +149,6 @@ def run(cfg: FaceTrainConfig | None = None, **kw) -> dict:
     return harness.run(FaceTask, cfg, **kw)
 
 
-def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
-    """Re-evaluate an AFR run's best checkpoint; prints accuracy and pose error."""
-    return harness.evaluate_run(FaceTask, run_dir, split, log)
+def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
+    """Re-evaluate an AFR run's ``checkpoint`` (best or latest); prints accuracy and pose error."""
+    return harness.evaluate_run(FaceTask, run_dir, split, log, checkpoint=checkpoint)

@@ -347,8 +347,9 @@ def run(cfg: TrainConfig | None = None, **kw) -> dict:
 
 
 def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = False, signal: bool = False,
-                 progress: bool = True) -> dict:
-    """Re-evaluate a foveation run's best checkpoint; prints the angular error. ``misses``: also where the
+                 progress: bool = True, checkpoint: str = "best", views: int | None = None) -> dict:
+    """Re-evaluate a foveation run's ``checkpoint`` (best or latest: :func:`harness.evaluate_run`, as ``views``);
+    prints the angular error. ``misses``: also where the
     balls more than :data:`OFF_DEG` off lie (:func:`miss_breakdown`), printed as a table and returned as
     ``"misses"``, and drawn in ``RUN/figures/misses_<split>.png``. ``signal`` (with ``misses``; v8 and v9
     runs): the split is rendered again with and without its balls
@@ -357,7 +358,7 @@ def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = Fa
     if signal and not misses:
         raise ValueError("signal: a part of the misses' breakdown; pass misses=True too")
     detail = (lambda task, idx, ev, log: _misses(task, idx, ev, log, run_dir, split, signal, progress)) if misses else None
-    return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=detail)
+    return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=detail, checkpoint=checkpoint, views=views)
 
 
 def evaluate_agreement(run_dirs, split: str = "test", log=print) -> dict:

@@ -564,23 +564,40 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     return summary
 
 
-def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None) -> dict:
-    """Re-evaluate a run's best checkpoint on one of its splits; prints the task's metrics. ``detail``:
+#: the checkpoints of a run that ``evaluate`` reads: the best validation epoch's, or the last epoch's
+CHECKPOINTS = ("best", "latest")
+
+
+def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None, checkpoint: str = "best",
+                 views: int | None = None) -> dict:
+    """Re-evaluate a run's ``checkpoint`` ("best": the best validation epoch's weights; "latest": the last
+    epoch's) on one of its splits; prints the task's metrics. ``views``: read a foveation CNN out by the
+    consensus of that many views instead of its spec's (1: the plain image). ``detail``:
     ``detail(task, idx, ev, log) -> dict``, more analysis of the evaluation ``ev`` (its tensors included)
     whose entries join the returned metrics."""
+    if checkpoint not in CHECKPOINTS:
+        raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
     out = Path(run_dir)
-    if not (out / "best.pt").exists():
-        raise FileNotFoundError(errno.ENOENT, "no best.pt: is this a training run directory?", str(out / "best.pt"))
-    ck = read_checkpoint(out / "best.pt")
+    path = out / f"{checkpoint}.pt"
+    if not path.exists():
+        raise FileNotFoundError(errno.ENOENT, f"no {checkpoint}.pt: is this a training run directory?", str(path))
+    ck = read_checkpoint(path)
     cfg = run_config(task_cls, out, ck)
     task = task_cls(cfg, log)
     task.load((0, 1), progress=False, synthesize=False)
     tr, va, te = task.splits()
     idx = {"test": te if len(te) else va, "val": va, "train": tr}[split]
     device = pick_device(cfg.device)
-    model = build_net(ck["net"], device)
+    spec = ck["net"]
+    if views is not None:
+        if not (spec.get("kind") == "foveation" and spec.get("model") == "cnn"):
+            raise ValueError(f"views: only a foveation CNN reads out by a consensus of views; {run_dir}'s net is a "
+                             f"{spec.get('kind')} {spec.get('model', '')} net")
+        spec = {**spec, "views": views}
+    model = build_net(spec, device)
     model.load_state_dict(ck["model"])
     ev = task.evaluate(model, idx, ck["norm"], device)
-    log(task.eval_line(run_dir, split, len(idx), ev))
+    how = ([f"{checkpoint}.pt, epoch {ck['epoch'] + 1}"] if checkpoint != "best" else []) + ([f"views {views}"] if views is not None else [])
+    log(task.eval_line(f"{run_dir} ({'; '.join(how)})" if how else run_dir, split, len(idx), ev))
     more = detail(task, idx, ev, log) if detail is not None else {}
     return {**{k: v for k, v in ev.items() if not torch.is_tensor(v)}, **more}

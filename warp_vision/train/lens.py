@@ -155,6 +155,6 @@ def run(cfg: LensTrainConfig | None = None, **kw) -> dict:
     return harness.run(LensTask, cfg, **kw)
 
 
-def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
-    """Re-evaluate a lens run's best checkpoint on its held-out ONVs."""
-    return harness.evaluate_run(LensTask, run_dir, split, log)
+def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
+    """Re-evaluate a lens run's ``checkpoint`` (best or latest) on its held-out ONVs."""
+    return harness.evaluate_run(LensTask, run_dir, split, log, checkpoint=checkpoint)

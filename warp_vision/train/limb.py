@@ -297,5 +297,5 @@ def run(cfg: LimbTrainConfig | None = None, **kw) -> dict:
     return harness.run(LimbTask, cfg, **kw)
 
 
-def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
-    return harness.evaluate_run(LimbTask, run_dir, split, log)
+def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
+    return harness.evaluate_run(LimbTask, run_dir, split, log, checkpoint=checkpoint)

@@ -113,6 +113,6 @@ def run(cfg: OculomotorTrainConfig | None = None, **kw) -> dict:
     return harness.run(OculomotorTask, cfg, **kw)
 
 
-def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
-    """Re-evaluate an oculomotor run's best checkpoint on its held-out transitions."""
-    return harness.evaluate_run(OculomotorTask, run_dir, split, log)
+def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
+    """Re-evaluate an oculomotor run's ``checkpoint`` (best or latest) on its held-out transitions."""
+    return harness.evaluate_run(OculomotorTask, run_dir, split, log, checkpoint=checkpoint)

@@ -98,6 +98,6 @@ def run(cfg: PupilTrainConfig | None = None, **kw) -> dict:
     return harness.run(PupilTask, cfg, **kw)
 
 
-def evaluate_run(run_dir: str, split: str = "test", log=print) -> dict:
-    """Re-evaluate a pupil run's best checkpoint on its held-out ONVs."""
-    return harness.evaluate_run(PupilTask, run_dir, split, log)
+def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
+    """Re-evaluate a pupil run's ``checkpoint`` (best or latest) on its held-out ONVs."""
+    return harness.evaluate_run(PupilTask, run_dir, split, log, checkpoint=checkpoint)
