@@ -183,8 +183,19 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
         train_main(["evaluate", *runs, "--agreement", "--views", "8"])
     assert "not with --agreement" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        train_main(["evaluate", runs[0], "--conditions", "--checkpoint", "latest"])
-    assert "read the best checkpoint" in capsys.readouterr().err
+        train_main(["evaluate", *runs, "--agreement", "--checkpoint", "latest"])
+    assert "reads the best checkpoint" in capsys.readouterr().err
+    # --checkpoint latest: the last epoch's weights (here the run's only epoch), beside the best's files
+    os.chdir(tmp_path)
+    try:
+        assert train_main(["evaluate", runs[1], "--conditions", "--samples", "12", "--checkpoint", "latest", "--no-progress"]) == 0
+    finally:
+        os.chdir(cwd)
+    assert f"{runs[1]} (latest.pt, epoch 1)" in capsys.readouterr().out
+    latest = json.loads((tmp_path / runs[1] / "conditions_latest.json").read_text())
+    assert latest["checkpoint"] == "latest" and latest["epoch"] == 1
+    assert latest["results"] == json.loads((tmp_path / runs[1] / "conditions.json").read_text())["results"]  # one epoch: the same net
+    assert (tmp_path / runs[1] / "figures" / "conditions_latest.png").exists()
 
 
 def test_furniture_shape_names_each_piece_of_a_room():

@@ -153,8 +153,9 @@ def _eval_parser() -> argparse.ArgumentParser:
                    help="foveation CNN runs: read the net out by the consensus of N turned and mirrored views instead "
                         "of its own (default: its spec's, 8; 1: the plain image alone)")
     p.add_argument("--checkpoint", choices=["best", "latest"], default="best",
-                   help="the weights read on the run's split: the best validation epoch's (best.pt) or the last "
-                        "epoch's (latest.pt: what a run that memorises its training set has learnt by its end) "
+                   help="the weights read (on the run's split or, with --conditions, the held-out sets): the best "
+                        "validation epoch's (best.pt) or the last epoch's (latest.pt: what a run that memorises its "
+                        "training set has learnt by its end; --conditions then writes conditions_latest.json) "
                         "(default best)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return _debug_flag(p)
@@ -209,8 +210,8 @@ def _evaluate(argv: list[str]) -> int:
     a = p.parse_args(argv)
     if a.views is not None and a.agreement:
         p.error("--views: with --conditions or a run's own split, not with --agreement")
-    if a.checkpoint != "best" and (a.conditions or a.agreement):
-        p.error("--checkpoint: of a run's own split; --conditions and --agreement read the best checkpoint")
+    if a.checkpoint != "best" and a.agreement:
+        p.error("--checkpoint: with --conditions or a run's own split; --agreement reads the best checkpoint")
     if a.misses and a.conditions:
         p.error("--misses: of a run's own split (--split), not with --conditions")
     if a.signal and not a.misses:
@@ -222,7 +223,7 @@ def _evaluate(argv: list[str]) -> int:
         if a.conditions:
             from warp_vision.train.conditions import evaluate_conditions
 
-            evaluate_conditions(a.run_dirs, a.samples, progress=not a.no_progress, views=a.views)
+            evaluate_conditions(a.run_dirs, a.samples, progress=not a.no_progress, views=a.views, checkpoint=a.checkpoint)
             return
         if a.agreement:
             from warp_vision.train.foveation import evaluate_agreement

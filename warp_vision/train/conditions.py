@@ -40,11 +40,13 @@ def condition_config(data, condition: str, samples: int):
 
 
 def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress: bool = True, log=print,
-                        views: int | None = None) -> dict:
+                        views: int | None = None, checkpoint: str = "best") -> dict:
     """Every run's best net on every held-out condition: {run_dir: {condition: {"median_deg", "p90_deg",
     "n"}}}, printed as one table; writes each run's ``conditions.json`` and ``figures/conditions.png``.
     ``views``: the retina CNN's consensus read-out over that many views instead of its spec's (1: the
-    plain image alone; nn/retina_cnn.py); the table's column names it."""
+    plain image alone; nn/retina_cnn.py); the table's column names it. ``checkpoint`` "latest": the
+    weights of each run's last epoch instead (the column names it; written to ``conditions_latest.json``
+    and ``figures/conditions_latest.png``)."""
     from warp_vision.data.foveation import synthesize
     from warp_vision.data.foveation_scenes import CONDITIONS
     from warp_vision.data.store import ChunkedStore
@@ -63,15 +65,18 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         raise ValueError(f"samples: expected at least 10 per condition, got {samples}")
     if views is not None:
         consensus_transforms(views)  # (validates)
+    if checkpoint not in ("best", "latest"):
+        raise ValueError(f"checkpoint: expected best or latest, got {checkpoint!r}")
+    suffix = "" if checkpoint == "best" else f"_{checkpoint}"
     results, examples = {}, {}
     for run in run_dirs:
         out = Path(run)
-        if not (out / "best.pt").exists():
-            raise FileNotFoundError(f"{out / 'best.pt'}: no best.pt (is this a foveation run directory?)")
+        if not (out / f"{checkpoint}.pt").exists():
+            raise FileNotFoundError(f"{out / f'{checkpoint}.pt'}: no {checkpoint}.pt (is this a foveation run directory?)")
         saved = json.loads((out / "config.json").read_text()) if (out / "config.json").exists() else {}
         if saved.get("task", "foveation") != "foveation":
             raise ValueError(f"{out}: a {saved['task']} run; --conditions measures foveation runs")
-        ck = read_checkpoint(out / "best.pt")
+        ck = read_checkpoint(out / f"{checkpoint}.pt")
         cfg = run_config(FoveationTask, out, ck)
         device = pick_device(cfg.device)
         model = build_net(ck["net"], device).eval()
@@ -101,10 +106,13 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
             row[c] = {**_stats(err), "dataset": str(ddir)}
             k = int(torch.argsort(err)[len(err) // 2])  # the median sample
             examples[run][c] = (ddir, onv[k].float(), target[k].numpy(), pred[k].numpy(), float(err[k]))
-        results[str(run) if views is None else f"{run} (views {views})"] = row
-        atomic_write(out / "conditions.json", json.dumps({"samples_per_condition": samples,
-                                                          "views": getattr(model, "views", None), "results": row}, indent=2))
-        _figure(out, cfg, examples[run])
+        how = ([f"{checkpoint}.pt, epoch {ck['epoch'] + 1}"] if checkpoint != "best" else []) + \
+            ([f"views {views}"] if views is not None else [])
+        results[f"{run} ({'; '.join(how)})" if how else str(run)] = row
+        atomic_write(out / f"conditions{suffix}.json", json.dumps({"samples_per_condition": samples, "checkpoint": checkpoint,
+                                                                   "epoch": ck["epoch"] + 1, "views": getattr(model, "views", None),
+                                                                   "results": row}, indent=2))
+        _figure(out, cfg, examples[run], suffix)
     log(table(results))
     return results
 
@@ -134,7 +142,7 @@ def _cell(st: dict) -> str:
     return f"{st['median_deg']:.2f} / {st['p90_deg']:.2f}{off}"
 
 
-def _figure(out: Path, cfg, examples: dict) -> None:
+def _figure(out: Path, cfg, examples: dict, suffix: str = "") -> None:
     """One retina image per condition (the sample with the median error) with the true (+) and predicted (x) target."""
     from matplotlib.figure import Figure
 
@@ -153,4 +161,4 @@ def _figure(out: Path, cfg, examples: dict) -> None:
                      title=f"{LABELS[c]}\n{err:.2f} deg (median sample)")
     fig.suptitle(f"{out}: held-out conditions (+ true, x predicted)")
     (out / "figures").mkdir(exist_ok=True)
-    fig.savefig(out / "figures" / "conditions.png", dpi=100, bbox_inches="tight")
+    fig.savefig(out / "figures" / f"conditions{suffix}.png", dpi=100, bbox_inches="tight")
