@@ -54,7 +54,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
     from warp_vision.nn.retina_cnn import consensus_transforms
     from warp_vision.nn.trained import build_net, onv_dtype, predict_targets, read_checkpoint
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
-    from warp_vision.train.harness import pick_device
+    from warp_vision.train.harness import CHECKPOINTS, pick_device, read_label
     from warp_vision.train.rundir import dataset_dir, run_config
 
     conditions = list(conditions or CONDITIONS[1:])
@@ -65,8 +65,8 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         raise ValueError(f"samples: expected at least 10 per condition, got {samples}")
     if views is not None:
         consensus_transforms(views)  # (validates)
-    if checkpoint not in ("best", "latest"):
-        raise ValueError(f"checkpoint: expected best or latest, got {checkpoint!r}")
+    if checkpoint not in CHECKPOINTS:
+        raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
     suffix = "" if checkpoint == "best" else f"_{checkpoint}"
     results, examples = {}, {}
     for run in run_dirs:
@@ -106,9 +106,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
             row[c] = {**_stats(err), "dataset": str(ddir)}
             k = int(torch.argsort(err)[len(err) // 2])  # the median sample
             examples[run][c] = (ddir, onv[k].float(), target[k].numpy(), pred[k].numpy(), float(err[k]))
-        how = ([f"{checkpoint}.pt, epoch {ck['epoch'] + 1}"] if checkpoint != "best" else []) + \
-            ([f"views {views}"] if views is not None else [])
-        results[f"{run} ({'; '.join(how)})" if how else str(run)] = row
+        results[read_label(run, checkpoint, ck["epoch"], views)] = row
         atomic_write(out / f"conditions{suffix}.json", json.dumps({"samples_per_condition": samples, "checkpoint": checkpoint,
                                                                    "epoch": ck["epoch"] + 1, "views": getattr(model, "views", None),
                                                                    "results": row}, indent=2))

@@ -568,6 +568,13 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
 CHECKPOINTS = ("best", "latest")
 
 
+def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
+    """How ``evaluate`` names a run read other than as it stands: "RUN (latest.pt, epoch 9; views 1)";
+    the run's best checkpoint with its own views is just "RUN". ``epoch``: the checkpoint's, 0-based."""
+    how = ([f"{checkpoint}.pt, epoch {epoch + 1}"] if checkpoint != "best" else []) + ([f"views {views}"] if views is not None else [])
+    return f"{run_dir} ({'; '.join(how)})" if how else str(run_dir)
+
+
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None, checkpoint: str = "best",
                  views: int | None = None) -> dict:
     """Re-evaluate a run's ``checkpoint`` ("best": the best validation epoch's weights; "latest": the last
@@ -597,7 +604,6 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     model = build_net(spec, device)
     model.load_state_dict(ck["model"])
     ev = task.evaluate(model, idx, ck["norm"], device)
-    how = ([f"{checkpoint}.pt, epoch {ck['epoch'] + 1}"] if checkpoint != "best" else []) + ([f"views {views}"] if views is not None else [])
-    log(task.eval_line(f"{run_dir} ({'; '.join(how)})" if how else run_dir, split, len(idx), ev))
+    log(task.eval_line(read_label(run_dir, checkpoint, ck["epoch"], views), split, len(idx), ev))
     more = detail(task, idx, ev, log) if detail is not None else {}
     return {**{k: v for k, v in ev.items() if not torch.is_tensor(v)}, **more}
