@@ -178,7 +178,7 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     assert train_main(["evaluate", runs[0], "--conditions", "--views", "0"]) != 0
     assert "views" in capsys.readouterr().err
     assert train_main(["evaluate", runs[0], "--views", "8"]) != 0  # its own split: still a liNet
-    assert "only a foveation CNN" in capsys.readouterr().err
+    assert "only the retina CNN" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         train_main(["evaluate", *runs, "--agreement", "--views", "8"])
     assert "not with --agreement" in capsys.readouterr().err

@@ -258,7 +258,7 @@ def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path, monke
     with pytest.raises(ValueError, match="checkpoint"):
         foveation.evaluate_run(str(tmp_path / "run"), checkpoint="previous")
 
-    from warp_vision.nn.trained import build_net
+    # --init: another run (the other eye) starts from these weights; a net of other sizes is refused
     from warp_vision.train.harness import warm_start
 
     other = build_net({**ck["net"], "seed": 5})

@@ -14,6 +14,7 @@ checks, so a damaged file is an error that names it, never a net with a flipped 
 
 from __future__ import annotations
 
+import errno
 import hashlib
 from pathlib import Path
 
@@ -205,17 +206,43 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     return ck
 
 
+#: a run's checkpoints: its best validation epoch's weights (best.pt) and its last epoch's (latest.pt)
+CHECKPOINTS = ("best", "latest")
+
+
+def checkpoint_path(run_dir, checkpoint: str = "best") -> Path:
+    """RUN/best.pt or RUN/latest.pt (``checkpoint``); another name or a missing file is refused."""
+    if checkpoint not in CHECKPOINTS:
+        raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
+    path = Path(run_dir) / f"{checkpoint}.pt"
+    if not path.exists():
+        raise FileNotFoundError(errno.ENOENT, f"no {checkpoint}.pt: is this a training run directory?", str(path))
+    return path
+
+
+def net_from_checkpoint(ck: dict, device: str = "cpu", views: int | None = None, source="checkpoint") -> torch.nn.Module:
+    """The trained net of checkpoint ``ck`` (read from ``source``, named in errors), in eval mode. ``views``:
+    a foveation CNN reads out by the consensus of that many views instead of its spec's (1: the plain image)."""
+    if "net" not in ck:
+        raise ValueError(f"{source}: holds no net spec (written by an older version; retrain it)")
+    spec = ck["net"]
+    if views is not None:
+        if not (spec.get("kind") == "foveation" and spec.get("model") == "cnn"):
+            raise ValueError(f"views: only the retina CNN (--model cnn) reads out by a consensus of views; {source} holds a "
+                             f"{spec.get('kind')} {spec.get('model', '')} net")
+        spec = {**spec, "views": views}
+    model = build_net(spec, device)
+    model.load_state_dict(ck["model"])
+    return model.eval()
+
+
 def load_net(path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
     """(the trained net in eval mode, the checkpoint) of a checkpoint file or of a run directory (its best.pt)."""
     path = Path(path)
     if path.is_dir():
         path = path / "best.pt"
     ck = read_checkpoint(path, map_location=device)
-    if "net" not in ck:
-        raise ValueError(f"{path}: holds no net spec (written by an older version; retrain it)")
-    model = build_net(ck["net"], device)
-    model.load_state_dict(ck["model"])
-    return model.eval(), ck
+    return net_from_checkpoint(ck, device, source=path), ck
 
 
 def _scale(onv: torch.Tensor, norm: dict):

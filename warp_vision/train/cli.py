@@ -123,7 +123,7 @@ def _eval_parser() -> argparse.ArgumentParser:
                                 description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular error "
                                             "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
                                             "the pose error.")
-    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="training run directories (with best.pt)")
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="training run directories (with best.pt; latest.pt for --checkpoint latest)")
     p.add_argument("--split", choices=["test", "val", "train"], default="test", help="which split (default test)")
     p.add_argument("--conditions", action="store_true",
                    help="foveation runs: render (or reuse) one held-out set per test condition (v8 scenes in rooms "

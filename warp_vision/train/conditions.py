@@ -52,9 +52,9 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
     from warp_vision.data.store import ChunkedStore
     from warp_vision.fileio import atomic_write
     from warp_vision.nn.retina_cnn import consensus_transforms
-    from warp_vision.nn.trained import build_net, onv_dtype, predict_targets, read_checkpoint
+    from warp_vision.nn.trained import CHECKPOINTS, checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets, read_checkpoint
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
-    from warp_vision.train.harness import CHECKPOINTS, pick_device, read_label
+    from warp_vision.train.harness import pick_device, read_label
     from warp_vision.train.rundir import dataset_dir, run_config
 
     conditions = list(conditions or CONDITIONS[1:])
@@ -65,26 +65,20 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         raise ValueError(f"samples: expected at least 10 per condition, got {samples}")
     if views is not None:
         consensus_transforms(views)  # (validates)
-    if checkpoint not in CHECKPOINTS:
+    if checkpoint not in CHECKPOINTS:  # (before any run is read)
         raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
     suffix = "" if checkpoint == "best" else f"_{checkpoint}"
     results, examples = {}, {}
     for run in run_dirs:
         out = Path(run)
-        if not (out / f"{checkpoint}.pt").exists():
-            raise FileNotFoundError(f"{out / f'{checkpoint}.pt'}: no {checkpoint}.pt (is this a foveation run directory?)")
+        path = checkpoint_path(out, checkpoint)
         saved = json.loads((out / "config.json").read_text()) if (out / "config.json").exists() else {}
         if saved.get("task", "foveation") != "foveation":
             raise ValueError(f"{out}: a {saved['task']} run; --conditions measures foveation runs")
-        ck = read_checkpoint(out / f"{checkpoint}.pt")
+        ck = read_checkpoint(path)
         cfg = run_config(FoveationTask, out, ck)
         device = pick_device(cfg.device)
-        model = build_net(ck["net"], device).eval()
-        model.load_state_dict(ck["model"])
-        if views is not None:
-            if not hasattr(model, "views"):
-                raise ValueError(f"{out}: views: only the retina CNN (--model cnn) reads out by a consensus of views")
-            model.views = views
+        model = net_from_checkpoint(ck, device, views, source=path)
         dtype = onv_dtype(ck["net"])
         task = FoveationTask(cfg, lambda *a, **k: None)
         task.load((0, 1), progress=False, synthesize=False)

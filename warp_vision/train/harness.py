@@ -26,7 +26,6 @@ package's training code.
 
 from __future__ import annotations
 
-import errno
 import math
 import os
 import time
@@ -39,7 +38,7 @@ import torch.distributed as dist
 
 from warp_vision.data.store import waiting_for_writers
 from warp_vision.fileio import write_json
-from warp_vision.nn.trained import ONV_DTYPES, build_net, read_checkpoint
+from warp_vision.nn.trained import ONV_DTYPES, build_net, checkpoint_path, net_from_checkpoint, read_checkpoint
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, run_config, save_checkpoint, sync_metrics)
@@ -564,10 +563,6 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     return summary
 
 
-#: the checkpoints of a run that ``evaluate`` reads: the best validation epoch's, or the last epoch's
-CHECKPOINTS = ("best", "latest")
-
-
 def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
     """How ``evaluate`` names a run read other than as it stands: "RUN (latest.pt, epoch 9; views 1)";
     the run's best checkpoint with its own views is just "RUN". ``epoch``: the checkpoint's, 0-based."""
@@ -582,27 +577,15 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     consensus of that many views instead of its spec's (1: the plain image). ``detail``:
     ``detail(task, idx, ev, log) -> dict``, more analysis of the evaluation ``ev`` (its tensors included)
     whose entries join the returned metrics."""
-    if checkpoint not in CHECKPOINTS:
-        raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
-    out = Path(run_dir)
-    path = out / f"{checkpoint}.pt"
-    if not path.exists():
-        raise FileNotFoundError(errno.ENOENT, f"no {checkpoint}.pt: is this a training run directory?", str(path))
+    path = checkpoint_path(run_dir, checkpoint)
     ck = read_checkpoint(path)
-    cfg = run_config(task_cls, out, ck)
+    cfg = run_config(task_cls, Path(run_dir), ck)
     task = task_cls(cfg, log)
     task.load((0, 1), progress=False, synthesize=False)
     tr, va, te = task.splits()
     idx = {"test": te if len(te) else va, "val": va, "train": tr}[split]
     device = pick_device(cfg.device)
-    spec = ck["net"]
-    if views is not None:
-        if not (spec.get("kind") == "foveation" and spec.get("model") == "cnn"):
-            raise ValueError(f"views: only a foveation CNN reads out by a consensus of views; {run_dir}'s net is a "
-                             f"{spec.get('kind')} {spec.get('model', '')} net")
-        spec = {**spec, "views": views}
-    model = build_net(spec, device)
-    model.load_state_dict(ck["model"])
+    model = net_from_checkpoint(ck, device, views, source=path)
     ev = task.evaluate(model, idx, ck["norm"], device)
     log(task.eval_line(read_label(run_dir, checkpoint, ck["epoch"], views), split, len(idx), ev))
     more = detail(task, idx, ev, log) if detail is not None else {}
