@@ -417,15 +417,20 @@ def test_precision_bfloat16_is_the_cnns_alone_and_old_runs_read_as_float32(tmp_p
         assert cfg.precision == "auto" and run_config(task_cls, tmp_path, {"config": old}).precision == "float32"
 
 
-@pytest.mark.parametrize("no_augment", [False, True])
-def test_training_batches_are_turned_and_mirrored_unless_no_augment(monkeypatch, no_augment):
+@pytest.mark.parametrize("mode, epoch, plain", [("copies", 2, False), ("no_augment", 0, True),
+                                                ("plain_epochs", 1, False), ("plain_epochs", 2, True)])
+def test_training_batches_are_turned_and_mirrored_unless_no_augment(monkeypatch, mode, epoch, plain):
     """Each training batch goes through the net in four groups, each binned through a random turn or mirror
-    with its targets turned alike; ``--no-augment`` bins every group as the plain image, targets as they are."""
+    with its targets turned alike; ``--no-augment``, and the last ``--plain-epochs`` epochs, bin every group
+    as the plain image, targets as they are."""
     from warp_vision.train import foveation
     from warp_vision.train.config import resolve
 
-    cfg = resolve("smoke", {"model": "cnn", "no_augment": no_augment or None, "views": 1 if no_augment else None})
+    over = {"copies": {}, "no_augment": {"no_augment": True, "views": 1}, "plain_epochs": {"plain_epochs": 1}}[mode]
+    cfg = resolve("smoke", {"model": "cnn", **over})
+    assert cfg.epochs == 3  # plain_epochs 1: the third epoch (2, 0-based) is the plain image's
     task = foveation.FoveationTask(cfg, log=lambda *a: None)
+    task.epoch = epoch
     task.target = torch.tensor([[0.1 * i, -0.05 * i] for i in range(8)])
     task.onv16 = torch.zeros(8, 6)
     monkeypatch.setattr(foveation, "net_input", lambda onv, *a: onv.float())
@@ -448,7 +453,7 @@ def test_training_batches_are_turned_and_mirrored_unless_no_augment(monkeypatch,
     assert len(ks) == 4
     expected = torch.cat([task.target[2 * g : 2 * g + 2] + k for g, k in enumerate(ks)])
     assert torch.equal(seen["true"], expected)
-    if no_augment:
+    if plain:
         assert ks == [0, 0, 0, 0] and torch.equal(seen["true"], task.target)
     else:
         assert all(0 <= k < 2 * ROTATIONS for k in ks) and any(k != 0 for k in ks)
@@ -462,3 +467,37 @@ def test_no_augment_is_the_cnns_alone():
     with pytest.raises(ValueError, match="views 1"):
         resolve("smoke", {"model": "cnn", "no_augment": True})  # the consensus reads turned views it never saw
     assert resolve("smoke", {"model": "cnn", "no_augment": True, "views": 1}).no_augment
+
+
+def test_plain_epochs_are_the_cnns_and_within_the_cap():
+    from warp_vision.train.config import resolve
+
+    with pytest.raises(ValueError, match="plain_epochs: the turned"):
+        resolve("smoke", {"plain_epochs": 1})  # the smoke preset's liNet
+    with pytest.raises(ValueError, match="expected 0 to the 3 epochs"):
+        resolve("smoke", {"model": "cnn", "plain_epochs": 4})
+    with pytest.raises(ValueError, match="is --no-augment"):
+        resolve("smoke", {"model": "cnn", "plain_epochs": 3})
+    cfg = resolve("smoke", {"model": "cnn", "plain_epochs": 2})
+    assert cfg.plain_epochs == 2 and cfg.views == 8  # the net saw the turned copies first: the consensus stays
+
+
+def test_the_harness_tells_the_task_its_epoch(tmp_path):
+    """``Task.epoch`` is the epoch whose batches ``batch_loss`` is computing (what ``--plain-epochs`` reads)."""
+    from warp_vision.train.config import resolve
+    from warp_vision.train.harness import Dist, Task, _train_epoch
+
+    seen = []
+
+    class Recorder(Task):
+        def batch_loss(self, net, idx, norm, device):
+            seen.append(self.epoch)
+            loss = (net.weight ** 2).sum()
+            return loss, {"loss": float(loss.detach())}
+
+    task = Recorder(resolve("smoke", {"model": "cnn", "batch": 4}), log=lambda *a: None)
+    net = torch.nn.Linear(2, 1)
+    opt = torch.optim.SGD(net.parameters(), lr=0.1)
+    for epoch in (0, 2, 1):
+        _train_epoch(task, net, net, opt, np.arange(8), epoch, {}, "cpu", Dist("cpu"), False, tmp_path)
+    assert seen == [0, 0, 2, 2, 1, 1]

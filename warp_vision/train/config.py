@@ -101,6 +101,7 @@ class TrainConfig:
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units (conv: of its sites)
     channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
     no_augment: bool = False  # cnn only: train on the plain image alone, without the turned and mirrored copies (an ablation: the net then memorises its training set, docs/RESULTS.md "Where the paper's MSE goal stands")
+    plain_epochs: int = 0  # cnn only: the last N epochs (of the epoch cap) train on the plain image alone, after the turned and mirrored copies (an ablation between the copies throughout and no_augment: docs/RESULTS.md "Copies first, the plain image last"); 0: copies throughout
     views: int = 8  # cnn only: its read-out at inference (the test, evaluate, the simulation; the epochs' validation reads one view) is the consensus of this many turned and mirrored views (nn/retina_cnn.py: CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
     # optimisation
     init: str = ""  # a foveation run directory whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
@@ -163,6 +164,12 @@ class TrainConfig:
         if self.no_augment and self.views != 1:
             raise ValueError(f"views: a net trained without the turned and mirrored copies reads the plain image alone; "
                              f"use --views 1 with --no-augment (got {self.views})")
+        if self.plain_epochs and self.model != "cnn":
+            raise ValueError(f"plain_epochs: the turned and mirrored copies are the cnn's; the {self.model} net trains without them")
+        if not 0 <= self.plain_epochs <= self.epochs:
+            raise ValueError(f"plain_epochs: expected 0 to the {self.epochs} epochs, got {self.plain_epochs}")
+        if self.plain_epochs == self.epochs and not self.no_augment:
+            raise ValueError("plain_epochs: every epoch on the plain image is --no-augment (with --views 1)")
         from warp_vision.nn.retina_cnn import consensus_transforms
 
         consensus_transforms(self.views)  # (validates: 1 to 48, the turns plain and mirrored)

@@ -266,12 +266,12 @@ class FoveationTask(harness.OnvTask):
 
     def _cnn_batch_loss(self, net, idx, norm, device, groups: int = 4):
         """The cnn's loss: the batch in ``groups`` consecutive groups, each binned through a random
-        augmentation with its targets turned alike (``cfg.no_augment``: every group the plain image), in one
-        forward pass (one pass under DDP, and batch norm sees the whole batch)."""
+        augmentation with its targets turned alike (``cfg.no_augment``, and in the last ``cfg.plain_epochs`` epochs:
+        every group the plain image), in one forward pass (one pass under DDP, and batch norm sees the whole batch)."""
         from warp_vision.nn.retina_cnn import ROTATIONS
 
         inner = getattr(net, "module", net)  # under DDP
-        if self.cfg.no_augment:
+        if self.cfg.no_augment or self.epoch >= self.cfg.epochs - self.cfg.plain_epochs:
             ks = [0] * groups
         else:
             ks = [int(k) for k in torch.randint(2 * ROTATIONS, (groups,))]

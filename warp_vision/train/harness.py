@@ -66,6 +66,8 @@ class Task:
 
     name: str = ""
     config_cls: type = object
+    #: the epoch being trained (0-based), set by the harness before each epoch's batches
+    epoch: int = 0
 
     def __init__(self, cfg, log=print):
         self.cfg, self.log = cfg, log
@@ -286,6 +288,7 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     from tqdm import tqdm
 
     cfg = task.cfg
+    task.epoch = epoch
     perm = np.random.default_rng([cfg.seed, epoch]).permutation(train_ids)
     sums: dict[str, float] = {}
     count = 0
