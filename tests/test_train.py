@@ -206,6 +206,16 @@ def test_presets_pick_the_scene_generator_and_model_and_the_help_says_so():
     assert _preset_defaults({"default": {}, "smoke": {}}, "batch", 64) == "default: 64"
 
 
+def test_evaluate_offers_the_checkpoints_the_reader_knows():
+    """evaluate's --checkpoint choices are spelled out in the CLI (it parses without importing torch); they
+    must stay the names nn/trained reads, so neither side can gain a name the other refuses."""
+    from warp_vision.nn.trained import CHECKPOINTS
+    from warp_vision.train.cli import _eval_parser
+
+    action = next(a for a in _eval_parser()._actions if "--checkpoint" in a.option_strings)
+    assert tuple(action.choices) == CHECKPOINTS and action.default == CHECKPOINTS[0]
+
+
 def test_learning_rate_schedule(tmp_path, smoke_data):
     cfg = resolve("default", {"epochs": 11})
     lrs = [cfg.epoch_lr(e) for e in range(11)]

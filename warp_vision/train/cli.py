@@ -152,7 +152,7 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="foveation CNN runs: read the net out by the consensus of N turned and mirrored views instead "
                         "of its own (default: its spec's, 8; 1: the plain image alone)")
-    p.add_argument("--checkpoint", choices=["best", "latest"], default="best",
+    p.add_argument("--checkpoint", choices=["best", "latest"], default="best",  # = nn.trained.CHECKPOINTS (a test checks)
                    help="the weights read (on the run's split or, with --conditions, the held-out sets): the best "
                         "validation epoch's (best.pt) or the last epoch's (latest.pt: what a run that memorises its "
                         "training set has learnt by its end; --conditions then writes conditions_latest.json) "
