@@ -260,3 +260,23 @@ def test_the_full_body_builds_from_pip_packages_and_runs():
     assert 1.2 < b.eye_pose("left")[2, 3] < 1.4  # seated eye height (m)
     names = [n for n, _ in body_scene(b)._mj_bodies]
     assert {"mj_humerus_r", "mj_lunate_l", "mj_head"} <= set(names)
+
+
+def test_building_the_body_says_nothing_and_leaves_no_mujoco_log(tmp_path, monkeypatch, capfd):
+    """myo-sim attaches its arms with an empty prefix; MuJoCo's default handler would print that warning
+    and append it to MUJOCO_LOG.TXT in the working directory. The body is built without either, and any
+    other MuJoCo warning in that window still reaches the user (as a RuntimeWarning)."""
+    from warp_vision.body.spec import EMPTY_PREFIX_WARNING, _without_mujoco_warning
+
+    monkeypatch.chdir(tmp_path)
+    Body(BodyConfig(arms=True))
+    out, err = capfd.readouterr()
+    assert EMPTY_PREFIX_WARNING not in out + err
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    assert mujoco.get_mju_user_warning() is None  # MuJoCo's own handler is back
+
+    with _without_mujoco_warning(EMPTY_PREFIX_WARNING):
+        handler = mujoco.get_mju_user_warning()
+        handler(EMPTY_PREFIX_WARNING + " may prevent ...")  # dropped
+        with pytest.warns(RuntimeWarning, match="MuJoCo: something else"):
+            handler("something else")

@@ -4,6 +4,7 @@ settings, and :func:`build_spec` (the parts and frames: :mod:`warp_vision.body`)
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass
 from functools import lru_cache
@@ -141,10 +142,38 @@ EYE_REST_ROTATION = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
 SCAFFOLD_HEAD_ROTATION = np.array([[0.0, 0, -1], [-1, 0, 0], [0, 1, 0]])
 
 
+#: what MuJoCo warns each time myo-sim attaches an arm with an empty prefix (our names are its names, so
+#: the prefix stays empty; we never save the spec as XML, which is what the warning is about)
+EMPTY_PREFIX_WARNING = "Attaching a spec with an empty prefix"
+
+
+@contextlib.contextmanager
+def _without_mujoco_warning(known: str):
+    """Drop MuJoCo's C-level warnings that contain ``known`` while the block runs; any other warning goes
+    to the handler installed before, or, where there is none, to Python's ``warnings`` as a RuntimeWarning.
+    MuJoCo's default handler would print it and append it to MUJOCO_LOG.TXT in the working directory."""
+    previous = mujoco.get_mju_user_warning()
+
+    def handler(message: str) -> None:
+        if known in message:
+            return
+        if previous is not None:
+            previous(message)
+        else:
+            warnings.warn(f"MuJoCo: {message}", RuntimeWarning, stacklevel=2)
+
+    mujoco.set_mju_user_warning(handler)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
 def _myo_spec() -> mujoco.MjSpec:
     import myo_sim
 
-    with warnings.catch_warnings():  # myo-sim attaches its arms with an empty prefix and says so
+    # myo-sim attaches its arms with an empty prefix, and both myo-sim (a UserWarning) and MuJoCo say so
+    with warnings.catch_warnings(), _without_mujoco_warning(EMPTY_PREFIX_WARNING):
         warnings.simplefilter("ignore", UserWarning)
         spec = myo_sim.load_spec("myoarms")
     for g in list(spec.worldbody.geoms):  # its floor (at -0.4 m); the room has its own
