@@ -211,6 +211,14 @@ def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path, monke
     assert np.isfinite(summary["test_median_deg"])
     assert "training precision: bfloat16 autocast (--precision bfloat16; evaluation float32)" in logs
     assert summary["train_precision"] == "bfloat16"
+    # the same command again trains the same net, bit for bit (seeded draws, bfloat16 autocast included)
+    import dataclasses
+
+    from warp_vision.nn.trained import read_checkpoint
+
+    foveation.run(dataclasses.replace(cfg, out=str(tmp_path / "again")), progress=False, log=lambda *a: None)
+    first, again = (read_checkpoint(tmp_path / d / "best.pt")["model"] for d in ("run", "again"))
+    assert first.keys() == again.keys() and all(torch.equal(first[k], again[k]) for k in first)
     model, ck = load_net(tmp_path / "run")
     assert isinstance(model, RetinaCNNFoveationNet) and ck["net"]["onv_dtype"] == "float32"
     assert ck["net"]["views"] == 8 and model.views == 8  # the consensus read-out, from the spec
