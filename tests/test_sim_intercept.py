@@ -122,7 +122,7 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
     assert (arm.what, left.what) == ("left arm's motor nets", "left eye's limb vision net")
     assert NetSpec("oculomotor", "left", "o", "quick").command()[3:5] == ["--eye", "left"]
     assert (MINUTES["arm", "default"], MINUTES["arm", "quick"], MINUTES["limb", "default"], MINUTES["limb", "quick"]) \
-        == (8.0, 2.0, 11.0, 4.0)
+        == (8.0, 1.5, 11.0, 2.0)
     assert (arm.minutes(), left.minutes()) == (8.0, 11.0)
     assert [s.kind for s in strike_plan("right", "a", None, quick=True)] == ["arm"]
     with pytest.raises(ValueError, match="side"):

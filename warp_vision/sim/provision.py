@@ -34,10 +34,10 @@ from warp_vision.body import SIDES
 #: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards); an arm's
 #: motor nets (holding activations, training, body checks) and an eye's limb vision net (rendering its
 #: ONVs, then training) as their presets' comments in :mod:`warp_vision.train.config_body` estimate them.
-MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 3.0,
+MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 2.0,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
            ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 13.0, ("lens", "quick"): 3.0,
-           ("arm", "default"): 8.0, ("arm", "quick"): 2.0, ("limb", "default"): 11.0, ("limb", "quick"): 4.0}
+           ("arm", "default"): 8.0, ("arm", "quick"): 1.5, ("limb", "default"): 11.0, ("limb", "quick"): 2.0}
 
 #: Training commands whose side flag is ``--side`` (the arm's) rather than ``--eye``.
 _SIDE_FLAG = {"arm": "--side"}
