@@ -179,12 +179,14 @@ class TrainConfig:
 PRESETS: dict[str, dict] = {
     # end to end in well under a minute (tests)
     "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1, layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
-    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU (1.7 measured, synthesis included)
+    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU
+    # (1.7 measured, synthesis included)
     "quick": dict(samples=2000, epochs=12, patience=12, generator=9, model="cnn", lr=2e-3),
     # the default run: the retina CNN on generator v9, about 12-14 minutes on a 2-core CPU that trains it in
-    # bfloat16 (11.7 and 13.6 measured on two days), 14.6 in float32 (12,000 ONVs of P=14,400, S=4 rendered in about 4.5 by two processes; 20 epochs
-    # of about 20 s, 29 in float32: docs/RESULTS.md "20 epochs", fewer balls missed than with 12, and "bfloat16
-    # training"). v7's liNet: --generator 7 --model linet --lr 0.001 --epochs 40 --samples 8000
+    # bfloat16 (11.7 and 13.6 measured on two days), 14.6 in float32 (12,000 ONVs of P=14,400, S=4 rendered
+    # in 4.5-5.2 by two processes; 20 epochs of 19-27 s, 29 in float32: docs/RESULTS.md "20 epochs", fewer
+    # balls missed than with 12, and "bfloat16 training"). v7's liNet: --generator 7 --model linet --lr 0.001
+    # --epochs 40 --samples 8000
     "default": dict(generator=9, model="cnn", samples=12_000, lr=2e-3, epochs=20),
     # the paper's set-up on v9: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
     "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10, generator=9),
