@@ -92,11 +92,13 @@ def test_eye_geometry_and_intraocular_state(body):
     assert body.intraocular("right") == pytest.approx((4.0, 1.0), abs=1e-6)  # the other eye is untouched
 
 
-def test_instabilities_are_reported(body):
+def test_instabilities_are_reported(body, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MuJoCo logs the warning to MUJOCO_LOG.TXT in the working directory
     body.reset()
     body.data.qvel[body.model.jnt_dofadr[body.eye_joint["left"]]] = np.nan
     with pytest.raises(SimulationError, match="MuJoCo warned|non-finite"):
         body.step()
+    assert (tmp_path / "MUJOCO_LOG.TXT").is_file()  # the warning is MuJoCo's own, logged where it logs
     body.reset()
     body.step()  # a reset body runs again
     with pytest.raises(ValueError, match="eye activations"):

@@ -53,7 +53,7 @@ import mujoco
 import numpy as np
 import torch
 
-from warp_vision.body import SIDES, Body, BodyConfig, SimulationError
+from warp_vision.body import SIDES, Body, SimulationError
 from warp_vision.sim.oculomotor import least_effort, muscle_torques
 
 #: The independent joints of an arm that the postures vary (myo-sim's names without the side suffix).
