@@ -1,6 +1,8 @@
 """The CNN on the foveated image: the binning against a dense reference, the augmentations' geometry, the
 local read-out, bad inputs, and a training run the simulation can load."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -200,7 +202,7 @@ def test_eval_mode_reads_out_by_the_consensus_of_views_as_a_plain_reference_does
 
 
 def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path, monkeypatch):
-    from warp_vision.nn.trained import load_net
+    from warp_vision.nn.trained import load_net, read_checkpoint
     from warp_vision.train import foveation
     from warp_vision.train.config import resolve
 
@@ -212,10 +214,6 @@ def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path, monke
     assert "training precision: bfloat16 autocast (--precision bfloat16; evaluation float32)" in logs
     assert summary["train_precision"] == "bfloat16"
     # the same command again trains the same net, bit for bit (seeded draws, bfloat16 autocast included)
-    import dataclasses
-
-    from warp_vision.nn.trained import read_checkpoint
-
     foveation.run(dataclasses.replace(cfg, out=str(tmp_path / "again")), progress=False, log=lambda *a: None)
     first, again = (read_checkpoint(tmp_path / d / "best.pt")["model"] for d in ("run", "again"))
     assert first.keys() == again.keys() and all(torch.equal(first[k], again[k]) for k in first)
