@@ -194,3 +194,34 @@ def test_the_viewer_is_skipped_with_one_line_where_there_is_no_display(monkeypat
     v.sync()
     v.close()  # no-ops
     assert _Viewer(None, False).handle is None and capsys.readouterr().out == ""
+
+
+def test_experiments_measure_and_draw_every_scenario(bare_body, tmp_path):
+    """``experiments`` runs every scenario of ``_scenarios`` and, with ``return_traces``, hands back their
+    traces; ``plot_experiments`` draws them and refuses traces that lack a scenario. With the true
+    direction as perception and eyes that hold any commanded gaze, the saccades, vergence and tracking meet
+    the goals the summary reports (a loop that cannot meet them here would not in the real run either)."""
+    from PIL import Image
+
+    from warp_vision.sim.loop import VisuomotorLoop
+    from warp_vision.sim.scenarios import _scenarios, experiments, plot_experiments
+
+    body = bare_body
+    body.reset()
+    loop = VisuomotorLoop(body, {s: _OracleFoveator(body, s) for s in SIDES},
+                          {s: _HoldingOculomotor(body, s) for s in SIDES}, perception="oracle")
+    result, traces = experiments(loop, progress=False, return_traces=True)
+    assert set(traces) == {name for name, _, _ in _scenarios()}
+    sac = result["saccade_20deg"]
+    assert [tt["direction_deg"] for tt in sac["trials"]] == [45.0 * k for k in range(8)]
+    assert sac["all_within_1deg_by_0.3s"], sac
+    assert result["vergence_1m"]["gaze_line_distance_cm_max"] < 2.0, result["vergence_1m"]
+    for omega in (15, 30):
+        assert max(result[f"tracking_{omega}deg_s"]["median_error_deg"].values()) < 1.0, result[f"tracking_{omega}deg_s"]
+    # each trace starts with the ball away from the gaze: a saccade is measured, not a ball already fixated
+    assert min(max(tr["error_left"][0], tr["error_right"][0]) for tr in traces.values()) > 10
+    path = plot_experiments(traces, str(tmp_path / "experiments.png"), title="oracle")
+    with Image.open(path) as im:
+        assert im.size == (1760, 506)
+    with pytest.raises(ValueError, match="saccade_90"):
+        plot_experiments({k: v for k, v in traces.items() if k != "saccade_90"}, str(tmp_path / "x.png"))

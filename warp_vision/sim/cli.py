@@ -5,7 +5,8 @@
                both eyes' retina images, simulated time on every frame; --gif for a GIF too), the left
                retina at four moments (Fig. 7) and the gaze error over time.
   experiments  saccades to a ball appearing at 20 deg in eight directions, vergence at 1 m, tracking a
-               ball moving at 15 and 30 deg/s both ways round, the loop's time shares. Writes experiments.json.
+               ball moving at 15 and 30 deg/s both ways round, the loop's time shares. Writes experiments.json and
+               figures/experiments.png (the runs over time against their goals).
   intraocular  light steps of +2 and -2 log units, and focus steps (a textured card from 2 m to 0.33 m and
                back, fixated): the pupils and lenses under their nets and, in the same run, under the
                analytic laws (their teachers); --cards N repeats the focus steps with the lens nets on N textures.
@@ -41,7 +42,7 @@ import numpy as np
 from warp_vision.errors import add_debug_flag, guarded
 from warp_vision.fileio import write_json
 from warp_vision.body import SIDES, Body, BodyConfig
-from warp_vision.sim.scenarios import SETTLE_S, experiments, run_scenario
+from warp_vision.sim.scenarios import SETTLE_S, experiments, plot_experiments, run_scenario
 from warp_vision.sim.build import net_specs, setup_loop
 from warp_vision.sim.strike import intercept, pick_shots
 
@@ -420,6 +421,12 @@ def _run(args) -> None:
         return
     else:
         _body, loop = setup_loop(args)
-        result = experiments(loop, progress=not args.no_progress)
+        result, traces = experiments(loop, progress=not args.no_progress, return_traces=True)
+        os.makedirs(os.path.join(args.out, "figures"), exist_ok=True)
+        figure = plot_experiments(traces, os.path.join(args.out, "figures", "experiments.png"),
+                                  title=f"the {loop.ball} ball, gaze perception: {loop.perception}; "
+                                        f"foveation nets {loop.fov['left'].run_dir} and {loop.fov['right'].run_dir}")
     write_json(os.path.join(args.out, f"{args.command}.json"), result)
     print(json.dumps(result, indent=2))
+    if args.command == "experiments":
+        print(f"wrote {os.path.join(args.out, 'experiments.json')} and {figure}")

@@ -112,6 +112,7 @@ class Foveator:
         from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
         from warp_vision.nn.trained import load_net, onv_dtype
 
+        self.run_dir = run_dir
         self.model, ck = load_net(run_dir, device)
         data = FoveationDataConfig.saved(ck["data"])
         self.generator = data.generator

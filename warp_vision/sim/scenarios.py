@@ -12,6 +12,13 @@ import numpy as np
 from warp_vision.body import SIDES
 
 SETTLE_S = 0.2  # s of simulation before a scenario starts: the passive arms settle under gravity
+#: The experiments' goals: saccades to 20 deg settle within 1 deg by 0.3 s; vergence at 1 m brings the
+#: gaze lines within 2 cm; tracking's median error (after the first 0.3 s, the saccade onto the ball) under 1 deg.
+SACCADE_DEG = 20.0
+SACCADE_WITHIN_DEG, SACCADE_BY_S = 1.0, 0.3
+VERGENCE_WITHIN_CM = 2.0
+TRACKING_SPEEDS = (15.0, 30.0)  # deg/s
+TRACKING_FROM_S, TRACKING_WITHIN_DEG = 0.3, 1.0
 
 
 def run_scenario(loop, duration: float, ball=None, record=None, progress: bool = True) -> dict:
@@ -54,8 +61,8 @@ def _scenarios():
     for k in range(8):
         ang = np.radians(45.0 * k)
         out.append((f"saccade_{45 * k}", 0.8,
-                    lambda body, ang=ang: _fixed(point_at(body, 20.0 * np.cos(ang), 20.0 * np.sin(ang), 1.0))))
-    for omega in (15.0, 30.0):
+                    lambda body, ang=ang: _fixed(point_at(body, SACCADE_DEG * np.cos(ang), SACCADE_DEG * np.sin(ang), 1.0))))
+    for omega in TRACKING_SPEEDS:
         for way in TRACKING_WAYS:
             out.append((f"tracking_{omega:g}_{way}", 1.2, lambda body, omega=omega, way=way: _orbit(body, omega, way)))
     return out
@@ -84,14 +91,16 @@ def _orbit(body, omega: float, way: str = "leftward"):
     return orbit
 
 
-def experiments(loops, progress: bool = True):
+def experiments(loops, progress: bool = True, return_traces: bool = False):
     """Saccades to a ball appearing at 20 deg in eight directions (1 m away), vergence at the end of each,
     and tracking a ball circling the eyes at 15 and 30 deg/s, both ways round; the loop's time shares (over these runs
     alone). The bodies' gravity is switched off: the ball is placed kinematically.
 
     ``loops``: one loop, or a list of them (each with its own body); a list runs each scenario on every
     loop in turn (the first of them rotating) before the next scenario, so the loops meet the same machine
-    (speed drifts fall on all alike), and returns one result per loop."""
+    (speed drifts fall on all alike), and returns one result per loop. With ``return_traces``, also each
+    loop's traces: ``(result, traces)``, traces ``{scenario name: run_scenario's traces}`` (``saccade_0``
+    ... ``saccade_315``, ``tracking_15_leftward`` ...), as :func:`plot_experiments` draws them."""
     from warp_vision.sim.loop import CONTROL_DT
 
     single = not isinstance(loops, (list, tuple))
@@ -112,7 +121,10 @@ def experiments(loops, progress: bool = True):
             st["sim"] += tr["t"][-1]
             st["traces"][name] = tr
     out = [_summary(loop, st, CONTROL_DT) for loop, st in zip(loops, state)]
-    return out[0] if single else out
+    traces = [st["traces"] for st in state]
+    if single:
+        return (out[0], traces[0]) if return_traces else out[0]
+    return (out, traces) if return_traces else out
 
 
 def _summary(loop, st: dict, control_dt: float) -> dict:
@@ -120,26 +132,26 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
     for k in range(8):
         tr = st["traces"][f"saccade_{45 * k}"]
         both = np.maximum(tr["error_left"], tr["error_right"])
-        within = both < 1.0
+        within = both < SACCADE_WITHIN_DEG
         trials.append({"direction_deg": 45.0 * k, "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
-                       "error_at_0.3s_deg": float(np.interp(0.3, tr["t"], both)),
-                       "max_error_after_0.3s_deg": float(both[tr["t"] >= 0.3].max()),
+                       "error_at_0.3s_deg": float(np.interp(SACCADE_BY_S, tr["t"], both)),
+                       "max_error_after_0.3s_deg": float(both[tr["t"] >= SACCADE_BY_S].max()),
                        "gaze_line_distance_cm": 100 * float(max(tr["line_left"][-1], tr["line_right"][-1])),
                        # the eye-head synergy: the eyes' eccentricity in the head falls as the head turns
                        "eye_in_head_deg_peak": float(tr["eye_in_head"].max()), "eye_in_head_deg_end": float(tr["eye_in_head"][-1]),
                        "head_turn_deg_end": float(np.degrees(np.linalg.norm(tr["neck"][-1][:2])))})
     times = [tt["time_both_within_1deg_s"] for tt in trials]
     out = {"saccade_20deg": {"trials": trials,
-                             "all_within_1deg_by_0.3s": all(tt is not None and tt <= 0.3 for tt in times),
+                             "all_within_1deg_by_0.3s": all(tt is not None and tt <= SACCADE_BY_S for tt in times),
                              "time_both_within_1deg_s_max": max(tt if tt is not None else np.inf for tt in times),
                              "error_at_0.3s_deg_max": max(tt["error_at_0.3s_deg"] for tt in trials),
                              "max_error_after_0.3s_deg_median": float(np.median([tt["max_error_after_0.3s_deg"] for tt in trials]))},
            "vergence_1m": {"gaze_line_distance_cm_max": max(tt["gaze_line_distance_cm"] for tt in trials),
                            "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials]))}}
-    for omega in (15.0, 30.0):
+    for omega in TRACKING_SPEEDS:
         trs = [st["traces"][f"tracking_{omega:g}_{way}"] for way in TRACKING_WAYS]
         # after the first saccade onto it, both ways round pooled
-        err = {s: np.concatenate([tr[f"error_{s}"][tr["t"] > 0.3] for tr in trs]) for s in SIDES}
+        err = {s: np.concatenate([tr[f"error_{s}"][tr["t"] > TRACKING_FROM_S] for tr in trs]) for s in SIDES}
         out[f"tracking_{omega:g}deg_s"] = {"median_error_deg": {s: float(np.median(err[s])) for s in SIDES},
                                            "p90_error_deg": {s: float(np.percentile(err[s], 90)) for s in SIDES}}
     wall = st["wall"]
@@ -150,6 +162,55 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
     out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall, "frame_every": loop.frame_every,
                      "frames_per_s": 1.0 / (loop.frame_every * control_dt), "share": share}
     return out
+
+
+def plot_experiments(traces: dict, path: str, title: str | None = None) -> str:
+    """The experiments over time, with their goals, in one figure at ``path`` (PNG): the saccades' gaze
+    error (the worse eye's) in each direction, the distance between the two gaze lines at the ball in
+    the same runs (vergence), and each eye's error while tracking. ``traces``: the second value of
+    ``experiments(loop, return_traces=True)``. Returns ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    want = [f"saccade_{45 * k}" for k in range(8)] + [f"tracking_{w:g}_{way}" for w in TRACKING_SPEEDS for way in TRACKING_WAYS]
+    missing = [n for n in want if n not in traces]
+    if missing:
+        raise ValueError(f"traces: missing the scenarios {missing} (expected experiments(..., return_traces=True)'s)")
+    fig, (ax_s, ax_v, ax_t) = plt.subplots(1, 3, figsize=(16, 4.6))
+    for k, c in enumerate(f"C{j}" for j in range(8)):
+        tr = traces[f"saccade_{45 * k}"]
+        both = np.maximum(tr["error_left"], tr["error_right"])
+        ax_s.plot(tr["t"], np.maximum(both, 1e-2), color=c, label=f"{45 * k} deg")
+        ax_v.plot(tr["t"], 100 * np.maximum(tr["line_left"], tr["line_right"]), color=c)
+    ax_s.axhline(SACCADE_WITHIN_DEG, color="k", ls=":", lw=1)
+    ax_s.axvline(SACCADE_BY_S, color="k", ls=":", lw=1)
+    ax_s.set(yscale="log", xlabel="time after the ball appears (s)", ylabel="gaze error, worse eye (deg)",
+             title=f"saccades to {SACCADE_DEG:g} deg (goal: within {SACCADE_WITHIN_DEG:g} deg by {SACCADE_BY_S:g} s)")
+    ax_s.legend(title="direction", fontsize=7, ncol=2)
+    ax_v.axhline(VERGENCE_WITHIN_CM, color="k", ls=":", lw=1)
+    ax_v.set(yscale="log", xlabel="time after the ball appears (s)", ylabel="larger gaze line's distance from the ball (cm)",
+             title=f"vergence at 1 m, the same runs (goal: < {VERGENCE_WITHIN_CM:g} cm at the end)")
+    for j, (w, way) in enumerate((w, way) for w in TRACKING_SPEEDS for way in TRACKING_WAYS):
+        tr = traces[f"tracking_{w:g}_{way}"]
+        for s, ls in zip(SIDES, ("-", "--")):
+            ax_t.plot(tr["t"], np.maximum(tr[f"error_{s}"], 1e-2), color=f"C{j}", ls=ls, lw=1,
+                      label=f"{w:g} deg/s {way}, {s} eye")
+    ax_t.axvspan(0.0, TRACKING_FROM_S, color="0.9", lw=0)
+    ax_t.axhline(TRACKING_WITHIN_DEG, color="k", ls=":", lw=1)
+    ax_t.set(yscale="log", xlabel="time (s; the shaded start is the saccade onto the ball)", ylabel="gaze error (deg)",
+             title=f"tracking a ball circling at 1 m (goal: median < {TRACKING_WITHIN_DEG:g} deg)")
+    ax_t.legend(fontsize=6, ncol=2)
+    for ax in (ax_s, ax_v, ax_t):
+        ax.grid(alpha=0.3, which="both")
+        ax.title.set_fontsize(9)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 #: The light-step scenario: the room's light level (``loop.light_scale``) in phases of (duration s,
