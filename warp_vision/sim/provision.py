@@ -36,7 +36,7 @@ from warp_vision.body import SIDES
 #: ONVs, then training) as their presets' comments in :mod:`warp_vision.train.config_body` estimate them.
 MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 2.0,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
-           ("pupil", "default"): 5.0, ("pupil", "quick"): 1.5, ("lens", "default"): 13.0, ("lens", "quick"): 3.0,
+           ("pupil", "default"): 2.5, ("pupil", "quick"): 1.5, ("lens", "default"): 10.0, ("lens", "quick"): 3.0,
            ("arm", "default"): 8.0, ("arm", "quick"): 1.5, ("limb", "default"): 11.0, ("limb", "quick"): 2.0}
 
 #: Training commands whose side flag is ``--side`` (the arm's) rather than ``--eye``.
