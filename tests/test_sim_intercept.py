@@ -122,8 +122,8 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
     assert (arm.what, left.what) == ("left arm's motor nets", "left eye's limb vision net")
     assert NetSpec("oculomotor", "left", "o", "quick").command()[3:5] == ["--eye", "left"]
     assert (MINUTES["arm", "default"], MINUTES["arm", "quick"], MINUTES["limb", "default"], MINUTES["limb", "quick"]) \
-        == (8.0, 1.5, 11.0, 2.0)
-    assert (arm.minutes(), left.minutes()) == (8.0, 11.0)
+        == (6.0, 1.5, 11.0, 2.0)
+    assert (arm.minutes(), left.minutes()) == (6.0, 11.0)
     assert [s.kind for s in strike_plan("right", "a", None, quick=True)] == ["arm"]
     with pytest.raises(ValueError, match="side"):
         strike_plan("middle", "a", "l")
@@ -142,7 +142,7 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
 
     assert provide([arm, left, right], progress=False, log=lines.append, runner=fake) == [arm, left, right]
     assert [c[3] for c in calls] == ["arm", "limb", "limb"] and all("--no-progress" in c for c in calls)
-    assert "about 30 min" in lines[0] and "left arm's motor nets" in lines[1] and "right eye's limb vision net" in lines[3]
+    assert "about 28 min" in lines[0] and "left arm's motor nets" in lines[1] and "right eye's limb vision net" in lines[3]
     with pytest.raises(SystemExit, match="left arm's motor nets failed"):
         provide(strike_plan("left", str(tmp_path / "arm2"), None), progress=False, log=lambda _m: None,
                 runner=lambda cmd: 1)

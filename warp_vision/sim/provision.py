@@ -37,7 +37,7 @@ from warp_vision.body import SIDES
 MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 2.0,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
            ("pupil", "default"): 2.5, ("pupil", "quick"): 1.5, ("lens", "default"): 10.0, ("lens", "quick"): 3.0,
-           ("arm", "default"): 8.0, ("arm", "quick"): 1.5, ("limb", "default"): 11.0, ("limb", "quick"): 2.0}
+           ("arm", "default"): 6.0, ("arm", "quick"): 1.5, ("limb", "default"): 11.0, ("limb", "quick"): 2.0}
 
 #: Training commands whose side flag is ``--side`` (the arm's) rather than ``--eye``.
 _SIDE_FLAG = {"arm": "--side"}

@@ -115,8 +115,8 @@ ARM_PRESETS: dict[str, dict] = {
     "smoke": dict(postures=40, transitions=500, hidden=16, epochs=1, patience=1, body_checks=2),
     # a first look: one arm in about 1.5 minutes on a 2-core CPU
     "quick": dict(postures=1500, transitions=30_000, epochs=15, patience=15, body_checks=30),
-    # one arm in about 6 minutes on a 2-core CPU shared with another job (data synthesis, about 35 s, and the
-    # body checks, about 2 minutes, included)
+    # one arm in about 6 minutes on a 2-core CPU shared with another job, 4.7 alone on 2026-12-06 (data
+    # synthesis, about 35 s, and the body checks, about 2 minutes, included)
     "default": {},
 }
 
