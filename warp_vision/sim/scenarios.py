@@ -166,16 +166,15 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
 
 def plot_experiments(traces: dict, path: str, title: str | None = None) -> str:
     """The experiments over time, with their goals, in one figure at ``path`` (PNG): the saccades' gaze
-    error (the worse eye's) in each direction, the distance between the two gaze lines at the ball in
-    the same runs (vergence), and each eye's error while tracking. ``traces``: the second value of
+    error (the worse eye's) in each direction, the larger of the two gaze lines' distances from the ball
+    in the same runs (vergence), and each eye's error while tracking. ``traces``: the second value of
     ``experiments(loop, return_traces=True)``. Returns ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    want = [f"saccade_{45 * k}" for k in range(8)] + [f"tracking_{w:g}_{way}" for w in TRACKING_SPEEDS for way in TRACKING_WAYS]
-    missing = [n for n in want if n not in traces]
+    missing = [name for name, _, _ in _scenarios() if name not in traces]
     if missing:
         raise ValueError(f"traces: missing the scenarios {missing} (expected experiments(..., return_traces=True)'s)")
     fig, (ax_s, ax_v, ax_t) = plt.subplots(1, 3, figsize=(16, 4.6))
