@@ -163,6 +163,25 @@ def test_bad_config_is_refused():
     assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
 
 
+def test_face_runs_offer_only_the_models_they_train():
+    """Face recognition trains a liNet or its fc twin: the config refuses the foveation-only models and the
+    faces command's --model offers only those two."""
+    import argparse
+
+    from warp_vision.train.config import FACE_PRESETS, FaceTrainConfig, add_arguments
+
+    with pytest.raises(ValueError, match=r"model: expected one of \['linet', 'fc'\]"):
+        resolve("smoke", {"model": "cnn"}, FaceTrainConfig, FACE_PRESETS)
+    assert resolve("smoke", {"model": "fc"}, FaceTrainConfig, FACE_PRESETS).model == "fc"
+    p = argparse.ArgumentParser()
+    add_arguments(p, FaceTrainConfig, FACE_PRESETS)
+    action = next(a for a in p._actions if "--model" in a.option_strings)
+    assert action.choices == ["linet", "fc"]
+    fov = argparse.ArgumentParser()
+    add_arguments(fov)
+    assert "cnn" in next(a for a in fov._actions if "--model" in a.option_strings).choices
+
+
 def _task_configs():
     from warp_vision.train import config, config_body, config_intraocular
 

@@ -23,8 +23,9 @@
 
 Demo, experiments and intraocular work from a fresh clone: each net the loop needs (both eyes' foveation
 nets, the train command's default preset's retina CNNs; oculomotor nets; unless --intraocular analytic,
-pupil nets) that is missing is trained first, after a plan with time estimates, and cached
-(``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``, ``runs/pupil/<eye>``;
+pupil and lens nets) that is missing is trained first, after a plan with time estimates, and cached
+(``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``, ``runs/pupil/<eye>``,
+``runs/lens/<eye>``;
 intercept also the arm's motor nets, ``runs/arm/<side>``, and both eyes' limb vision nets,
 ``runs/limb/<eye>``; with --quick, smaller nets in ``runs/quick/``). Each output
 directory gets ``nets.json``: the nets used, with their training configs and checksums.
@@ -329,8 +330,9 @@ def main(argv=None) -> int:
         if name == "intercept":
             p.add_argument("--side", default="left", help="the striking arm: left (default) or right (the other hangs)")
             p.add_argument("--shots", type=int, default=None,
-                           help="N held-out shots (seeds 1,000,000 + --seed ...), each run three ways: limb vision in "
-                                "the closed loop, the true ball state (no rendering), passive arms; writes "
+                           help="N held-out shots (seeds 1,000,000 + --seed ...), each run several ways: the closed loop "
+                                "with the chosen --perception (with vision also with the eyes' fixation), the true ball "
+                                "state (no rendering; also off by each --perception-error-cm), passive arms; writes "
                                 "intercept_stats.json and figures. Default: one shot with its video")
             p.add_argument("--shot-seed", type=int, default=None,
                            help="one shot: the shot of this seed (training seeds 0-999,999, held-out 1,000,000-1,999,999; "

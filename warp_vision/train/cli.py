@@ -64,7 +64,8 @@ def _train_parser() -> argparse.ArgumentParser:
             "the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
             "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'oculomotor --eye left|right' (an eye's "
-            "oculomotor net), 'evaluate RUN_DIR' and "
+            "oculomotor net), 'arm --side left|right' (an arm's motor nets), 'limb|pupil|lens --eye left|right' (an "
+            "eye's limb vision, pupil or lens net), 'evaluate RUN_DIR' and "
             "'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )

@@ -9,6 +9,7 @@ import argparse
 import dataclasses
 import math
 from dataclasses import dataclass, fields
+from typing import ClassVar
 
 from warp_vision.data.foveation import FoveationDataConfig
 
@@ -32,7 +33,7 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
             raise ValueError(f"{f.name}: expected a finite number, got {v}")
     if cfg.preset not in presets:
         raise ValueError(f"preset: expected one of {sorted(presets)}, got {cfg.preset!r}")
-    for name, allowed in CHOICES.items():
+    for name, allowed in getattr(cfg, "CHOICES", CHOICES).items():
         if hasattr(cfg, name) and getattr(cfg, name) not in allowed:
             raise ValueError(f"{name}: expected one of {allowed}, got {getattr(cfg, name)!r}")
     for name in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
@@ -59,7 +60,7 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
 
 def onv_dtype_name(cfg) -> str:
     """The dtype ``cfg``'s net reads its ONVs in: ``cfg.onv_dtype``, with "auto" meaning float16 (the
-    store's) for a liNet and float32 for the fc baseline."""
+    store's) for a liNet and float32 for the fc, conv, cnn and range nets."""
     if cfg.onv_dtype != "auto":
         return cfg.onv_dtype
     return "float32" if cfg.model in ("fc", "conv", "cnn", "range") else "float16"
@@ -109,7 +110,7 @@ class TrainConfig:
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
     lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs), plateau (x0.3 after every 3 epochs without a better validation loss) or constant
-    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored; standardised in the first layer), bfloat16, float32 (a standardised float32 copy of each batch), or auto (float16 for a liNet, float32 for fc)
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored; standardised in the first layer), bfloat16, float32 (a standardised float32 copy of each batch), or auto (float16 for a liNet, float32 for the fc, conv, cnn and range nets)
     precision: str = "auto"  # cnn only: the CNN's layers in training run in bfloat16 (autocast; the image, loss and read-out stay float32) or float32; auto: bfloat16 where the device computes it natively (a CPU with AVX512-BF16 or AMX, a GPU of compute capability 8 on), else float32. Evaluation is float32
     epochs: int = 40  # at most
     patience: int = 8  # early stopping: epochs without a better validation loss
@@ -197,7 +198,10 @@ PRESETS: dict[str, dict] = {
 class FaceTrainConfig:
     """Everything an active-face-recognition run depends on (written to RUN_DIR/config.json)."""
 
-    preset: str = "default"  # smoke | quick | default | paper: sets the defaults of everything below
+    #: the allowed values where they are fewer than the foveation config's (argparse choices; validate checks them)
+    CHOICES: ClassVar[dict] = {**CHOICES, "model": ["linet", "fc"]}
+
+    preset: str = "default"  # smoke | default | paper: sets the defaults of everything below
     task: str = "faces"  # fixed: tells evaluate which kind of run a directory holds
     out: str = "runs/faces"  # output directory (config, checkpoints, metrics, figures)
     data_dir: str = ""  # dataset directory; default: runs/datasets/faces-<config hash>
@@ -219,7 +223,7 @@ class FaceTrainConfig:
     reduction: int = 2  # f, each layer has 1/f of the previous layer's units
     # optimisation
     loss_lambda: float = 6.0  # loss = cross-entropy + loss_lambda * MSE(standardised pose)
-    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for fc)
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for the fc, conv, cnn and range nets)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (betas 0.9, 0.999)
     epochs: int = 60  # at most
@@ -239,8 +243,6 @@ class FaceTrainConfig:
 
     def validate(self) -> None:
         _check_common(self, FACE_PRESETS)
-        if self.model not in ("linet", "fc"):
-            raise ValueError(f"model: expected linet or fc for face recognition, got {self.model!r}")
         if self.identities < 2:
             raise ValueError(f"identities: expected at least 2 (a classifier needs classes), got {self.identities}")
         if not self.loss_lambda >= 0:
@@ -296,7 +298,8 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
             p.add_argument("--preset", choices=sorted(presets), default="default", help=_help(cls, f.name))
             continue
         value = getattr(defaults, f.name)
-        extra = {"choices": CHOICES[f.name]} if f.name in CHOICES else {}
+        choices = getattr(cls, "CHOICES", CHOICES)
+        extra = {"choices": choices[f.name]} if f.name in choices else {}
         if isinstance(value, bool):
             p.add_argument(f"--{f.name.replace('_', '-')}", action="store_const", const=True, default=None,
                            help=f"{_help(cls, f.name)} (default: off)")
