@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -163,23 +164,25 @@ def test_bad_config_is_refused():
     assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
 
 
-def test_face_runs_offer_only_the_models_they_train():
-    """Face recognition trains a liNet or its fc twin: the config refuses the foveation-only models and the
-    faces command's --model offers only those two."""
+def test_face_and_limb_runs_offer_only_the_models_they_train():
+    """Face recognition trains a liNet or its fc twin, limb vision also the cnn and range nets: each config
+    refuses the other models and its command's --model offers only its own; foveation offers the conv net."""
     import argparse
 
     from warp_vision.train.config import FACE_PRESETS, FaceTrainConfig, add_arguments
+    from warp_vision.train.config_body import LIMB_PRESETS, LimbTrainConfig
 
-    with pytest.raises(ValueError, match=r"model: expected one of \['linet', 'fc'\]"):
-        resolve("smoke", {"model": "cnn"}, FaceTrainConfig, FACE_PRESETS)
-    assert resolve("smoke", {"model": "fc"}, FaceTrainConfig, FACE_PRESETS).model == "fc"
-    p = argparse.ArgumentParser()
-    add_arguments(p, FaceTrainConfig, FACE_PRESETS)
-    action = next(a for a in p._actions if "--model" in a.option_strings)
-    assert action.choices == ["linet", "fc"]
+    for cls, presets, own, other in ((FaceTrainConfig, FACE_PRESETS, ["linet", "fc"], "cnn"),
+                                     (LimbTrainConfig, LIMB_PRESETS, ["linet", "fc", "cnn", "range"], "conv")):
+        with pytest.raises(ValueError, match=re.escape(f"model: expected one of {own}")):
+            resolve("smoke", {"model": other}, cls, presets)
+        assert resolve("smoke", {"model": "fc"}, cls, presets).model == "fc"
+        p = argparse.ArgumentParser()
+        add_arguments(p, cls, presets)
+        assert next(a for a in p._actions if "--model" in a.option_strings).choices == own
     fov = argparse.ArgumentParser()
     add_arguments(fov)
-    assert "cnn" in next(a for a in fov._actions if "--model" in a.option_strings).choices
+    assert "conv" in next(a for a in fov._actions if "--model" in a.option_strings).choices
 
 
 def _task_configs():

@@ -223,7 +223,7 @@ class FaceTrainConfig:
     reduction: int = 2  # f, each layer has 1/f of the previous layer's units
     # optimisation
     loss_lambda: float = 6.0  # loss = cross-entropy + loss_lambda * MSE(standardised pose)
-    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for the fc, conv, cnn and range nets)
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for fc)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (betas 0.9, 0.999)
     epochs: int = 60  # at most

@@ -5,8 +5,9 @@ dataclass with its presets; the command line and the checks they share are :mod:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
-from warp_vision.train.config import _check_common, epoch_lr
+from warp_vision.train.config import CHOICES, _check_common, epoch_lr
 
 
 @dataclass
@@ -126,6 +127,9 @@ class LimbTrainConfig:
     """Everything a limb vision run depends on (one eye's net: the ball's distance, or the hand-to-ball
     discrepancy of both arms; written to RUN_DIR/config.json)."""
 
+    #: the allowed values where they are fewer than the foveation config's (argparse choices; validate checks them)
+    CHOICES: ClassVar[dict] = {**CHOICES, "model": ["linet", "fc", "cnn", "range"]}
+
     preset: str = "default"  # smoke | quick | default: sets the defaults of everything below
     task: str = "limb"  # fixed: tells evaluate which kind of run a directory holds
     out: str = ""  # output directory; default: runs/limb/<eye>
@@ -144,7 +148,7 @@ class LimbTrainConfig:
     layers: int = 3  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units
-    onv_dtype: str = "auto"  # float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for the fc, conv, cnn and range nets)
+    onv_dtype: str = "auto"  # float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for the fc, cnn and range nets)
     precision: str = "auto"  # cnn and range only: their layers in training run in bfloat16 (autocast) or float32; auto: bfloat16 where the device computes it natively (a CPU with AVX512-BF16 or AMX, a GPU of compute capability 8 on), else float32. Evaluation is float32
     # optimisation
     near_weight_m: float = 0.25  # m: each arm's error is weighted by 1 / (this + its true hand-ball distance): near balls count most
@@ -181,8 +185,6 @@ class LimbTrainConfig:
         _check_common(self, LIMB_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor"))
         if not self.near_weight_m > 0:
             raise ValueError(f"near_weight_m: expected > 0 m, got {self.near_weight_m}")
-        if self.model not in ("linet", "fc", "cnn", "range"):
-            raise ValueError(f"model: expected linet, fc, cnn or range for limb vision, got {self.model!r}")
         if self.model in ("cnn", "range") and self.onv_dtype not in ("auto", "float32"):
             raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
         self.data_config().validate()
