@@ -10,7 +10,12 @@ Defocus needs contrast at every scale: these cards are the objects the lens nets
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:  # the return annotation only; trimesh is imported where the card is built
+    import trimesh
 
 #: The albedo range of a card's pattern.
 ALBEDO_RANGE = (0.08, 0.9)
