@@ -5,6 +5,7 @@ and ``python -m warp_vision.bench loop`` report."""
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -15,6 +16,7 @@ SETTLE_S = 0.2  # s of simulation before a scenario starts: the passive arms set
 #: The experiments' goals: saccades to 20 deg settle within 1 deg by 0.3 s; vergence at 1 m brings the
 #: gaze lines within 2 cm; tracking's median error (after the first 0.3 s, the saccade onto the ball) under 1 deg.
 SACCADE_DEG = 20.0
+SACCADE_DIRECTIONS_DEG = tuple(range(0, 360, 45))  # the eight saccades' directions (0 = rightward, 90 = up)
 SACCADE_WITHIN_DEG, SACCADE_BY_S = 1.0, 0.3
 VERGENCE_WITHIN_CM = 2.0
 TRACKING_SPEEDS = (15.0, 30.0)  # deg/s
@@ -58,9 +60,9 @@ def _scenarios():
     from warp_vision.sim.loop import point_at
 
     out = []
-    for k in range(8):
-        ang = np.radians(45.0 * k)
-        out.append((f"saccade_{45 * k}", 0.8,
+    for d in SACCADE_DIRECTIONS_DEG:
+        ang = np.radians(d)
+        out.append((f"saccade_{d}", 0.8,
                     lambda body, ang=ang: _fixed(point_at(body, SACCADE_DEG * np.cos(ang), SACCADE_DEG * np.sin(ang), 1.0))))
     for omega in TRACKING_SPEEDS:
         for way in TRACKING_WAYS:
@@ -129,11 +131,11 @@ def experiments(loops, progress: bool = True, return_traces: bool = False):
 
 def _summary(loop, st: dict, control_dt: float) -> dict:
     trials = []
-    for k in range(8):
-        tr = st["traces"][f"saccade_{45 * k}"]
+    for d in SACCADE_DIRECTIONS_DEG:
+        tr = st["traces"][f"saccade_{d}"]
         both = np.maximum(tr["error_left"], tr["error_right"])
         within = both < SACCADE_WITHIN_DEG
-        trials.append({"direction_deg": 45.0 * k, "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
+        trials.append({"direction_deg": float(d), "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
                        "error_at_0.3s_deg": float(np.interp(SACCADE_BY_S, tr["t"], both)),
                        "max_error_after_0.3s_deg": float(both[tr["t"] >= SACCADE_BY_S].max()),
                        "gaze_line_distance_cm": 100 * float(max(tr["line_left"][-1], tr["line_right"][-1])),
@@ -178,11 +180,11 @@ def plot_experiments(traces: dict, path: str, title: str | None = None) -> str:
     if missing:
         raise ValueError(f"traces: missing the scenarios {missing} (expected experiments(..., return_traces=True)'s)")
     fig, (ax_s, ax_v, ax_t) = plt.subplots(1, 3, figsize=(16, 4.6))
-    for k, c in enumerate(f"C{j}" for j in range(8)):
-        tr = traces[f"saccade_{45 * k}"]
+    for k, d in enumerate(SACCADE_DIRECTIONS_DEG):
+        tr = traces[f"saccade_{d}"]
         both = np.maximum(tr["error_left"], tr["error_right"])
-        ax_s.plot(tr["t"], np.maximum(both, 1e-2), color=c, label=f"{45 * k} deg")
-        ax_v.plot(tr["t"], 100 * np.maximum(tr["line_left"], tr["line_right"]), color=c)
+        ax_s.plot(tr["t"], np.maximum(both, 1e-2), color=f"C{k}", label=f"{d} deg")
+        ax_v.plot(tr["t"], 100 * np.maximum(tr["line_left"], tr["line_right"]), color=f"C{k}")
     ax_s.axhline(SACCADE_WITHIN_DEG, color="k", ls=":", lw=1)
     ax_s.axvline(SACCADE_BY_S, color="k", ls=":", lw=1)
     ax_s.set(yscale="log", xlabel="time after the ball appears (s)", ylabel="gaze error, worse eye (deg)",
@@ -191,7 +193,7 @@ def plot_experiments(traces: dict, path: str, title: str | None = None) -> str:
     ax_v.axhline(VERGENCE_WITHIN_CM, color="k", ls=":", lw=1)
     ax_v.set(yscale="log", xlabel="time after the ball appears (s)", ylabel="larger gaze line's distance from the ball (cm)",
              title=f"vergence at 1 m, the same runs (goal: < {VERGENCE_WITHIN_CM:g} cm at the end)")
-    for j, (w, way) in enumerate((w, way) for w in TRACKING_SPEEDS for way in TRACKING_WAYS):
+    for j, (w, way) in enumerate(itertools.product(TRACKING_SPEEDS, TRACKING_WAYS)):
         tr = traces[f"tracking_{w:g}_{way}"]
         for s, ls in zip(SIDES, ("-", "--")):
             ax_t.plot(tr["t"], np.maximum(tr[f"error_{s}"], 1e-2), color=f"C{j}", ls=ls, lw=1,
