@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import os
 import threading
 import time
 import weakref
@@ -103,3 +104,38 @@ def test_a_recording_does_not_keep_its_last_arguments_alive():
     del x, y
     gc.collect()
     assert all(r() is None for r in refs), "a recorded launch still holds the last call's tensors"
+
+
+def _print_natively(lines: list[bytes]) -> int:
+    """Write lines to file descriptor 2 as native code does (bypassing sys.stderr); returns 7."""
+    for line in lines:
+        os.write(2, line)
+    return 7
+
+
+_NO_DRIVER_LINE = launch.NO_DRIVER_WARNING + b". GPU execution will not be available.\n"
+
+
+def test_no_driver_warning_is_dropped_only_where_no_gpu_is_present(monkeypatch, capfd):
+    lines = [b"before\n", _NO_DRIVER_LINE, b"Warp CUDA error: something else\n"]
+    monkeypatch.setattr(launch, "nvidia_device_present", lambda: False)
+    assert launch.run_without_no_driver_warning(lambda: _print_natively(lines)) == 7
+    err = capfd.readouterr().err
+    assert err == "before\nWarp CUDA error: something else\n"
+
+    monkeypatch.setattr(launch, "nvidia_device_present", lambda: True)
+    launch.run_without_no_driver_warning(lambda: _print_natively(lines))
+    assert capfd.readouterr().err == b"".join(lines).decode()
+
+
+def test_stderr_is_restored_when_the_call_raises(monkeypatch, capfd):
+    monkeypatch.setattr(launch, "nvidia_device_present", lambda: False)
+
+    def fail():
+        _print_natively([_NO_DRIVER_LINE, b"why it failed\n"])
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError, match="boom"):
+        launch.run_without_no_driver_warning(fail)
+    os.write(2, b"after\n")
+    assert capfd.readouterr().err == "why it failed\nafter\n"

@@ -17,7 +17,10 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import glob
 import os
+import sys
+import tempfile
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
@@ -38,8 +41,54 @@ _pool_threads = 0
 MIN_THREADS_PER_SLICE = 4096
 
 
+#: The line Warp's native library prints on stderr, whatever ``wp.config.quiet`` says, when it cannot
+#: load the CUDA driver.
+NO_DRIVER_WARNING = b"Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+
+
+def nvidia_device_present() -> bool:
+    """Whether this machine may have an NVIDIA GPU: an ``/dev/nvidia<N>`` node on Linux; elsewhere
+    we cannot tell cheaply, so True."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(glob.glob("/dev/nvidia[0-9]*"))
+
+
+def drop_no_driver_warning(text: bytes) -> bytes:
+    """``text`` without Warp's no-CUDA-driver line, every other line kept as it was."""
+    return b"".join(line for line in text.splitlines(keepends=True) if not line.startswith(NO_DRIVER_WARNING))
+
+
+def run_without_no_driver_warning(fn) -> Any:
+    """Call ``fn()`` with file descriptor 2 (stderr, where native code writes) captured, then write
+    back to it everything printed there but Warp's no-CUDA-driver line. That line is dropped only on
+    a machine with no NVIDIA device (:func:`nvidia_device_present`), where it says nothing a user can
+    act on; where a GPU is present but its driver did not load, it is kept."""
+    if nvidia_device_present():
+        return fn()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no descriptor 2 to capture
+        return fn()
+    with contextlib.suppress(AttributeError, ValueError):
+        sys.stderr.flush()
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            return fn()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            kept = drop_no_driver_warning(tmp.read())
+            if kept:
+                os.write(2, kept)
+
+
 def init() -> None:
-    """Initialise Warp once, quietly; honour ``WARP_VISION_KERNEL_CACHE`` for the kernel cache."""
+    """Initialise Warp once, quietly; honour ``WARP_VISION_KERNEL_CACHE`` for the kernel cache. On a
+    machine without an NVIDIA device, Warp's native warning that it found no CUDA driver is not shown
+    (:func:`run_without_no_driver_warning`)."""
     global _initialised
     if _initialised:
         return
@@ -49,7 +98,7 @@ def init() -> None:
         cache = os.environ.get("WARP_VISION_KERNEL_CACHE")
         if cache:
             wp.config.kernel_cache_dir = cache
-        wp.init()
+        run_without_no_driver_warning(wp.init)
         _initialised = True
 
 
