@@ -83,10 +83,12 @@ def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
     assert (tmp_path / "run" / "figures" / "pupil.png").exists()
     net = load_pupil(str(tmp_path / "run"))
     assert net(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0, 5.0])).shape == (2,)
-    from warp_vision.sim.loop import load_lens
+    from warp_vision.sim.loop import Foveator, load_lens
 
     with pytest.raises(ValueError, match="expected a lens run"):
         load_lens(str(tmp_path / "run"))
+    with pytest.raises(ValueError, match=r"expected a foveation run \(python -m warp_vision.train\); it holds a net of kind 'pupil'"):
+        Foveator(str(tmp_path / "run"))
     with pytest.raises(ValueError, match="pupil_mm"):
         load_pupil(str(tmp_path / "run"))(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0]))
 

@@ -15,7 +15,8 @@ from warp_vision.body import SIDES, Body, BodyConfig
 
 
 def _fake_trainer(calls, fail_on=None):
-    """A runner that 'trains' by writing the run's best.pt and config.json (as the training command would)."""
+    """A runner that 'trains' by writing the run's best.pt and config.json (as the training command would:
+    a task's config names its task, the foveation config, the command's default task, none)."""
 
     def run(cmd):
         calls.append(cmd)
@@ -25,8 +26,9 @@ def _fake_trainer(calls, fail_on=None):
         os.makedirs(out, exist_ok=True)
         with open(os.path.join(out, "best.pt"), "wb") as f:
             f.write(out.encode())
+        task = {} if cmd[3].startswith("--") else {"task": cmd[3]}
         with open(os.path.join(out, "config.json"), "w") as f:
-            json.dump({"out": out}, f)
+            json.dump({"out": out, **task}, f)
         return 0
 
     return run
@@ -50,7 +52,7 @@ def test_provide_trains_only_what_is_missing_and_the_manifest_names_it(tmp_path)
     assert len(calls) == 3
     m = manifest(specs)
     assert m["foveation_right"]["sha256"] == hashlib.sha256(b"already here").hexdigest()
-    assert m["oculomotor_left"]["config"] == {"out": str(tmp_path / "ocu" / "left")}
+    assert m["oculomotor_left"]["config"] == {"out": str(tmp_path / "ocu" / "left"), "task": "oculomotor"}
 
 
 def test_provide_resumes_a_stopped_run_and_stops_on_a_failed_one(tmp_path):
@@ -63,6 +65,38 @@ def test_provide_resumes_a_stopped_run_and_stops_on_a_failed_one(tmp_path):
     assert specs[2].command()[:3] == ["oculomotor", "--preset", "default"]
     with pytest.raises(SystemExit, match="right eye's foveation net failed"):
         provide(specs[1:], progress=False, log=lambda _m: None, runner=_fake_trainer([], fail_on=str(tmp_path / "fr")))
+
+
+def test_provide_refuses_a_run_directory_that_holds_another_net_before_training_any(tmp_path):
+    import json
+
+    from warp_vision.sim.provision import plan, provide, strike_plan
+
+    def run(name, **config):
+        os.makedirs(tmp_path / name)
+        (tmp_path / name / "config.json").write_text(json.dumps(config))
+        (tmp_path / name / "best.pt").write_bytes(b"net")
+        return str(tmp_path / name)
+
+    arm = run("arm/left", task="arm", side="left")
+    right = run("fr", eye="right")  # a foveation run: its config names no task
+    calls = []
+    specs = plan(arm, right, str(tmp_path / "ocu"))
+    with pytest.raises(ValueError, match="arm/left holds the left arm's motor nets, not the left eye's foveation net \\(check"):
+        provide(specs, progress=False, log=lambda _m: None, runner=_fake_trainer(calls))
+    assert calls == []  # nothing trained: the oculomotor nets are missing too
+    specs = plan(right, right, str(tmp_path / "ocu"))  # the right eye's net for the left eye
+    with pytest.raises(ValueError, match="fr holds the right eye's foveation net, not the left eye's foveation net"):
+        provide(specs, progress=False, log=lambda _m: None, runner=_fake_trainer(calls))
+    run("limb/left", task="limb", eye="left")
+    run("limb/right", task="pupil", eye="right")
+    with pytest.raises(ValueError, match="right holds the right eye's pupil net, not the right eye's limb vision net") as e:
+        provide(strike_plan("left", str(tmp_path / "arm"), str(tmp_path / "limb")), progress=False, log=lambda _m: None,
+                runner=_fake_trainer(calls))
+    assert "limb/left" not in str(e.value) and calls == []
+    # the right runs pass: nothing to train
+    assert provide(strike_plan("left", str(tmp_path / "arm"), None), progress=False, log=lambda _m: None,
+                   runner=_fake_trainer(calls)) == []
 
 
 # --- the loop between frames ---------------------------------------------------------------------------

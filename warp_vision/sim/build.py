@@ -33,16 +33,14 @@ def net_specs(args) -> list:
 
 
 def setup_loop(args):
-    """Provide the nets (training missing ones), build the body and the loop; writes nets.json to --out.
-    Returns (body, loop)."""
+    """Provide the nets (training missing ones), build the body and the loop; once they have loaded,
+    writes nets.json to --out. Returns (body, loop)."""
     from warp_vision.sim.loop import Foveator, VisuomotorLoop, load_lens, load_pupil
     from warp_vision.sim.oculomotor import load_oculomotor
     from warp_vision.sim.provision import manifest, provide
 
     specs = net_specs(args)
     provide(specs, progress=not args.no_progress)
-    os.makedirs(args.out, exist_ok=True)
-    write_json(os.path.join(args.out, "nets.json"), manifest(specs))
     body = Body(BodyConfig(arms=not args.no_arms))
     body.step(int(SETTLE_S / body.model.opt.timestep))
     fov = {s: Foveator(spec.run) for s, spec in zip(SIDES, specs[:2])}
@@ -54,6 +52,9 @@ def setup_loop(args):
     runs = {(spec.kind, spec.eye): spec.run for spec in specs}
     pupil = {s: load_pupil(runs["pupil", s]) for s in SIDES} if ("pupil", "left") in runs else None
     lens = {s: load_lens(runs["lens", s]) for s in SIDES} if ("lens", "left") in runs else None
-    return body, VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
-                                ball=args.ball, pupil_nets=pupil, lens_nets=lens,
-                                perception=getattr(args, "gaze_perception", "nets"))
+    loop = VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
+                          ball=args.ball, pupil_nets=pupil, lens_nets=lens,
+                          perception=getattr(args, "gaze_perception", "nets"))
+    os.makedirs(args.out, exist_ok=True)  # recorded once every net has loaded: a failed start leaves the last record
+    write_json(os.path.join(args.out, "nets.json"), manifest(specs))
+    return body, loop

@@ -85,23 +85,25 @@ PERCEPTION = ("nets", "oracle")
 
 
 def _load_kind(run_dir: str, kind: str, device: str):
+    """(model, checkpoint) of the run in ``run_dir``, or a ValueError when it holds another kind of net."""
     from warp_vision.nn.trained import load_net
 
     model, ck = load_net(run_dir, device)
     if ck.get("net", {}).get("kind") != kind:
-        raise ValueError(f"{run_dir}: expected a {kind} run (python -m warp_vision.train {kind}), got a "
-                         f"{ck.get('net', {}).get('kind')!r} net")
-    return model
+        command = "" if kind == "foveation" else f" {kind}"  # foveation is the training command's default task
+        raise ValueError(f"{run_dir}: expected a {kind} run (python -m warp_vision.train{command}); it holds a "
+                         f"net of kind {ck.get('net', {}).get('kind')!r}")
+    return model, ck
 
 
 def load_pupil(run_dir: str, device: str = "cpu"):
     """An eye's trained pupil net (:class:`warp_vision.nn.intraocular.PupilNet`), in eval mode."""
-    return _load_kind(run_dir, "pupil", device)
+    return _load_kind(run_dir, "pupil", device)[0]
 
 
 def load_lens(run_dir: str, device: str = "cpu"):
     """An eye's trained lens net (:class:`warp_vision.nn.intraocular.LensNet`), in eval mode."""
-    return _load_kind(run_dir, "lens", device)
+    return _load_kind(run_dir, "lens", device)[0]
 
 
 class Foveator:
@@ -110,10 +112,10 @@ class Foveator:
 
     def __init__(self, run_dir: str, device: str = "cpu"):
         from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
-        from warp_vision.nn.trained import load_net, onv_dtype
+        from warp_vision.nn.trained import onv_dtype
 
         self.run_dir = run_dir
-        self.model, ck = load_net(run_dir, device)
+        self.model, ck = _load_kind(run_dir, "foveation", device)
         data = FoveationDataConfig.saved(ck["data"])
         self.generator = data.generator
         self.retina = make_retina(data)

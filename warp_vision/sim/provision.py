@@ -78,6 +78,21 @@ class NetSpec:
     def minutes(self) -> float:
         return MINUTES.get((self.kind, self.preset), MINUTES[(self.kind, "default")])
 
+    def mismatch(self) -> str | None:
+        """Why the run directory holds another net than this one, read from its ``config.json`` (another
+        task, or the other eye or arm), or None: it is this net's run, or holds no run yet."""
+        path = os.path.join(self.run, "config.json")
+        if not os.path.isfile(path):
+            return None
+        with open(path) as f:
+            cfg = json.load(f)
+        kind = cfg.get("task") or "foveation"  # the foveation config has no task field: the default task
+        side = cfg.get("side" if kind == "arm" else "eye")
+        if kind == self.kind and side in (None, self.eye):
+            return None
+        found = f"the {NetSpec(kind, side, self.run, self.preset).what}" if side in SIDES else f"a {kind} run"
+        return f"{self.run} holds {found}, not the {self.what}"
+
 
 def default_runs(quick: bool) -> dict:
     """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor", "pupil", "lens",
@@ -115,7 +130,12 @@ def strike_plan(side: str, arm: str, limb: str | None, quick: bool = False) -> l
 def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None) -> list[NetSpec]:
     """Train every net of ``specs`` that is missing; returns those it trained. Prints the plan and its
     estimated wall time first. ``runner(cmd) -> returncode`` runs a command (default: a subprocess);
-    a failed training stops the simulation with the command to rerun."""
+    a failed training stops the simulation with the command to rerun. A run directory that holds
+    another net (:meth:`NetSpec.mismatch`: ``--left runs/arm/left``, say) is a ValueError, raised before
+    anything is trained."""
+    wrong = [m for m in (s.mismatch() for s in specs) if m]
+    if wrong:
+        raise ValueError("; ".join(wrong) + " (check the run directories given to the command)")
     todo = [s for s in specs if not s.ready()]
     if not todo:
         return []
