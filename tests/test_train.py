@@ -164,6 +164,34 @@ def test_bad_config_is_refused():
     assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
 
 
+def test_a_run_of_another_task_is_refused_by_resume_compare_and_the_foveation_evaluations(tmp_path, capsys):
+    """Each command reads the task a run directory's config.json names and says in one line what it expected
+    (it was a TypeError or KeyError from deep inside before); nothing is trained or written."""
+    import json
+
+    arm = tmp_path / "arm"
+    arm.mkdir()
+    (arm / "config.json").write_text(json.dumps({"task": "arm", "side": "left", "out": str(arm)}))
+    (arm / "metrics.jsonl").write_text(json.dumps({"epoch": 1, "train_loss": 1.0, "val_loss": 1.0}) + "\n")
+    fov = tmp_path / "fov"
+    fov.mkdir()
+    (fov / "config.json").write_text(json.dumps({"model": "cnn", "out": str(fov)}))  # foveation: the config names no task
+    capsys.readouterr()
+    for argv, said in ((["--resume", str(arm)], f"an arm run, not a foveation run; resume it with "
+                                                 f"python -m warp_vision.train arm --resume {arm}"),
+                       (["limb", "--resume", str(fov)], "a foveation run, not a limb run; resume it with "
+                                                        f"python -m warp_vision.train --resume {fov}"),
+                       (["compare", str(arm), "--out", str(tmp_path / "c.png")], "is an arm run; compare plots"),
+                       (["evaluate", str(arm), "--conditions"], "an arm run; --conditions measures foveation runs"),
+                       (["evaluate", str(fov), str(arm), "--conditions"], "an arm run; --conditions"),  # before fov's
+                       (["evaluate", str(fov), str(arm), "--misses"], "is an arm run"),
+                       (["evaluate", str(arm), "--views", "2"], "is an arm run")):
+        assert train_main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err, (argv, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["arm", "fov"] and not (arm / "best.pt").exists()
+
+
 def test_face_and_limb_runs_offer_only_the_models_they_train():
     """Face recognition trains a liNet or its fc twin, limb vision also the cnn and range nets: each config
     refuses the other models and its command's --model offers only its own; foveation offers the conv net."""

@@ -170,7 +170,7 @@ def _module(task: str):
 
 def _compare(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="python -m warp_vision.train compare",
-                                description="Plot several foveation runs' training and validation MSE curves in one figure.")
+                                description="Plot several foveation (or face) runs' training and validation MSE curves in one figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="figure path (.png)")
     p.add_argument("--title", default="training and validation MSE", help="the figure's title (default: %(default)r)")
@@ -183,6 +183,7 @@ def _compare(argv: list[str]) -> int:
 
         from warp_vision.fileio import atomic_write
         from warp_vision.train.figures import plot_curves
+        from warp_vision.train.rundir import a_run, saved_task
 
         hists = {}
         names = [Path(r).name for r in a.runs]
@@ -190,6 +191,9 @@ def _compare(argv: list[str]) -> int:
             m = Path(r) / "metrics.jsonl"
             if not m.exists():
                 raise FileNotFoundError(errno.ENOENT, "not found (is this a training run directory?)", str(m))
+            task = saved_task(r)
+            if task not in ("foveation", "faces"):
+                raise ValueError(f"runs: {r} is {a_run(task)}; compare plots foveation and face runs' MSE curves")
             cfg = json.loads((Path(r) / "config.json").read_text())
             name = names[i] if names.count(names[i]) == 1 else str(r)  # the directory's name, its path where names repeat
             label = f"{name} ({cfg['model']}, P={cfg['photoreceptors']:,})"
@@ -204,8 +208,7 @@ def _compare(argv: list[str]) -> int:
 
 
 def _evaluate(argv: list[str]) -> int:
-    import json
-    from pathlib import Path
+    from warp_vision.train.rundir import a_run, saved_task
 
     p = _eval_parser()
     a = p.parse_args(argv)
@@ -231,15 +234,15 @@ def _evaluate(argv: list[str]) -> int:
 
             evaluate_agreement(a.run_dirs, a.split)
             return
-        for run_dir in a.run_dirs:
-            cfg_path = Path(run_dir) / "config.json"
-            task = json.loads(cfg_path.read_text()).get("task", "foveation") if cfg_path.exists() else "foveation"
-            if a.misses and task != "foveation":
-                raise ValueError(f"--misses: foveation runs only; {run_dir} is a {task} run")
+        tasks = [saved_task(run_dir) for run_dir in a.run_dirs]
+        for run_dir, task in zip(a.run_dirs, tasks):  # every run checked before the first is evaluated
+            for flag, given, only in (("--misses", a.misses, "foveation runs"), ("--views", a.views is not None,
+                                                                               "foveation CNN runs")):
+                if given and task != "foveation":
+                    raise ValueError(f"{flag}: {only} only; {run_dir} is {a_run(task)}")
+        for run_dir, task in zip(a.run_dirs, tasks):
             kw = {"misses": True, "signal": a.signal, "progress": not a.no_progress} if a.misses else {}
             if a.views is not None:
-                if task != "foveation":
-                    raise ValueError(f"--views: foveation CNN runs only; {run_dir} is a {task} run")
                 kw["views"] = a.views
             _module(task).evaluate_run(run_dir, a.split, checkpoint=a.checkpoint, **kw)
 

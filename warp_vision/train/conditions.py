@@ -55,7 +55,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
     from warp_vision.nn.trained import CHECKPOINTS, checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets, read_checkpoint
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
     from warp_vision.train.harness import pick_device, read_label
-    from warp_vision.train.rundir import dataset_dir, run_config
+    from warp_vision.train.rundir import a_run, dataset_dir, run_config, saved_task
 
     conditions = list(conditions or CONDITIONS[1:])
     bad = [c for c in conditions if c not in CONDITIONS[1:]]
@@ -69,12 +69,12 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
     suffix = "" if checkpoint == "best" else f"_{checkpoint}"
     results, examples = {}, {}
+    for run in run_dirs:  # every run checked before the first is measured
+        if (task := saved_task(run)) != "foveation":
+            raise ValueError(f"{run}: {a_run(task)}; --conditions measures foveation runs")
     for run in run_dirs:
         out = Path(run)
         path = checkpoint_path(out, checkpoint)
-        saved = json.loads((out / "config.json").read_text()) if (out / "config.json").exists() else {}
-        if saved.get("task", "foveation") != "foveation":
-            raise ValueError(f"{out}: a {saved['task']} run; --conditions measures foveation runs")
         ck = read_checkpoint(path)
         cfg = run_config(FoveationTask, out, ck)
         device = pick_device(cfg.device)

@@ -35,6 +35,23 @@ PATH_FIELDS = ("out", "data_dir", "identities_cache")
 TIMING_FIELDS = ("seconds",)
 
 
+def saved_task(run_dir) -> str:
+    """The task of the run in ``run_dir`` as its config.json names it: "foveation" (the training command's
+    default task, whose config names none) where it names none or there is no config.json."""
+    path = Path(run_dir) / "config.json"
+    return json.loads(path.read_text()).get("task", "foveation") if path.exists() else "foveation"
+
+
+def a_run(task: str) -> str:
+    """"a foveation run", "an arm run": a task's run in words."""
+    return f"{'an' if task[:1] in 'aeiou' else 'a'} {task} run"
+
+
+def task_command(task: str) -> str:
+    """The training command of a task: ``python -m warp_vision.train`` and, but for foveation, the task."""
+    return "python -m warp_vision.train" + ("" if task == "foveation" else f" {task}")
+
+
 def claim_out_dir(out: Path, overwrite: bool) -> None:
     """Refuse to start a new run in a directory that holds one (its metrics or checkpoints), unless
     ``overwrite``: then delete them (rank 0)."""
@@ -82,6 +99,10 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         out = Path(resume).resolve()
         if not (out / "config.json").exists():
             raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
+        task = saved_task(out)
+        if task != task_cls.name:
+            raise ValueError(f"--resume {resume}: {a_run(task)}, not {a_run(task_cls.name)}; resume it with "
+                             f"{task_command(task)} --resume {resume}")
         cfg = task_cls.config_cls(**{**getattr(task_cls.config_cls, "LEGACY_DEFAULTS", {}), **json.loads((out / "config.json").read_text())})
         if epochs is not None:
             cfg.epochs = epochs
