@@ -384,6 +384,8 @@ def _run(args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')}: expected >= 1, got {getattr(args, flag)}")
     if not getattr(args, "slow_motion", 1.0) > 0:
         raise ValueError(f"--slow-motion: expected > 0, got {args.slow_motion}")
+    if getattr(args, "seed", 0) < 0:
+        raise ValueError(f"--seed: expected a seed >= 0, got {args.seed}")
     if args.command == "oculomotor":
         from warp_vision.sim.provision import provide
 
