@@ -192,6 +192,16 @@ def test_a_run_of_another_task_is_refused_by_resume_compare_and_the_foveation_ev
     assert sorted(p.name for p in tmp_path.iterdir()) == ["arm", "fov"] and not (arm / "best.pt").exists()
 
 
+def test_a_file_given_as_the_run_or_the_data_directory_is_refused_before_anything_is_written(tmp_path, capsys):
+    f = tmp_path / "notes.txt"
+    f.write_text("not a directory")
+    for task in ([], ["oculomotor"], ["pupil"]):
+        for argv, flag in ((["--out", str(f)], "--out"), (["--out", str(tmp_path / "run"), "--data-dir", str(f)], "--data-dir")):
+            assert train_main([*task, "--preset", "smoke", *argv]) == 2
+            assert f"{flag} names a file, not a directory" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
 def test_face_and_limb_runs_offer_only_the_models_they_train():
     """Face recognition trains a liNet or its fc twin, limb vision also the cnn and range nets: each config
     refuses the other models and its command's --model offers only its own; foveation offers the conv net."""

@@ -122,6 +122,9 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         out = Path(cfg.out)
         if out.exists() and not out.is_dir():
             raise NotADirectoryError(errno.ENOTDIR, "--out names a file, not a directory", str(out))
+        data = Path(getattr(cfg, "data_dir", "") or ".")
+        if data.exists() and not data.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, "--data-dir names a file, not a directory", str(data))
         claim_out_dir(out, overwrite)
     return cfg, out, ck
 
