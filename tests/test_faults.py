@@ -198,6 +198,28 @@ def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
     assert not (tmp_path / "d").exists()
 
 
+@pytest.mark.parametrize("command, argv", [
+    # `data faces --samples 10` was taken as --samples-per-receptor 10 and rendered all 45,000 face ONVs.
+    # Each abbreviation here, were it matched, would make a value the command refuses at once (code 2
+    # returned, not argparse's SystemExit), so the test fails fast without the change
+    ("data", ["foveation", "--out", "OUT", "--samp", "0"]),
+    ("train", ["--preset", "smoke", "--out", "OUT", "--samp", "0"]),
+    ("train", ["evaluate", "OUT", "--cond"]),
+    ("sim", ["demo", "--see", "-1"]),
+    ("bench", ["linet", "--photo", "0"]),
+    ("scene", ["demo", "--photo", "0", "--out", "OUT"]),
+])
+def test_an_abbreviated_option_is_refused_not_matched_to_a_longer_one(command, argv, tmp_path, capsys):
+    import importlib
+
+    main = importlib.import_module(f"warp_vision.{command}.cli").main
+    argv = [str(tmp_path / "out") if a == "OUT" else a for a in argv]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2 and "unrecognized arguments" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())  # nothing rendered, trained or written
+
+
 # --------------------------------------------------------------------------------------------------
 # 7, 9. writers that fail cleanly
 

@@ -41,7 +41,7 @@ from warp_vision.kernels.linet.op import plan_for
 
 
 def _parse_args() -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
     ap.add_argument("--photoreceptors", type=int, default=14_400)
     ap.add_argument("--receptive-field", type=int, default=20)
     ap.add_argument("--reduction", type=int, default=5)

@@ -20,6 +20,16 @@ def error_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """Every command's parser: argparse's, without its matching of abbreviated options, so that a flag a
+    command lacks is an error rather than another flag it begins (``data faces --samples 10`` was taken as
+    ``--samples-per-receptor 10``). Its subcommands' parsers are of this class too."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+
 def add_debug_flag(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true",
                    help="show the full traceback of an error (default: one line naming the file or option)")

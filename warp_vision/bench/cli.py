@@ -12,12 +12,12 @@ import time
 from pathlib import Path
 
 from warp_vision.bench.common import machine_info
-from warp_vision.errors import add_debug_flag, guarded
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
 from warp_vision.fileio import write_json
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="python -m warp_vision.bench",
         description="Kernel microbenchmarks. Each writes JSON (with machine info) to --out.",
     )

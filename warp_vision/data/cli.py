@@ -10,7 +10,7 @@ import argparse
 import dataclasses
 
 from warp_vision.data.foveation import FoveationDataConfig, synthesize
-from warp_vision.errors import add_debug_flag, guarded
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, cls) -> None:
@@ -28,7 +28,7 @@ def _add_config_flags(parser: argparse.ArgumentParser, cls) -> None:
 def main(argv: list[str] | None = None) -> int:
     from warp_vision.data.faces import FaceDataConfig
 
-    p = argparse.ArgumentParser(prog="python -m warp_vision.data", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m warp_vision.data", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="kind", required=True)
     fov = sub.add_parser("foveation", help="ONVs of a ball in a room (--generator 7: a glowing white ball; 8: ordinary "
                                            "balls among distractors; 9: and decoys), with the eye rotation that foveates it")

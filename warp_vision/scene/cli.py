@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from warp_vision.errors import add_debug_flag, guarded
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m warp_vision.scene", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m warp_vision.scene", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("demo", help="render the room with a ball through one eye and write figures")
     d.add_argument("--photoreceptors", type=int, default=14_400, help="P, photoreceptors on the retina (default 14,400)")

@@ -40,7 +40,7 @@ import os
 
 import numpy as np
 
-from warp_vision.errors import add_debug_flag, guarded
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
 from warp_vision.fileio import write_json
 from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.sim.scenarios import SETTLE_S, experiments, plot_experiments, run_scenario
@@ -268,7 +268,7 @@ def main(argv=None) -> int:
     from warp_vision.sim.intercept import INTERCEPT_FRAME_EVERY
     from warp_vision.sim.loop import BALLS, FRAME_EVERY, INTRAOCULAR, PERCEPTION
 
-    ap = argparse.ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
+    ap = ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
     for name in ("demo", "experiments", "intraocular", "oculomotor", "intercept"):

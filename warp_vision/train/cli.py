@@ -21,7 +21,7 @@ import argparse
 import sys
 
 from warp_vision.errors import add_debug_flag as _debug_flag
-from warp_vision.errors import guarded
+from warp_vision.errors import ArgumentParser, guarded
 from warp_vision.train import config as C
 from warp_vision.train import config_body as body
 from warp_vision.train import config_intraocular as intraocular
@@ -55,7 +55,7 @@ def _workers(text: str):
 
 
 def _train_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="python -m warp_vision.train",
         description=(
             "Train a foveation net: synthesise (or reuse) a dataset of ONVs of a ball in a room (the default "
@@ -114,13 +114,13 @@ TASKS = {
 
 def _task_parser(name: str) -> argparse.ArgumentParser:
     _, cls, presets, description = TASKS[name]
-    p = argparse.ArgumentParser(prog=f"python -m warp_vision.train {name}", description=description)
+    p = ArgumentParser(prog=f"python -m warp_vision.train {name}", description=description)
     C.add_arguments(p, cls, presets)
     return _run_flags(p)
 
 
 def _eval_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m warp_vision.train evaluate",
+    p = ArgumentParser(prog="python -m warp_vision.train evaluate",
                                 description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular error "
                                             "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
                                             "the pose error.")
@@ -169,7 +169,7 @@ def _module(task: str):
 
 
 def _compare(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="python -m warp_vision.train compare",
+    p = ArgumentParser(prog="python -m warp_vision.train compare",
                                 description="Plot several foveation (or face) runs' training and validation MSE curves in one figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="figure path (.png)")
