@@ -218,6 +218,36 @@ def test_bad_settings_are_refused_before_any_training(tmp_path, monkeypatch, cap
     assert not (tmp_path / "runs").exists()  # nothing was trained
 
 
+def test_a_run_directory_given_that_holds_no_run_is_refused_before_any_training(tmp_path, monkeypatch, capsys):
+    """Only the default directories are trained into when missing: a mistyped --left must not start a
+    quarter of an hour of training into the typo."""
+    import warp_vision.sim.provision as provision
+    from warp_vision.sim.cli import main as sim_main
+
+    monkeypatch.chdir(tmp_path)
+    trained = []
+    monkeypatch.setattr(provision, "provide", lambda specs, **_kw: trained.append(specs) or [])
+    for argv, flag in ((["experiments", "--left", "runs/foveaton"], "--left runs/foveaton: no left eye's foveation net"),
+                       (["oculomotor", "--oculomotor", "ocu"], "--oculomotor ocu: no right eye's oculomotor net"),
+                       (["intercept", "--shots", "2", "--limb", "limbs"], "--limb limbs: no left eye's limb vision net")):
+        assert sim_main(argv) == 2
+        err = capsys.readouterr().err
+        assert flag in err and "python -m warp_vision.train" in err, err
+    assert trained == [] and not list(tmp_path.iterdir())
+    # a stopped run given by name carries on, and the default directories are provided: the loop is built
+    import warp_vision.sim.build as build
+
+    def stop(*_a, **_k):
+        raise RuntimeError("the body is built")
+
+    monkeypatch.setattr(build, "Body", stop)
+    (tmp_path / "fl").mkdir()
+    (tmp_path / "fl" / "latest.pt").write_bytes(b"x")
+    with pytest.raises(RuntimeError, match="the body is built"):
+        sim_main(["experiments", "--left", "fl"])
+    assert [s.run for s in trained[0][:2]] == ["fl", os.path.join("runs", "foveation_right")]
+
+
 def test_the_viewer_is_skipped_with_one_line_where_there_is_no_display(monkeypatch, capsys):
     from warp_vision.sim.cli import _Viewer
 

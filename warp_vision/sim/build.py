@@ -32,14 +32,34 @@ def net_specs(args) -> list:
     return specs
 
 
+#: The command-line flag that names each kind of net's run directory (foveation: one flag per eye).
+FLAGS = {"oculomotor": "oculomotor", "pupil": "pupil", "lens": "lens", "arm": "arm", "limb": "limb"}
+
+
+def refuse_missing_given(args, specs: list) -> None:
+    """A run directory named on the command line that holds no run (neither ``best.pt`` nor a stopped run's
+    ``latest.pt``) is a ValueError, raised before anything is trained: a mistyped path would otherwise cost
+    a training run into it. Only the default directories are trained into when missing."""
+    missing = []
+    for spec in specs:
+        flag = spec.eye if spec.kind == "foveation" else FLAGS[spec.kind]  # --left / --right for foveation
+        given = getattr(args, flag, None)
+        if given is not None and not spec.ready() and not os.path.isfile(os.path.join(spec.run, "latest.pt")):
+            missing.append(f"--{flag} {given}: no {spec.what} in {spec.run} (train it with python -m warp_vision.train "
+                           f"{' '.join(spec.command())})")
+    if missing:
+        raise ValueError("; ".join(missing) + "; or leave the flag out for the default nets, trained first where missing")
+
+
 def setup_loop(args):
-    """Provide the nets (training missing ones), build the body and the loop; once they have loaded,
+    """Provide the nets (training the default ones where missing), build the body and the loop; once they have loaded,
     writes nets.json to --out. Returns (body, loop)."""
     from warp_vision.sim.loop import Foveator, VisuomotorLoop, load_lens, load_pupil
     from warp_vision.sim.oculomotor import load_oculomotor
     from warp_vision.sim.provision import manifest, provide
 
     specs = net_specs(args)
+    refuse_missing_given(args, specs)
     provide(specs, progress=not args.no_progress)
     body = Body(BodyConfig(arms=not args.no_arms))
     body.step(int(SETTLE_S / body.model.opt.timestep))

@@ -44,7 +44,7 @@ from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
 from warp_vision.fileio import write_json
 from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.sim.scenarios import SETTLE_S, experiments, plot_experiments, run_scenario
-from warp_vision.sim.build import net_specs, setup_loop
+from warp_vision.sim.build import net_specs, refuse_missing_given, setup_loop
 from warp_vision.sim.strike import intercept, pick_shots
 
 
@@ -276,14 +276,16 @@ def main(argv=None) -> int:
         p.add_argument("--quick", action="store_true",
                        help="smaller nets (runs/quick/..., trained in a few minutes when missing) for a first look")
         p.add_argument("--oculomotor", default=None,
-                       help="the oculomotor runs' directory: <dir>/left, <dir>/right, trained there if missing "
-                            "(default runs/oculomotor, or runs/quick/oculomotor with --quick)")
+                       help="the oculomotor runs' directory: <dir>/left, <dir>/right (default runs/oculomotor, or "
+                            "runs/quick/oculomotor with --quick, trained there if missing; a directory given must "
+                            "hold the runs)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         add_debug_flag(p)
         if name == "oculomotor":
             continue
-        p.add_argument("--left", default=None, help="the left eye's foveation run, trained there if missing "
-                                                    "(default runs/foveation_left, or runs/quick/foveation_left)")
+        p.add_argument("--left", default=None, help="the left eye's foveation run (default runs/foveation_left, or "
+                                                    "runs/quick/foveation_left, trained there if missing; a directory "
+                                                    "given must hold a run)")
         p.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
         if name == "intercept":  # the arms strike
             p.set_defaults(no_arms=False)
@@ -347,8 +349,8 @@ def main(argv=None) -> int:
                            help="with --shots, also run the shots with the true ball state off by each of these errors "
                                 "(cm; a fixed offset per shot in a random direction, no rendering): how accurate the limb "
                                 "vision nets must be for the interception")
-            p.add_argument("--arm", default=None, help="the arm runs' directory: <dir>/<side>, trained there if missing "
-                                                       "(default runs/arm, or runs/quick/arm with --quick)")
+            p.add_argument("--arm", default=None, help="the arm runs' directory: <dir>/<side> (default runs/arm, or "
+                                                       "runs/quick/arm with --quick, trained there if missing)")
             p.add_argument("--limb", default=None, help="the limb vision runs' directory: <dir>/left, <dir>/right "
                                                         "(default runs/limb, or runs/quick/limb with --quick)")
             p.add_argument("--width", type=int, default=640, help="third-person view width (pixels)")
@@ -390,6 +392,7 @@ def _run(args) -> None:
         from warp_vision.sim.provision import provide
 
         specs = net_specs(args)[2:]
+        refuse_missing_given(args, specs)
         provide(specs, progress=not args.no_progress)
         print(json.dumps({s.eye: json.loads(open(os.path.join(s.run, "summary.json")).read()) for s in specs}, indent=2))
         return
