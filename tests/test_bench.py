@@ -144,3 +144,21 @@ def test_cnn_bench_times_both_precisions_per_width_with_the_speedup(tmp_path):
     assert res["results"][0]["speedup_over_float32"] == 1.0 and res["results"][1]["median_ms"] > 0
     assert isinstance(res["native_bfloat16"], bool) and res["photoreceptors"] == 14_400
     assert main(["cnn", "--batch", "2", "--out", str(out)]) == 2  # refused before any work
+
+
+@pytest.mark.parametrize("argv, said", [  # small sizes: without the checks each fails in seconds
+    (["linet", "--photoreceptors", "100", "--batch", "0"], "--batch: expected a positive integer"),  # was torch's RuntimeError
+    (["linet", "--photoreceptors", "100", "--receptive-field", "0"], "--receptive-field"),
+    (["linet", "--photoreceptors", "100", "--repeats", "0"], "--repeats"),
+    (["raytrace", "--photoreceptors", "100", "--samples", "0"], "--samples"),
+    (["memory", "--sizes", "0"], "--sizes"),
+    (["memory", "--sizes", "300", "--batch", "0"], "--batch"),
+    (["memory", "--sizes", "300", "--budget-gib", "nan"], "--budget-gib"),
+])
+def test_bad_bench_settings_are_one_line_before_any_work(argv, said, tmp_path, capsys):
+    from warp_vision.bench.cli import main
+
+    out = tmp_path / "b.json"
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert said in err and "Traceback" not in err and not out.exists(), err

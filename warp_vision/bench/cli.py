@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -114,6 +115,13 @@ def _device(name: str) -> str:
     return dev
 
 
+def _require_positive(args, names) -> None:
+    """Each option of ``names`` is a positive integer, or a ValueError naming it (before any work)."""
+    for name in names:
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(args, name)}")
+
+
 def _bench(args) -> int:
     if args.bench == "memory" and args.worker:
         from warp_vision.bench.memory import worker
@@ -129,14 +137,13 @@ def _bench(args) -> int:
 
         if any(v < 1 for v in args.photoreceptors):
             raise ValueError(f"--photoreceptors: expected positive integers, got {args.photoreceptors}")
+        _require_positive(args, ("batch", "reduction", "receptive_field", "repeats"))
         result = linet.run(args.photoreceptors, args.batch, args.reduction, args.receptive_field, args.repeats,
                            device=device)
     elif args.bench == "raytrace":
         from warp_vision.bench import raytrace
 
-        for name in ("photoreceptors", "samples", "batch", "repeats"):
-            if getattr(args, name) < 1:
-                raise ValueError(f"--{name}: expected a positive integer, got {getattr(args, name)}")
+        _require_positive(args, ("photoreceptors", "samples", "batch", "repeats"))
         result = raytrace.run(args.repeats, args.photoreceptors, args.samples, args.batch, device=device)
     elif args.bench == "readout":
         from warp_vision.bench import readout
@@ -161,6 +168,11 @@ def _bench(args) -> int:
         from warp_vision.bench import memory
 
         sizes = args.sizes or memory.DEFAULT_SIZES
+        if min(sizes) < 1:
+            raise ValueError(f"--sizes: expected positive integers, got {sizes}")
+        _require_positive(args, ("batch",))
+        if not (math.isfinite(args.budget_gib) and args.budget_gib > 0):
+            raise ValueError(f"--budget-gib: expected a positive number, got {args.budget_gib}")
         result = memory.run(sizes, args.batch, args.budget_gib)
         png = str(Path(args.out).with_suffix(".png"))
         memory.plot(result, png)
