@@ -220,6 +220,47 @@ def test_an_abbreviated_option_is_refused_not_matched_to_a_longer_one(command, a
     assert not list(tmp_path.iterdir())  # nothing rendered, trained or written
 
 
+def test_a_failed_allocation_is_one_line_and_other_runtime_errors_still_raise(capsys):
+    from warp_vision.errors import guarded
+
+    def oom():
+        torch.empty(1 << 62, dtype=torch.uint8)  # 4 EiB: the CPU allocator refuses it at once
+
+    assert guarded(oom) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: out of memory") and err.count("\n") == 1, err
+
+    def memory_error():
+        raise MemoryError()
+
+    assert guarded(memory_error) == 2 and "out of memory" in capsys.readouterr().err
+
+    def bug():
+        raise RuntimeError("a shape mismatch")
+
+    with pytest.raises(RuntimeError, match="shape mismatch"):
+        guarded(bug)
+    with pytest.raises(RuntimeError):
+        guarded(oom, debug=True)
+
+
+@pytest.mark.parametrize("command", [
+    ["train", "--preset", "smoke", "--data-seed", "-1"], ["train", "--preset", "smoke", "--seed", "-1"],
+    ["train", "faces", "--preset", "smoke", "--identity-seed", "-1"], ["train", "pupil", "--preset", "smoke", "--seed", "-1"],
+    ["train", "limb", "--preset", "smoke", "--data-seed", "-1"], ["data", "foveation", "--seed", "-1"],
+    ["data", "faces", "--identity-seed", "-1"],
+])
+def test_a_negative_seed_is_refused_by_name_before_anything_is_written(command, tmp_path, capsys):
+    import importlib
+
+    main = importlib.import_module(f"warp_vision.{command[0]}.cli").main
+    flag = command[-2].lstrip("-").replace("-", "_")
+    assert main([*command[1:], "--out", str(tmp_path / "out")] + (["--data-dir", str(tmp_path / "d")]
+                                                                    if command[0] == "train" else [])) == 2
+    assert f"{flag}: expected a seed >= 0, got -1" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
 # --------------------------------------------------------------------------------------------------
 # 7, 9. writers that fail cleanly
 

@@ -2,13 +2,14 @@
 
 Every ``python -m warp_vision.<command>`` runs its work through :func:`guarded`. Bad input (ValueError)
 and file-system faults (OSError: no space, read-only, permissions, a file where a directory belongs)
-become one line on stderr, ``error: ...`` naming the file or the option, and exit code 2; a traceback
-appears only with ``--debug``.
+become one line on stderr, ``error: ...`` naming the file or the option, and exit code 2; so does a
+failed allocation (settings too large for the machine's memory). A traceback appears only with ``--debug``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from typing import Callable
 
@@ -36,10 +37,19 @@ def add_debug_flag(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
+def require_seeds(cfg) -> None:
+    """Every field of the dataclass ``cfg`` named ``seed`` or ``*_seed`` is >= 0 (numpy's generators take
+    no negative seed, and said so only as "expected non-negative integer", after the work had begun)."""
+    for f in dataclasses.fields(cfg):
+        if f.name.endswith("seed") and getattr(cfg, f.name) < 0:
+            raise ValueError(f"{f.name}: expected a seed >= 0, got {getattr(cfg, f.name)}")
+
+
 def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, int] | None = None) -> int:
     """Run ``job``: 0 when it returns (or its own int exit code); ValueError, OSError and the exception
     types in ``codes`` ({type: exit code}) print one ``error:`` line on stderr and return 2 (or their
-    code); Ctrl-C returns 130. With ``debug`` the errors raise, traceback and all."""
+    code), as does a failed allocation (:func:`out_of_memory`; other RuntimeErrors raise); Ctrl-C returns
+    130. With ``debug`` the errors raise, traceback and all."""
     codes = codes or {}
     try:
         r = job()
@@ -50,4 +60,18 @@ def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, in
             raise
         print(f"error: {error_line(e)}", file=sys.stderr)
         return next((c for t, c in codes.items() if isinstance(e, t)), 2)
+    except (MemoryError, RuntimeError) as e:
+        if debug or not out_of_memory(e):
+            raise
+        print(f"error: out of memory, settings too large for this machine (a smaller --batch, net or dataset): "
+              f"{error_line(e)}", file=sys.stderr)
+        return 2
     return r if isinstance(r, int) else 0
+
+
+def out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` says an allocation failed: Python's MemoryError, or torch's RuntimeError for the CPU
+    allocator ("can't allocate memory") or a GPU's ("out of memory", torch.OutOfMemoryError)."""
+    text = str(e).lower()
+    return isinstance(e, MemoryError) or (isinstance(e, RuntimeError)
+                                          and ("can't allocate memory" in text or "out of memory" in text))

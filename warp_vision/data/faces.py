@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from warp_vision.data.store import ChunkedStore
+from warp_vision.errors import require_seeds
 from warp_vision.fileio import atomic_write
 from warp_vision.frames import look_rotation
 
@@ -77,6 +78,7 @@ class FaceDataConfig:
     chunk_size: int = 256
 
     def validate(self) -> None:
+        require_seeds(self)
         for name in ("identities", "photoreceptors", "samples_per_receptor", "chunk_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")

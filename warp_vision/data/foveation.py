@@ -35,6 +35,7 @@ import numpy as np
 
 from warp_vision.data.foveation_scenes import field_direction, occluder_pose
 from warp_vision.data.store import ChunkedStore
+from warp_vision.errors import require_seeds
 from warp_vision.frames import gaze_angles, gaze_directions, look_rotation
 
 #: The scene generators (bump the newest when a generator changes what a config renders: datasets are
@@ -82,6 +83,7 @@ class FoveationDataConfig:
     condition: str = "mixed"  # v8: "mixed" (training) or a test condition of foveation_scenes.CONDITIONS
 
     def validate(self) -> None:
+        require_seeds(self)
         from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
 
         if self.samples < 1 or self.photoreceptors < 1 or self.samples_per_receptor < 1 or self.chunk_size < 1:

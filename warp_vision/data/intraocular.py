@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from warp_vision.body import SIDES
+from warp_vision.errors import require_seeds
 
 #: Bump when what a config renders changes (datasets are cached by config + version).
 PUPIL_DATA_VERSION = 1
@@ -63,6 +64,7 @@ class PupilDataConfig:
     chunk_size: int = 256
 
     def validate(self) -> None:
+        require_seeds(self)
         from warp_vision.data.foveation_scenes import ROOM_FAMILIES
 
         if self.eye not in SIDES:
@@ -216,6 +218,7 @@ class LensDataConfig:
     chunk_size: int = 256
 
     def validate(self) -> None:
+        require_seeds(self)
         if self.card_vertices < 8:
             raise ValueError(f"card_vertices: expected at least 8, got {self.card_vertices}")
         if self.eye not in SIDES:

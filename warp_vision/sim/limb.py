@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from warp_vision.data.store import ChunkedStore
+from warp_vision.errors import require_seeds
 from warp_vision.frames import gaze_direction, line_crossing, look_rotation
 
 #: The generator's version: bump it when the samples change.
@@ -81,6 +82,7 @@ class LimbDataConfig:
     ball: str = "ordinary"  # the loop's ball (warp_vision.sim.loop.BALLS): ordinary, or glowing (the datasets before it)
 
     def validate(self) -> None:
+        require_seeds(self)
         if self.eye not in SIDES:
             raise ValueError(f"eye: expected one of {SIDES}, got {self.eye!r}")
         if self.samples < 1 or self.photoreceptors < 1 or self.samples_per_receptor < 1 or self.chunk_size < 1:

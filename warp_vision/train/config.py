@@ -12,6 +12,7 @@ from dataclasses import dataclass, fields
 from typing import ClassVar
 
 from warp_vision.data.foveation import FoveationDataConfig
+from warp_vision.errors import require_seeds
 
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
@@ -39,6 +40,7 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
     for name in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
         if hasattr(cfg, name) and getattr(cfg, name) < 1:
             raise ValueError(f"{name}: expected a positive integer, got {getattr(cfg, name)}")
+    require_seeds(cfg)
     if not cfg.lr > 0:
         raise ValueError(f"lr: expected > 0, got {cfg.lr}")
     test_ok = 0 <= cfg.test_fraction < 1 if test_may_be_empty else 0 < cfg.test_fraction < 1
