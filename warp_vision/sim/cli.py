@@ -384,8 +384,10 @@ def _run(args) -> None:
     for flag in ("width", "height", "video_every", "frame_every"):
         if getattr(args, flag, 1) < 1:
             raise ValueError(f"--{flag.replace('_', '-')}: expected >= 1, got {getattr(args, flag)}")
-    if not getattr(args, "slow_motion", 1.0) > 0:
-        raise ValueError(f"--slow-motion: expected > 0, got {args.slow_motion}")
+    for flag in ("slow_motion", "duration", "flight", "stop"):  # demo's times and distance, the video's pace
+        v = getattr(args, flag, 1.0)
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"--{flag.replace('_', '-')}: expected a finite number > 0, got {v}")
     if getattr(args, "seed", 0) < 0:
         raise ValueError(f"--seed: expected a seed >= 0, got {args.seed}")
     if args.command == "oculomotor":
