@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -208,6 +209,13 @@ def read_checkpoint(path, map_location="cpu") -> dict:
 
 #: a run's checkpoints: its best validation epoch's weights (best.pt) and its last epoch's (latest.pt)
 CHECKPOINTS = ("best", "latest")
+
+
+def saved_task(run_dir) -> str:
+    """The task of the run in ``run_dir`` as its config.json names it: "foveation" (the training command's
+    default task, whose config names none) where it names none or there is no config.json."""
+    path = Path(run_dir) / "config.json"
+    return json.loads(path.read_text()).get("task", "foveation") if path.exists() else "foveation"
 
 
 def checkpoint_path(run_dir, checkpoint: str = "best") -> Path:

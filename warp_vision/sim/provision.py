@@ -81,13 +81,14 @@ class NetSpec:
     def mismatch(self) -> str | None:
         """Why the run directory holds another net than this one, read from its ``config.json`` (another
         task, or the other eye or arm), or None: it is this net's run, or holds no run yet."""
+        from warp_vision.nn.trained import saved_task
+
         path = os.path.join(self.run, "config.json")
         if not os.path.isfile(path):
             return None
+        kind = saved_task(self.run)
         with open(path) as f:
-            cfg = json.load(f)
-        kind = cfg.get("task") or "foveation"  # the foveation config has no task field: the default task
-        side = cfg.get("side" if kind == "arm" else "eye")
+            side = json.load(f).get("side" if kind == "arm" else "eye")
         if kind == self.kind and side in (None, self.eye):
             return None
         found = f"the {NetSpec(kind, side, self.run, self.preset).what}" if side in SIDES else f"a {kind} run"

@@ -182,8 +182,9 @@ def _compare(argv: list[str]) -> int:
         from pathlib import Path
 
         from warp_vision.fileio import atomic_write
+        from warp_vision.nn.trained import saved_task
         from warp_vision.train.figures import plot_curves
-        from warp_vision.train.rundir import a_run, saved_task
+        from warp_vision.train.rundir import a_run
 
         hists = {}
         names = [Path(r).name for r in a.runs]
@@ -208,7 +209,8 @@ def _compare(argv: list[str]) -> int:
 
 
 def _evaluate(argv: list[str]) -> int:
-    from warp_vision.train.rundir import a_run, saved_task
+    from warp_vision.nn.trained import saved_task
+    from warp_vision.train.rundir import a_run
 
     p = _eval_parser()
     a = p.parse_args(argv)

@@ -52,10 +52,11 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
     from warp_vision.data.store import ChunkedStore
     from warp_vision.fileio import atomic_write
     from warp_vision.nn.retina_cnn import consensus_transforms
-    from warp_vision.nn.trained import CHECKPOINTS, checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets, read_checkpoint
+    from warp_vision.nn.trained import (CHECKPOINTS, checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets,
+                                        read_checkpoint, saved_task)
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
     from warp_vision.train.harness import pick_device, read_label
-    from warp_vision.train.rundir import a_run, dataset_dir, run_config, saved_task
+    from warp_vision.train.rundir import a_run, dataset_dir, run_config
 
     conditions = list(conditions or CONDITIONS[1:])
     bad = [c for c in conditions if c not in CONDITIONS[1:]]

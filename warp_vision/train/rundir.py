@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from warp_vision.fileio import atomic_write, probe_writable
-from warp_vision.nn.trained import read_checkpoint, seal
+from warp_vision.nn.trained import read_checkpoint, saved_task, seal
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
 RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
@@ -33,13 +33,6 @@ RESUME_FROM = ("latest.pt", "previous.pt", "best.pt")
 PATH_FIELDS = ("out", "data_dir", "identities_cache")
 #: metrics-row entries that vary between identical runs: kept out of checkpoints
 TIMING_FIELDS = ("seconds",)
-
-
-def saved_task(run_dir) -> str:
-    """The task of the run in ``run_dir`` as its config.json names it: "foveation" (the training command's
-    default task, whose config names none) where it names none or there is no config.json."""
-    path = Path(run_dir) / "config.json"
-    return json.loads(path.read_text()).get("task", "foveation") if path.exists() else "foveation"
 
 
 def a_run(task: str) -> str:
