@@ -47,7 +47,8 @@ def test_provide_trains_only_what_is_missing_and_the_manifest_names_it(tmp_path)
     assert [s.run for s in trained] == [str(tmp_path / "fl"), str(tmp_path / "ocu" / "left"), str(tmp_path / "ocu" / "right")]
     assert len(calls) == 3 and all("--no-progress" in c and c[c.index("--preset") + 1] == "quick" for c in calls)
     assert calls[1][3] == "oculomotor" and calls[0][3] == "--preset"  # foveation is the training command's default task
-    assert "about" in lines[0] and "min" in lines[0] and len([ln for ln in lines if ln.startswith("  ")]) == 3  # the plan first
+    assert "about 3 min" in lines[0] and len([ln for ln in lines if ln.startswith("  ")]) == 3  # the plan first
+    assert "(about 2 min)" in lines[1] and "(under a minute)" in lines[2]  # the quick oculomotor net: 0.5 min
     assert provide(specs, progress=False, log=lines.append, runner=_fake_trainer(calls)) == []  # cached: nothing to do
     assert len(calls) == 3
     m = manifest(specs)

@@ -128,6 +128,11 @@ def strike_plan(side: str, arm: str, limb: str | None, quick: bool = False) -> l
             + ([NetSpec("limb", s, os.path.join(limb, s), preset) for s in SIDES] if limb else []))
 
 
+def _about(minutes: float) -> str:
+    """An estimate in words: "about 14 min", or "under a minute" (not "about 0 min")."""
+    return "under a minute" if minutes < 1 else f"about {minutes:.0f} min"
+
+
 def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None) -> list[NetSpec]:
     """Train every net of ``specs`` that is missing; returns those it trained. Prints the plan and its
     estimated wall time first. ``runner(cmd) -> returncode`` runs a command (default: a subprocess);
@@ -141,10 +146,10 @@ def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None)
     if not todo:
         return []
     total = sum(s.minutes() for s in todo)
-    log(f"the closed loop needs {len(todo)} net(s) not trained yet; about {total:.0f} min on a 2-core CPU, "
+    log(f"the closed loop needs {len(todo)} net(s) not trained yet; {_about(total)} on a 2-core CPU, "
         "cached for later runs:")
     for k, s in enumerate(todo, 1):
-        log(f"  {k}. {s.what} into {s.run} (about {s.minutes():.0f} min): "
+        log(f"  {k}. {s.what} into {s.run} ({_about(s.minutes())}): "
             f"python -m warp_vision.train {' '.join(s.command())}")
     runner = runner or (lambda cmd: subprocess.run(cmd).returncode)
     t0 = time.perf_counter()
