@@ -83,9 +83,9 @@ class FoveationDataConfig:
     condition: str = "mixed"  # v8: "mixed" (training) or a test condition of foveation_scenes.CONDITIONS
 
     def validate(self) -> None:
-        require_seeds(self)
         from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
 
+        require_seeds(self)
         if self.samples < 1 or self.photoreceptors < 1 or self.samples_per_receptor < 1 or self.chunk_size < 1:
             raise ValueError("samples, photoreceptors, samples_per_receptor and chunk_size must be positive")
         if self.eye not in RETINA_SEEDS:

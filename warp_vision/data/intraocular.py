@@ -64,9 +64,9 @@ class PupilDataConfig:
     chunk_size: int = 256
 
     def validate(self) -> None:
-        require_seeds(self)
         from warp_vision.data.foveation_scenes import ROOM_FAMILIES
 
+        require_seeds(self)
         if self.eye not in SIDES:
             raise ValueError(f"eye: expected one of {SIDES}, got {self.eye!r}")
         if self.rooms not in ROOM_FAMILIES:

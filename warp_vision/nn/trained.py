@@ -218,6 +218,11 @@ def saved_task(run_dir) -> str:
     return json.loads(path.read_text()).get("task", "foveation") if path.exists() else "foveation"
 
 
+def task_command(task: str) -> str:
+    """The training command of a task: ``python -m warp_vision.train`` and, but for foveation, the task."""
+    return "python -m warp_vision.train" + ("" if task == "foveation" else f" {task}")
+
+
 def checkpoint_path(run_dir, checkpoint: str = "best") -> Path:
     """RUN/best.pt or RUN/latest.pt (``checkpoint``); another name or a missing file is refused."""
     if checkpoint not in CHECKPOINTS:

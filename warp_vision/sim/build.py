@@ -32,17 +32,13 @@ def net_specs(args) -> list:
     return specs
 
 
-#: The command-line flag that names each kind of net's run directory (foveation: one flag per eye).
-FLAGS = {"oculomotor": "oculomotor", "pupil": "pupil", "lens": "lens", "arm": "arm", "limb": "limb"}
-
-
 def refuse_missing_given(args, specs: list) -> None:
     """A run directory named on the command line that holds no run (neither ``best.pt`` nor a stopped run's
     ``latest.pt``) is a ValueError, raised before anything is trained: a mistyped path would otherwise cost
     a training run into it. Only the default directories are trained into when missing."""
     missing = []
     for spec in specs:
-        flag = spec.eye if spec.kind == "foveation" else FLAGS[spec.kind]  # --left / --right for foveation
+        flag = spec.eye if spec.kind == "foveation" else spec.kind  # --left / --right, else the kind's flag
         given = getattr(args, flag, None)
         if given is not None and not spec.ready() and not os.path.isfile(os.path.join(spec.run, "latest.pt")):
             missing.append(f"--{flag} {given}: no {spec.what} in {spec.run} (train it with python -m warp_vision.train "

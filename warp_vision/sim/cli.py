@@ -269,7 +269,7 @@ def main(argv=None) -> int:
     from warp_vision.sim.loop import BALLS, FRAME_EVERY, INTRAOCULAR, PERCEPTION
 
     ap = ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
     for name in ("demo", "experiments", "intraocular", "oculomotor", "intercept"):
         p = sub.add_parser(name)

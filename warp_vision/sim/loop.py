@@ -86,12 +86,11 @@ PERCEPTION = ("nets", "oracle")
 
 def _load_kind(run_dir: str, kind: str, device: str):
     """(model, checkpoint) of the run in ``run_dir``, or a ValueError when it holds another kind of net."""
-    from warp_vision.nn.trained import load_net
+    from warp_vision.nn.trained import load_net, task_command
 
     model, ck = load_net(run_dir, device)
     if ck.get("net", {}).get("kind") != kind:
-        command = "" if kind == "foveation" else f" {kind}"  # foveation is the training command's default task
-        raise ValueError(f"{run_dir}: expected a {kind} run (python -m warp_vision.train{command}); it holds a "
+        raise ValueError(f"{run_dir}: expected a {kind} run ({task_command(kind)}); it holds a "
                          f"net of kind {ck.get('net', {}).get('kind')!r}")
     return model, ck
 

@@ -121,9 +121,9 @@ def _task_parser(name: str) -> argparse.ArgumentParser:
 
 def _eval_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.train evaluate",
-                                description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular error "
-                                            "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
-                                            "the pose error.")
+                       description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular error "
+                                   "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
+                                   "the pose error.")
     p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="training run directories (with best.pt; latest.pt for --checkpoint latest)")
     p.add_argument("--split", choices=["test", "val", "train"], default="test", help="which split (default test)")
     p.add_argument("--conditions", action="store_true",
@@ -170,7 +170,7 @@ def _module(task: str):
 
 def _compare(argv: list[str]) -> int:
     p = ArgumentParser(prog="python -m warp_vision.train compare",
-                                description="Plot several foveation (or face) runs' training and validation MSE curves in one figure.")
+                       description="Plot several foveation (or face) runs' training and validation MSE curves in one figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="figure path (.png)")
     p.add_argument("--title", default="training and validation MSE", help="the figure's title (default: %(default)r)")

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from warp_vision.fileio import atomic_write, probe_writable
-from warp_vision.nn.trained import read_checkpoint, saved_task, seal
+from warp_vision.nn.trained import read_checkpoint, saved_task, seal, task_command
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
 RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
@@ -38,11 +38,6 @@ TIMING_FIELDS = ("seconds",)
 def a_run(task: str) -> str:
     """"a foveation run", "an arm run": a task's run in words."""
     return f"{'an' if task[:1] in 'aeiou' else 'a'} {task} run"
-
-
-def task_command(task: str) -> str:
-    """The training command of a task: ``python -m warp_vision.train`` and, but for foveation, the task."""
-    return "python -m warp_vision.train" + ("" if task == "foveation" else f" {task}")
 
 
 def claim_out_dir(out: Path, overwrite: bool) -> None:
