@@ -273,6 +273,53 @@ def test_out_naming_a_file_is_one_line(tmp_path, capsys):
     assert not (tmp_path / "d").exists()
 
 
+@pytest.mark.parametrize("command, argv", [
+    # each wrote its output only at the end: a bench after its minutes of timing, the simulation after
+    # training the nets it lacks, the eye demo after rendering; a plot after reading every run
+    ("bench", ["linet", "--photoreceptors", "200", "--repeats", "1", "--out", "FILE/linet.json"]),
+    ("bench", ["raytrace", "--photoreceptors", "50", "--samples", "1", "--repeats", "1", "--out", "DIR"]),
+    ("sim", ["experiments", "--out", "FILE/sim"]),
+    ("sim", ["intraocular", "--out", "FILE"]),
+    ("scene", ["demo", "--photoreceptors", "100", "--samples", "1", "--out", "FILE/demo"]),
+    ("data", ["foveation", "--samples", "8", "--out", "FILE"]),
+    ("train", ["compare", "RUN", "--out", "DIR"]),
+])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(command, argv, tmp_path, monkeypatch, capsys,
+                                                                      finished):
+    import importlib
+
+    import warp_vision.sim.provision as provision
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(provision, "provide", lambda *_a, **_k: pytest.fail("nets were trained first"))
+    (tmp_path / "FILE").write_text("x")
+    (tmp_path / "DIR").mkdir()
+    argv = [str(finished) if a == "RUN" else a for a in argv]
+    main = importlib.import_module(f"warp_vision.{command}.cli").main
+    assert main(argv) == 2
+    out = capsys.readouterr()
+    err = out.err.strip()
+    assert err.count("\n") == 0 and "--out" in err, err
+    assert ("is a file, not a directory" in err or "names a file, not a directory" in err
+            or "names a directory, not a file" in err), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["DIR", "FILE"] and not list((tmp_path / "DIR").iterdir())
+    assert "ONV:" not in out.out and "linet layer" not in out.out  # nothing was rendered or timed
+
+
+def test_an_output_under_a_directory_we_cannot_write_is_refused_by_name(tmp_path, monkeypatch):
+    from warp_vision.fileio import require_output
+
+    monkeypatch.setattr(os, "access", lambda *_a, **_k: False)  # (root writes through a 0o555 mode)
+    with pytest.raises(PermissionError, match=f"--out: {tmp_path}: Permission denied"):
+        require_output(tmp_path / "a" / "b", "--out")
+    require_output(tmp_path, "--data-dir", writable=False)  # a complete dataset may be read in place
+    monkeypatch.undo()
+    require_output(tmp_path / "new" / "deeper", "--out")  # can be made: left to the writer
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(ValueError, match="kind"):
+        require_output(tmp_path, kind="folder")
+
+
 def _enospc_after(monkeypatch, name: str):
     """Make writes of files called ``name`` (their temporaries) fail with ENOSPC."""
     import warp_vision.fileio as fio

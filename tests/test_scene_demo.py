@@ -44,3 +44,12 @@ def test_eye_ray_paths_end_where_trace_to_world_says():
     np.testing.assert_allclose(path[0, 6], o[0] + 5.0 * d[0], atol=1e-9)
     np.testing.assert_allclose(path[0, 3, :2], pxy[0], atol=1e-8)  # through the stop point asked for
     assert len(viz.plot_eye_rays(eye, (0.0, 20.0), samples=3).axes) == 1
+
+
+def test_demo_refuses_a_device_this_machine_lacks_in_one_line(tmp_path, capsys):
+    # "cuda" on a machine without a GPU was Warp's traceback from inside the renderer
+    for device, says in (("cuda:99", "CUDA device(s) on this machine"), ("gpu", "expected cpu, cuda or cuda:N")):
+        assert main(["demo", "--photoreceptors", "100", "--samples", "1", "--device", device, "--out", str(tmp_path / "d")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: device:") and says in err and err.count("\n") == 1, err
+    assert not list(tmp_path.iterdir())

@@ -104,6 +104,29 @@ def probe_writable(directory: str | os.PathLike) -> None:
     (d / ".write-probe").unlink()
 
 
+def require_output(path: str | os.PathLike, flag: str = "--out", kind: str = "dir", writable: bool = True) -> None:
+    """Refuse, before any work and creating nothing, an output ``path`` (``kind`` "dir" or "file") that
+    cannot be written: a file where the directory belongs (or a directory where the file belongs), a file
+    among its parents, or (``writable``) a first existing parent that is read-only or not ours. Raises the
+    OSError, its message naming ``flag``; a path that can be made is left for the writer to make."""
+    p = Path(path)
+    if kind not in ("dir", "file"):
+        raise ValueError(f"kind: expected 'dir' or 'file', got {kind!r}")
+    if kind == "dir" and p.exists() and not p.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, f"{flag} names a file, not a directory", str(p))
+    if kind == "file" and p.is_dir():
+        raise IsADirectoryError(errno.EISDIR, f"{flag} names a directory, not a file", str(p))
+    a = p if kind == "dir" else p.parent
+    while not a.exists() and a != a.parent:
+        a = a.parent
+    if not a.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, f"{flag}: {a} is a file, not a directory", str(p))
+    if writable and not os.access(a, os.W_OK | os.X_OK):
+        read_only = bool(os.statvfs(a).f_flag & os.ST_RDONLY) if hasattr(os, "statvfs") else False
+        code = errno.EROFS if read_only else errno.EACCES
+        raise OSError(code, f"{flag}: {a}: {os.strerror(code)}", str(p))
+
+
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2, exclusive: bool = False,
                allow_nan: bool = True) -> bool:
     """``obj`` as JSON (a trailing newline) to ``path``, atomically (see :func:`atomic_write`)."""

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from warp_vision.bench.common import machine_info
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
-from warp_vision.fileio import write_json
+from warp_vision.fileio import require_output, write_json
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -129,6 +129,7 @@ def _bench(args) -> int:
         print(json.dumps(worker(args.worker[0], int(args.worker[1]), args.batch, input_dtype=args.worker[2])))
         return 0
     device = _device(args.device) if hasattr(args, "device") else "cpu"  # before any work
+    require_output(args.out, "--out", kind="file")  # (and the memory figure beside it) before minutes of timing
     t0 = time.time()
     info = machine_info()
     print(f"machine: {info['cpu']}, {info['cores']} cores, torch {info['torch']} ({info['torch_threads']} threads), warp {info['warp']}")

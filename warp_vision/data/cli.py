@@ -43,9 +43,11 @@ def main(argv: list[str] | None = None) -> int:
     cfg = cls(**{fld.name: getattr(a, fld.name) for fld in dataclasses.fields(cls)})
 
     def job():
+        from warp_vision.fileio import require_output
         from warp_vision.kernels.launch import require_device
 
         require_device(a.device)  # before the manifest is written
+        require_output(a.out, "--out", writable=False)  # (a complete dataset may be read-only; synthesis probes)
         if a.kind == "foveation":
             return synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
         from warp_vision.data import faces as FA

@@ -42,11 +42,15 @@ def _eye_demo(args) -> int:
     from warp_vision.eye.optics import NavarroEye
     from warp_vision.eye.retina import Retina
     from warp_vision.frames import eye_look_at, look_at
+    from warp_vision.fileio import require_output
+    from warp_vision.kernels.launch import require_device
     from warp_vision.kernels.render import render_camera, render_onv
     from warp_vision.scene.room import make_room
 
     if args.photoreceptors < 1 or args.samples < 1:
         raise ValueError("--photoreceptors and --samples: expected positive integers")
+    device = require_device(args.device)
+    require_output(args.out, "--out")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     eye = NavarroEye(args.accommodation, args.pupil)
@@ -56,16 +60,16 @@ def _eye_demo(args) -> int:
     eye_centre, ball = np.array([0.0, -1.5, 1.2]), np.array([0.0, 1.5, 1.2])
     pose = eye_look_at(eye_centre, ball)
     t0 = time.perf_counter()
-    onv = render_onv(room, retina, eye, pose[None], args.samples, args.seed, device=args.device)
+    onv = render_onv(room, retina, eye, pose[None], args.samples, args.seed, device=device)
     t1 = time.perf_counter()
-    onv = render_onv(room, retina, eye, pose[None], args.samples, args.seed, device=args.device)
+    onv = render_onv(room, retina, eye, pose[None], args.samples, args.seed, device=device)
     t2 = time.perf_counter()
     print(f"ONV: P={retina.P:,}, S={args.samples}: {t1 - t0:.2f} s first (eye rays + BVH), {t2 - t1:.3f} s again")
     np.save(out / "onv.npy", onv[0].cpu().numpy())
     files = {
         "onv.png": viz.plot_onv(retina, onv[0], title=f"ONV of the room, looking at the ball (P = {retina.P:,})"),
         "camera.png": viz.plot_image(
-            render_camera(room, look_at([2.4, -2.6, 2.2], [0.0, 0.5, 1.0]), 480, 360, 70.0, device=args.device),
+            render_camera(room, look_at([2.4, -2.6, 2.2], [0.0, 0.5, 1.0]), 480, 360, 70.0, device=device),
             title="third-person view",
         ),
         "eye_rays.png": viz.plot_eye_rays(eye),

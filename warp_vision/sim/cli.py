@@ -41,7 +41,7 @@ import os
 import numpy as np
 
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
-from warp_vision.fileio import write_json
+from warp_vision.fileio import require_output, write_json
 from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.sim.scenarios import SETTLE_S, experiments, plot_experiments, run_scenario
 from warp_vision.sim.build import net_specs, refuse_missing_given, setup_loop
@@ -390,6 +390,8 @@ def _run(args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')}: expected a finite number > 0, got {v}")
     if getattr(args, "seed", 0) < 0:
         raise ValueError(f"--seed: expected a seed >= 0, got {args.seed}")
+    if getattr(args, "out", None) is not None:
+        require_output(args.out, "--out")
     if args.command == "oculomotor":
         from warp_vision.sim.provision import provide
 

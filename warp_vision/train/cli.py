@@ -181,11 +181,12 @@ def _compare(argv: list[str]) -> int:
         import json
         from pathlib import Path
 
-        from warp_vision.fileio import atomic_write
+        from warp_vision.fileio import atomic_write, require_output
         from warp_vision.nn.trained import saved_task
         from warp_vision.train.figures import plot_curves
         from warp_vision.train.rundir import a_run
 
+        require_output(a.out, "--out", kind="file")
         hists = {}
         names = [Path(r).name for r in a.runs]
         for i, r in enumerate(a.runs):

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from warp_vision.fileio import atomic_write, probe_writable
+from warp_vision.fileio import atomic_write, probe_writable, require_output
 from warp_vision.nn.trained import read_checkpoint, saved_task, seal, task_command
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
@@ -108,11 +108,9 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         _check_device(cfg.device)  # before anything is written
         task_cls.resolve_paths(cfg)
         out = Path(cfg.out)
-        if out.exists() and not out.is_dir():
-            raise NotADirectoryError(errno.ENOTDIR, "--out names a file, not a directory", str(out))
-        data = Path(getattr(cfg, "data_dir", "") or ".")
-        if data.exists() and not data.is_dir():
-            raise NotADirectoryError(errno.ENOTDIR, "--data-dir names a file, not a directory", str(data))
+        require_output(out, "--out")
+        # a complete dataset may sit in a read-only directory: synthesis probes its own writes
+        require_output(getattr(cfg, "data_dir", "") or ".", "--data-dir", writable=False)
         claim_out_dir(out, overwrite)
     return cfg, out, ck
 
