@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from warp_vision.eye.retina import Retina
-from warp_vision.nn.retina_conv import STENCIL, RetinaConv, RetinaConvFoveationNet, channel_plan, stencil_layers
+from warp_vision.nn.retina_conv import STENCIL, RetinaConv, RetinaConvFoveationNet, channel_plan, site_counts, stencil_layers
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +37,7 @@ def test_stencils_sit_on_the_site_and_its_compass_points(retina):
         stencil_layers(xy, 2, 1)
     with pytest.raises(ValueError, match="no sites"):
         stencil_layers(xy, 9, 4)
+    assert site_counts(len(xy), 3, 4) == [len(xy)] + [len(p["sites"]) for p in plan]  # the configs' first check
 
 
 def test_weights_are_shared_and_the_read_out_votes_for_a_direction(retina):

@@ -139,7 +139,7 @@ def test_nan_loss_stops_with_the_last_good_checkpoint(tmp_path, smoke_data, monk
 
 
 def test_shards_build_one_dataset(tmp_path):
-    cfg = FoveationDataConfig(samples=24, photoreceptors=60, samples_per_receptor=1, chunk_size=4)
+    cfg = FoveationDataConfig(samples=24, photoreceptors=60, samples_per_receptor=1, chunk_size=4, max_field_deg=15.0)
     one = synthesize(tmp_path / "one", cfg, progress=False, log=lambda *a: None).load()
     for i in range(3):
         synthesize(tmp_path / "three", cfg, shard=(i, 3), progress=False, log=lambda *a: None)
@@ -162,6 +162,31 @@ def test_bad_config_is_refused():
     assert resolve("smoke", {"model": "fc"}).head_kind() == "linear"
     assert resolve("smoke", {}).head_kind() == "softargmax"
     assert train_main(["--preset", "smoke", "--batch", "0", "--out", "/nonexistent/x"]) == 2
+
+
+@pytest.mark.parametrize("argv, said", [
+    # each was refused by the net's builder only after the dataset was rendered (at the default preset
+    # `--generator 7 --model linet --layers 8` began by synthesising 6,112 ONVs; here smoke-sized)
+    (["--preset", "smoke", "--layers", "5"], "layers: expected every layer to keep N_h"),
+    (["--preset", "smoke", "--model", "fc", "--layers", "4", "--receptive-field", "10"], "expected R_4 <= N_3 = 9"),
+    (["--preset", "smoke", "--model", "conv", "--layers", "4"], "layers: layer 4 would have no sites"),
+    (["--preset", "smoke", "--model", "conv", "--reduction", "1"], "reduction: the conv net's stride"),
+    (["faces", "--preset", "smoke", "--layers", "9"], "receptive_field: expected R_9 <= N_8 = 4"),
+    (["limb", "--preset", "smoke", "--model", "linet", "--layers", "5"], "layers: expected every layer to keep N_h"),
+    # v7 placed no ball at all on a retina this small: a RuntimeError after the run was claimed
+    (["--preset", "smoke", "--photoreceptors", "3", "--layers", "1", "--receptive-field", "2"], "photoreceptors: 3 are too few for balls out to max_field_deg=45"),
+    (["--preset", "smoke", "--photoreceptors", "60", "--layers", "2"], "from 18.5 deg out"),
+])
+def test_a_net_or_retina_too_small_for_its_settings_is_refused_before_any_data_is_rendered(argv, said, tmp_path, capsys):
+    assert train_main([*argv, "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "data")]) == 2
+    err = capsys.readouterr().err
+    assert said in err and err.count("\n") == 1, err
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_field_check_passes_where_every_direction_admits_a_ball():
+    FoveationDataConfig(photoreceptors=60, max_field_deg=15.0).validate()
+    FoveationDataConfig(photoreceptors=400).validate()  # the smoke preset's retina, to 45 deg
 
 
 def test_a_run_of_another_task_is_refused_by_resume_compare_and_the_foveation_evaluations(tmp_path, capsys):
@@ -353,6 +378,10 @@ def test_the_mse_is_split_into_missed_balls_and_the_rest(tmp_path, smoke_data, c
     assert parts["mse_share_off"] == pytest.approx(2.0 / 2.006)
     assert parts["mse_within_5deg"] == pytest.approx(0.002)
     assert np.isnan(foveation.mse_parts(torch.zeros(0), torch.zeros(0))["over_5deg"])
+    # every ball missed: the rest is empty, said in words (it printed "the rest's MSE nan")
+    line = foveation.FoveationTask.eval_line(None, "run", "test", 4, {"mse": 2.0, "median_deg": 30.0, "p90_deg": 40.0,
+                                                                    **foveation.mse_parts(se, err + 10.0)})
+    assert line.endswith("the rest's MSE none: every one is off") and "nan" not in line, line
     foveation.run(smoke(tmp_path, smoke_data, epochs=1), progress=False, log=lambda *a: None)
     assert train_main(["evaluate", str(tmp_path / "run")]) == 0
     assert "deg off (another object found) hold" in capsys.readouterr().out

@@ -104,6 +104,23 @@ class FoveationDataConfig:
             raise ValueError("rooms and condition belong to generators 8 and 9; generator 7 has one room and one condition")
         if self.generator == 8 and self.condition == "decoy":
             raise ValueError("condition 'decoy' belongs to generator 9 (v8 has no decoys)")
+        self._check_field()
+
+    def _check_field(self) -> None:
+        """Every direction of the field must admit a ball: a retina with too few photoreceptors sees, far
+        out, only balls larger than the largest allowed, and synthesis would redraw the ball's direction
+        (no longer uniform over the field) or never place it. One retina's visual angles, cached, and
+        built by synthesis anyway."""
+        ecc = np.radians(np.append(np.arange(0.0, self.max_field_deg, 0.5), self.max_field_deg))
+        least = np.array([min_apparent_diameter(self, e) for e in ecc])
+        too_big = np.flatnonzero(least >= np.radians(MAX_APPARENT_DIAMETER_DEG))
+        if len(too_big):
+            e = float(np.degrees(ecc[too_big[0]]))
+            raise ValueError(
+                f"photoreceptors: {self.photoreceptors:,} are too few for balls out to max_field_deg={self.max_field_deg:g}: "
+                f"from {e:.1f} deg out they lie so far apart that the smallest ball seen there "
+                f"({np.degrees(least[too_big[0]]):.0f} deg across, {MIN_RECEPTORS_ACROSS:g} spacings) is larger than the "
+                f"largest allowed ({MAX_APPARENT_DIAMETER_DEG:g} deg); use more photoreceptors or a smaller --max-field-deg")
 
     @classmethod
     def saved(cls, d: dict) -> "FoveationDataConfig":
@@ -228,7 +245,7 @@ def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dic
         hi = np.array([ROOM_SIZE[0] / 2, ROOM_SIZE[1] / 2, ROOM_SIZE[2]]) - radius - 0.05
         if dist > radius + 0.05 and np.all(ball > lo) and np.all(ball < hi):
             break
-    else:  # pragma: no cover - the room is large; never seen
+    else:  # pragma: no cover - every direction admits a ball (FoveationDataConfig._check_field) and the room is large
         raise RuntimeError("could not place the ball inside the room")
     occluded = bool(rng.uniform() < cfg.occluded_fraction)
     Tp = occluder_pose(rng, eye, ball, R, phi, radius, occluded)

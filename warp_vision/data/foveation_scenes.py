@@ -347,7 +347,7 @@ def sample_params(cfg, index: int, attempt: int, radii, diameter_limits) -> dict
         ball = eye + dist * (R @ u_eye)
         if dist > radius + 0.05 and _in_room(ball, size, radius + 0.05):
             break
-    else:  # pragma: no cover - the rooms are large; never seen
+    else:  # pragma: no cover - every direction admits a ball (FoveationDataConfig._check_field) and the rooms are large
         raise RuntimeError("could not place the ball inside the room")
     occluded = bool(rng.uniform() < cfg.occluded_fraction)
     Tp = occluder_pose(rng, eye, ball, R, phi, radius, occluded)

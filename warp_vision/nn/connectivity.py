@@ -23,6 +23,7 @@ from warp_vision.frames import check_positions, morton_order
 __all__ = [
     "LayerConnectivity",
     "build_connectivity",
+    "layer_sizes",
     "onv_positions",
     "receptive_field_radius",
 ]
@@ -112,6 +113,26 @@ def _receptive_fields(receptive_field: int | Sequence[int], layers: int) -> list
     return [int(r) for r in rfs]
 
 
+def layer_sizes(n_in: int, receptive_fields: Sequence[int], reduction: float) -> list[int]:
+    """[N_0 = n_in, N_1, ..., N_H] of a liNet with the receptive fields R_1..R_H: N_h = floor(N_(h-1) / f).
+    A ValueError names the layer left empty, or the receptive field larger than the layer it reads
+    (checked by the training configs before any data is rendered: arithmetic only)."""
+    sizes = [int(n_in)]
+    for h, r in enumerate(receptive_fields, start=1):
+        n = math.floor(sizes[-1] / reduction)
+        if n < 1:
+            raise ValueError(
+                f"layers: expected every layer to keep N_h = floor(N_(h-1) / f) >= 1, got N_{h} = "
+                f"floor({sizes[-1]} / {reduction}) = {n}"
+            )
+        if r > sizes[-1]:
+            raise ValueError(
+                f"receptive_field: expected R_{h} <= N_{h - 1} = {sizes[-1]} (units in layer {h - 1}), got {r}"
+            )
+        sizes.append(n)
+    return sizes
+
+
 def build_connectivity(
     in_positions: np.ndarray,
     layers: int,
@@ -159,19 +180,7 @@ def build_connectivity(
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed: expected an int, got {seed!r}")
 
-    sizes = [len(prev)]
-    for h, r in enumerate(rfs, start=1):
-        n = math.floor(sizes[-1] / reduction)
-        if n < 1:
-            raise ValueError(
-                f"layers: expected every layer to keep N_h = floor(N_(h-1) / f) >= 1, got N_{h} = "
-                f"floor({sizes[-1]} / {reduction}) = {n}"
-            )
-        if r > sizes[-1]:
-            raise ValueError(
-                f"receptive_field: expected R_{h} <= N_{h - 1} = {sizes[-1]} (units in layer {h - 1}), got {r}"
-            )
-        sizes.append(n)
+    sizes = layer_sizes(len(prev), rfs, reduction)
 
     rng = np.random.default_rng(int(seed))
     out: list[LayerConnectivity] = []

@@ -38,6 +38,21 @@ from warp_vision.nn.standardise import StandardisedTargets
 STENCIL = 9  # the site itself and 8 compass points
 
 
+def site_counts(n_sites: int, layers: int, stride: float) -> list[int]:
+    """[N_0 = n_sites, N_1, ..., N_H]: each layer keeps floor(N_(h-1) / stride) sites of the layer below,
+    which needs 7 sites at least (a site's spacing is its 6th neighbour's distance). A ValueError names
+    the first layer left without sites (checked by the training configs before any data is rendered)."""
+    if not (isinstance(stride, (int, float, np.integer, np.floating)) and math.isfinite(stride) and stride > 1):
+        raise ValueError(f"stride: expected a number > 1, got {stride!r}")
+    counts = [int(n_sites)]
+    for h in range(1, layers + 1):
+        n = int(counts[-1] // stride)
+        if n < 1 or counts[-1] < 7:
+            raise ValueError(f"layers: layer {h} would have no sites ({counts[-1]} sites in layer {h - 1}, stride {stride})")
+        counts.append(n)
+    return counts
+
+
 def stencil_layers(site_xy: np.ndarray, layers: int, stride: float, seed: int = 0) -> list[dict]:
     """The sites and stencils of layers 1..H over photoreceptors at ``site_xy`` [P, 2] (retinal domain).
 
@@ -46,17 +61,13 @@ def stencil_layers(site_xy: np.ndarray, layers: int, stride: float, seed: int = 
     xy = check_positions("site_xy", site_xy)
     if isinstance(layers, bool) or not isinstance(layers, (int, np.integer)) or layers < 1:
         raise ValueError(f"layers: expected an int >= 1, got {layers!r}")
-    if not (isinstance(stride, (int, float, np.integer, np.floating)) and math.isfinite(stride) and stride > 1):
-        raise ValueError(f"stride: expected a number > 1, got {stride!r}")
+    counts = site_counts(len(xy), layers, stride)
     rng = np.random.default_rng(int(seed))
     ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
     compass = np.stack([np.cos(ang), np.sin(ang)], 1)
     prev_xy, prev_pr = xy, np.arange(len(xy))
     out = []
-    for h in range(1, layers + 1):
-        n = int(len(prev_xy) // stride)
-        if n < 1 or len(prev_xy) < 7:
-            raise ValueError(f"layers: layer {h} would have no sites ({len(prev_xy)} sites in layer {h - 1}, stride {stride})")
+    for n in counts[1:]:
         sites = np.sort(rng.choice(len(prev_xy), size=n, replace=False))
         tree = cKDTree(prev_xy)
         dist, _ = tree.query(prev_xy[sites], k=7)

@@ -23,6 +23,22 @@ CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn", "ra
            "ball": ["ordinary", "glowing"]}
 
 
+def check_net_sizes(cfg) -> None:
+    """The hidden layers of ``cfg``'s net on its P photoreceptors, by arithmetic alone: a liNet or its fc twin
+    (``layers`` of 1/``reduction`` the units, each reading ``receptive_field`` of the 3P inputs or the layer
+    below) or the conv net (sites thinned by ``reduction`` per layer). The nets' builders refuse the same
+    settings, but only once the dataset is rendered: ``--layers 8`` began by synthesising 6,112 ONVs."""
+    from warp_vision.nn.connectivity import _receptive_fields, layer_sizes
+    from warp_vision.nn.retina_conv import site_counts
+
+    if cfg.model in ("linet", "fc"):
+        layer_sizes(3 * cfg.photoreceptors, _receptive_fields(cfg.receptive_field, cfg.layers), cfg.reduction)
+    elif cfg.model == "conv":
+        if not cfg.reduction > 1:
+            raise ValueError(f"reduction: the conv net's stride between its layers' sites, expected > 1, got {cfg.reduction}")
+        site_counts(cfg.photoreceptors, cfg.layers, cfg.reduction)
+
+
 def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: bool = False) -> None:
     """The checks every training config shares: every number is finite, its preset, its fields with a
     fixed set of values, the network's and the optimisation's positive integers (and ``positive``), lr,
@@ -176,6 +192,7 @@ class TrainConfig:
         from warp_vision.nn.retina_cnn import consensus_transforms
 
         consensus_transforms(self.views)  # (validates: 1 to 48, the turns plain and mirrored)
+        check_net_sizes(self)
         self.data_config().validate()
 
 
@@ -249,6 +266,7 @@ class FaceTrainConfig:
             raise ValueError(f"identities: expected at least 2 (a classifier needs classes), got {self.identities}")
         if not self.loss_lambda >= 0:
             raise ValueError(f"loss_lambda: expected >= 0, got {self.loss_lambda}")
+        check_net_sizes(self)
         self.data_config().validate()
 
 

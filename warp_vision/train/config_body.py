@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from warp_vision.train.config import CHOICES, _check_common, epoch_lr
+from warp_vision.train.config import CHOICES, _check_common, check_net_sizes, epoch_lr
 
 
 @dataclass
@@ -187,6 +187,7 @@ class LimbTrainConfig:
             raise ValueError(f"near_weight_m: expected > 0 m, got {self.near_weight_m}")
         if self.model in ("cnn", "range") and self.onv_dtype not in ("auto", "float32"):
             raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
+        check_net_sizes(self)
         self.data_config().validate()
         self.heldout_config().validate()
 

@@ -338,7 +338,7 @@ class FoveationTask(harness.OnvTask):
         return (f"{run_dir} ({split}, {n:,} ONVs): MSE {ev['mse']:.4f}; angular error median {ev['median_deg']:.3f} deg, "
                 f"90th percentile {ev['p90_deg']:.3f} deg; {100 * ev['over_5deg']:.1f}% more than {OFF_DEG:g} deg off "
                 f"(another object found) hold {100 * ev['mse_share_off']:.1f}% of the MSE; the rest's MSE "
-                f"{ev['mse_within_5deg']:.4f}")
+                + (f"{ev['mse_within_5deg']:.4f}" if ev["over_5deg"] != 1 else "none: every one is off"))
 
 
 def run(cfg: TrainConfig | None = None, **kw) -> dict:
