@@ -184,6 +184,25 @@ def test_a_net_or_retina_too_small_for_its_settings_is_refused_before_any_data_i
     assert not list(tmp_path.iterdir())
 
 
+def test_a_warm_start_that_cannot_load_is_refused_before_any_data_is_rendered(tmp_path, capsys):
+    """--init was read only once the dataset was synthesised: at the default preset, after minutes."""
+    import json
+
+    for name, cfg in (("arm", {"task": "arm", "side": "left"}), ("cnn16", {"model": "cnn", "channels": 16})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.json").write_text(json.dumps(cfg))
+        (tmp_path / name / "best.pt").write_bytes(b"weights")
+    for init, extra, said in ((tmp_path / "none", [], "no such checkpoint (--init takes a foveation run directory"),
+                              (tmp_path / "arm", [], "is an arm run; --init takes a foveation run"),
+                              (tmp_path / "cnn16" / "best.pt", [], "--model cnn there, linet here"),
+                              (tmp_path / "cnn16", ["--model", "cnn", "--channels", "8"], "--channels 16 there, 8 here")):
+        argv = ["--preset", "smoke", *extra, "--init", str(init), "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "d")]
+        assert train_main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert said in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["arm", "cnn16"]
+
+
 def test_the_field_check_passes_where_every_direction_admits_a_ball():
     FoveationDataConfig(photoreceptors=60, max_field_deg=15.0).validate()
     FoveationDataConfig(photoreceptors=400).validate()  # the smoke preset's retina, to 45 deg

@@ -123,7 +123,7 @@ class TrainConfig:
     plain_epochs: int = 0  # cnn only: the last N epochs (of the epoch cap) train on the plain image alone, after the turned and mirrored copies (an ablation between the copies throughout and no_augment: docs/RESULTS.md "Copies first, the plain image last"); 0: copies throughout
     views: int = 8  # cnn only: its read-out at inference (the test, evaluate, the simulation; the epochs' validation reads one view) is the consensus of this many turned and mirrored views (nn/retina_cnn.py: CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
     # optimisation
-    init: str = ""  # a foveation run directory whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
+    init: str = ""  # a foveation run directory (or its best.pt) whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
     loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls too small or hidden to localise) or mse (the paper's)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (of the first epoch)

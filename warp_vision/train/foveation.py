@@ -196,10 +196,47 @@ def agreement_table(r: dict) -> str:
     return "\n".join(lines)
 
 
+#: The settings that fix the shapes of a foveation net's weights, per model: a warm start (``--init``)
+#: needs them equal (the cnn reads a resampled image of fixed size, whatever the retina).
+SHAPE_SETTINGS = {"linet": ("photoreceptors", "layers", "receptive_field", "reduction"),
+                  "fc": ("photoreceptors", "layers", "receptive_field", "reduction"),
+                  "conv": ("photoreceptors", "layers", "reduction", "channels"),
+                  "cnn": ("channels",)}
+
+
 class FoveationTask(harness.OnvTask):
     name = "foveation"
     config_cls = TrainConfig
     data_module = "warp_vision.data.foveation"
+
+    @classmethod
+    def check_new_run(cls, cfg):
+        """``--init``: a foveation run's checkpoint, of a net with this run's model and sizes; refused before
+        any data is rendered (the weights' own check came only after the dataset was synthesised)."""
+        if not cfg.init:
+            return
+        import errno
+        import json
+
+        from warp_vision.nn.trained import saved_task
+        from warp_vision.train.rundir import a_run
+
+        best = harness.init_checkpoint(cfg.init)
+        if not best.is_file():
+            raise FileNotFoundError(errno.ENOENT, "no such checkpoint (--init takes a foveation run directory or its best.pt)",
+                                    str(best))
+        run = best.parent
+        if not (run / "config.json").is_file():
+            return  # a checkpoint on its own: its weights are checked as they load
+        task = saved_task(run)
+        if task != cls.name:
+            raise ValueError(f"init: {run} is {a_run(task)}; --init takes a foveation run of the net this run trains")
+        saved = json.loads((run / "config.json").read_text())
+        model = saved.get("model", "linet")
+        differ = ["model"] if model != cfg.model else [k for k in SHAPE_SETTINGS[cfg.model] if k in saved and saved[k] != getattr(cfg, k)]
+        if differ:
+            raise ValueError(f"init: {run} trained another net than this run's: "
+                             + ", ".join(f"--{k.replace('_', '-')} {saved.get(k, model)} there, {getattr(cfg, k)} here" for k in differ))
 
     def dataset_dirs(self):
         return [harness.dataset_dir(self.cfg, "foveation", self.cfg.data_config())]

@@ -112,6 +112,11 @@ class Task:
         if getattr(cfg, "init", ""):
             cfg.init = str(Path(cfg.init).resolve())
 
+    @classmethod
+    def check_new_run(cls, cfg) -> None:
+        """What a new run's config names outside itself, checked before any data is rendered (after
+        :meth:`resolve_paths`); nothing by default. The foveation task checks its warm start."""
+
     def dataset_bytes(self) -> int:
         """An estimate of the dataset's size (on disk, and in memory once loaded), for the preflight."""
         return 0
@@ -312,10 +317,17 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     return {k: dd.all_mean(v / max(count, 1)) for k, v in sums.items()}
 
 
+def init_checkpoint(init) -> Path:
+    """The checkpoint a warm start ``init`` names: a run directory's ``best.pt``, or a checkpoint file."""
+    p = Path(init)
+    return p if p.is_file() else p / "best.pt"
+
+
 def warm_start(model: torch.nn.Module, run_dir) -> None:
-    """Start ``model`` from the best weights of the run in ``run_dir`` (a net of the same model and sizes,
-    e.g. the other eye's; the normalisation is this run's own, set after). A mismatch is a ValueError."""
-    best = Path(run_dir) / "best.pt"
+    """Start ``model`` from the best weights of the run in ``run_dir`` (or of the checkpoint file it names:
+    a net of the same model and sizes, e.g. the other eye's; the normalisation is this run's own, set
+    after). A mismatch is a ValueError."""
+    best = init_checkpoint(run_dir)
     state = read_checkpoint(best)["model"]
     try:
         model.load_state_dict(state)

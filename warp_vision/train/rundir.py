@@ -107,6 +107,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         cfg.validate()
         _check_device(cfg.device)  # before anything is written
         task_cls.resolve_paths(cfg)
+        task_cls.check_new_run(cfg)
         out = Path(cfg.out)
         require_output(out, "--out")
         # a complete dataset may sit in a read-only directory: synthesis probes its own writes
