@@ -464,10 +464,8 @@ def test_sigkill_during_training_then_resume_is_bit_identical(data, finished, tm
     run = tmp_path / "run"
     argv = ["--preset", "smoke", "--out", str(run), "--data-dir", str(data), "--epochs", "3"]
     _kill_and_resume(argv, [run], tmp_path, seed=2)
-    if (run / "latest.pt").exists():
-        assert train_main(["--resume", str(run), "--no-progress"]) == 0
-    else:  # killed before the first epoch ended: start again
-        assert train_main([*argv, "--overwrite", "--no-progress"]) == 0
+    # killed before the first epoch ended, --resume starts it again
+    assert train_main(["--resume", str(run), "--no-progress"]) == 0
     for name in ("latest.pt", "best.pt"):
         assert (run / name).read_bytes() == (finished / name).read_bytes(), name
     rows = [json.loads(x)["epoch"] for x in (run / "metrics.jsonl").read_text().splitlines()]
@@ -480,6 +478,63 @@ def test_an_interrupted_and_resumed_run_writes_the_same_bytes(data, finished, tm
     foveation.run(resume=str(run), **QUIET)
     for name in ("latest.pt", "previous.pt", "best.pt"):
         assert (run / name).read_bytes() == (finished / name).read_bytes(), name
+
+
+def test_ctrl_c_before_the_first_epoch_says_so_and_resume_starts_the_run_again(data, finished, tmp_path, monkeypatch):
+    """It said nothing, and --resume then refused the run: "no checkpoint to resume from"."""
+    from warp_vision.train import harness
+
+    def ctrl_c(*_a, **_k):
+        raise KeyboardInterrupt
+
+    run, lines = tmp_path / "run", []
+    monkeypatch.setattr(harness, "render_in_processes", ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        foveation.run(resolve("smoke", {"out": str(run), "data_dir": str(data)}), progress=False, log=lines.append)
+    assert lines[-1] == (f"interrupted before any epoch finished (the dataset's chunks written so far are kept); "
+                         f"--resume {run} starts it again"), lines
+    monkeypatch.undo()
+    lines.clear()
+    foveation.run(resume=str(run), progress=False, log=lines.append)
+    assert lines[0] == f"no epoch of {run} finished: training it from the start, as its config.json says"
+    for name in ("latest.pt", "best.pt"):
+        assert (run / name).read_bytes() == (finished / name).read_bytes(), name
+    (run / "latest.pt").unlink()  # a run with files but no checkpoint that reads is still refused
+    (run / "previous.pt").unlink()
+    (run / "best.pt").write_bytes(b"damaged")
+    with pytest.raises(ValueError, match="no checkpoint to resume from"):
+        foveation.run(resume=str(run), **QUIET)
+
+
+class _SlowRender:
+    """A task whose shard takes a minute, for the helper-process drill (``cfg``: a directory to mark)."""
+
+    def __init__(self, cfg, log=print):
+        self.cfg = cfg
+
+    def render(self, shard, progress):
+        (Path(self.cfg) / "started").write_text("")
+        time.sleep(60)
+
+
+def test_a_synthesis_helper_leaves_ctrl_c_to_its_parent_and_unwinds_when_stopped(tmp_path):
+    """Ctrl-C reaches every process of the command: each helper printed a KeyboardInterrupt traceback, and
+    one stopped by its parent left the resource tracker warning of leaked semaphores."""
+    import multiprocessing as mp
+
+    from warp_vision.train.harness import _render_shard
+
+    p = mp.get_context("spawn").Process(target=_render_shard, args=(_SlowRender, str(tmp_path), (1, 2), 1), daemon=True)
+    p.start()
+    t0 = time.time()
+    while not (tmp_path / "started").exists() and time.time() - t0 < 60:
+        time.sleep(0.1)
+    os.kill(p.pid, signal.SIGINT)
+    p.join(1.0)
+    assert p.is_alive()  # ignored: the parent stops its helpers
+    p.terminate()
+    p.join(30)
+    assert p.exitcode == 128 + signal.SIGTERM  # sys.exit from the handler: unwound, not killed (exit code -15)
 
 
 def test_a_flipped_byte_in_a_chunk_names_the_file(data, tmp_path, capsys):

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import math
 import os
+import signal
+import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -363,7 +365,13 @@ def _store_complete(path: Path) -> bool:
 
 
 def _render_shard(task_cls, cfg, shard: tuple[int, int], threads: int) -> None:
-    """A helper process of :func:`render_in_processes`: render shard ``shard`` quietly."""
+    """A helper process of :func:`render_in_processes`: render shard ``shard`` quietly. Ctrl-C, which the
+    terminal sends to every process of the command, is left to the parent, which stops its helpers (each
+    printed a traceback of its own)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # the parent's terminate(): unwind (the semaphores this process registered are released, where a plain
+    # SIGTERM left the resource tracker to warn of them at exit)
+    signal.signal(signal.SIGTERM, lambda *_a: sys.exit(128 + signal.SIGTERM))
     os.environ["WARP_VISION_THREADS"] = str(threads)
     torch.set_num_threads(threads)
     task_cls(cfg, log=lambda *a, **k: None).render(shard, progress=False)
@@ -558,7 +566,11 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     t_start = time.perf_counter()
     if workers == "auto":
         workers = auto_workers(device, int(getattr(cfg, "samples", 0)))
-    ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress, workers)
+    try:
+        ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress, workers)
+    except KeyboardInterrupt:
+        say(_interrupted(out))
+        raise
     t_data = time.perf_counter() - t_start
     spec = task.net_spec()
     if dd.rank == 0:
@@ -568,7 +580,7 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     try:
         stopped = _epochs(task, net, model, opt, ids, norm, state, device, dd, progress, out, spec, stop_after_epoch)
     except (KeyboardInterrupt, _Interrupt):
-        say(f"interrupted: {out / 'latest.pt'} holds the last finished epoch; continue with --resume {out}")
+        say(_interrupted(out))
         if stop_after_epoch is None:
             raise
         return {"interrupted": True}
@@ -576,6 +588,14 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     summary = _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)
     dd.close()
     return summary
+
+
+def _interrupted(out: Path) -> str:
+    """What a run stopped by Ctrl-C tells its user: where it stands and the command that carries on."""
+    if (out / "latest.pt").exists():
+        return f"interrupted: {out / 'latest.pt'} holds the last finished epoch; continue with --resume {out}"
+    return (f"interrupted before any epoch finished (the dataset's chunks written so far are kept); "
+            f"--resume {out} starts it again")
 
 
 def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:

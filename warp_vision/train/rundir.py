@@ -53,9 +53,13 @@ def claim_out_dir(out: Path, overwrite: bool) -> None:
                 f.unlink(missing_ok=True)
 
 
-def _usable_checkpoint(out: Path, log) -> dict:
+def _usable_checkpoint(out: Path, log) -> dict | None:
     """The newest checkpoint of run ``out`` that reads and verifies (latest.pt, else previous.pt, else
-    best.pt), saying which when it is not latest.pt; one ValueError naming them all if none does."""
+    best.pt), saying which when it is not latest.pt; one ValueError naming them all if none does. None
+    for a run stopped before its first epoch ended (no run file at all but its config): it starts again."""
+    if not any((out / n).exists() for n in RUN_FILES):
+        log(f"no epoch of {out} finished: training it from the start, as its config.json says")
+        return None
     problems = []
     for name in RESUME_FROM:
         path = out / name
