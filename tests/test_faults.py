@@ -506,6 +506,17 @@ def test_ctrl_c_before_the_first_epoch_says_so_and_resume_starts_the_run_again(d
         foveation.run(resume=str(run), **QUIET)
 
 
+def test_ctrl_c_during_data_synthesis_says_the_same_command_carries_on(tmp_path, monkeypatch, capsys):
+    import warp_vision.data.cli as data_cli
+
+    def ctrl_c(*_a, **_k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(data_cli, "synthesize", ctrl_c)
+    assert data_cli.main(["foveation", "--samples", "8", "--photoreceptors", "400", "--out", str(tmp_path / "d")]) == 130
+    assert capsys.readouterr().err == "interrupted: the chunks written are kept; the same command carries on from them\n"
+
+
 class _SlowRender:
     """A task whose shard takes a minute, for the helper-process drill (``cfg``: a directory to mark)."""
 

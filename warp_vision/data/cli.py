@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 
 from warp_vision.data.foveation import FoveationDataConfig, synthesize
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
@@ -56,7 +57,11 @@ def main(argv: list[str] | None = None) -> int:
                              identities_path=a.identities_cache)
 
     def report():
-        store = job()
+        try:
+            store = job()
+        except KeyboardInterrupt:
+            print("interrupted: the chunks written are kept; the same command carries on from them", file=sys.stderr)
+            raise
         left = len(store.missing_chunks())
         print(f"{a.out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
               f"{'' if not left else f' ({left} chunks of this shard missing)'}")
