@@ -548,6 +548,42 @@ def test_a_synthesis_helper_leaves_ctrl_c_to_its_parent_and_unwinds_when_stopped
     assert p.exitcode == 128 + signal.SIGTERM  # sys.exit from the handler: unwound, not killed (exit code -15)
 
 
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` still runs (a zombie no init has reaped yet has ended)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_a_synthesis_helper_ends_when_its_parent_is_killed_outright(tmp_path):
+    """A helper ignores Ctrl-C, its parent's to handle; with the parent gone (SIGKILL), it must not render on
+    for minutes as an orphan."""
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import multiprocessing as mp, sys, time\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from test_faults import _SlowRender\n"
+        "from warp_vision.train.harness import _render_shard\n"
+        "if __name__ == '__main__':\n"
+        f"    p = mp.get_context('spawn').Process(target=_render_shard, args=(_SlowRender, {str(tmp_path)!r}, (1, 2), 1))\n"
+        "    p.start()\n"
+        "    print(p.pid, flush=True)\n"
+        "    time.sleep(120)\n")
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    helper = int(parent.stdout.readline())
+    t0 = time.time()
+    while not (tmp_path / "started").exists() and time.time() - t0 < 60:
+        time.sleep(0.1)
+    parent.kill()
+    parent.wait()
+    t0 = time.time()
+    while _running(helper) and time.time() - t0 < 15:
+        time.sleep(0.2)
+    assert not _running(helper), "the helper outlived its parent"
+
+
 def test_a_flipped_byte_in_a_chunk_names_the_file(data, tmp_path, capsys):
     d = tmp_path / "data"
     shutil.copytree(data, d)

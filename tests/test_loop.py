@@ -293,3 +293,20 @@ def test_experiments_measure_and_draw_every_scenario(bare_body, tmp_path):
         assert im.size == (1760, 506)
     with pytest.raises(ValueError, match="saccade_90"):
         plot_experiments({k: v for k, v in traces.items() if k != "saccade_90"}, str(tmp_path / "x.png"))
+
+
+def test_ctrl_c_lets_a_net_s_training_stop_its_helpers_and_say_where_it_stands(tmp_path):
+    """subprocess.run killed the training a quarter second after Ctrl-C: its message was lost, and its
+    synthesis helpers could be left behind."""
+    import signal
+    import sys
+    import threading
+
+    from warp_vision.sim.provision import _run_training
+
+    done = tmp_path / "stopped"
+    child = [sys.executable, "-c", f"import time, pathlib; time.sleep(1.5); pathlib.Path({str(done)!r}).write_text('')"]
+    threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()  # Ctrl-C reaches this process first
+    with pytest.raises(KeyboardInterrupt):
+        _run_training(child)
+    assert done.exists()  # the child was waited for, not killed

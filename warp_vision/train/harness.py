@@ -364,6 +364,19 @@ def _store_complete(path: Path) -> bool:
         return False
 
 
+def _exit_with(parent: int, every_s: float = 1.0) -> None:
+    """End this process once ``parent`` is gone (killed outright, it can stop no helper): a daemon thread
+    that looks every ``every_s`` seconds (the render launches release the GIL)."""
+    import threading
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(every_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def _render_shard(task_cls, cfg, shard: tuple[int, int], threads: int) -> None:
     """A helper process of :func:`render_in_processes`: render shard ``shard`` quietly. Ctrl-C, which the
     terminal sends to every process of the command, is left to the parent, which stops its helpers (each
@@ -372,6 +385,7 @@ def _render_shard(task_cls, cfg, shard: tuple[int, int], threads: int) -> None:
     # the parent's terminate(): unwind (the semaphores this process registered are released, where a plain
     # SIGTERM left the resource tracker to warn of them at exit)
     signal.signal(signal.SIGTERM, lambda *_a: sys.exit(128 + signal.SIGTERM))
+    _exit_with(os.getppid())
     os.environ["WARP_VISION_THREADS"] = str(threads)
     torch.set_num_threads(threads)
     task_cls(cfg, log=lambda *a, **k: None).render(shard, progress=False)
