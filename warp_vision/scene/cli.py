@@ -41,8 +41,8 @@ def _eye_demo(args) -> int:
     from warp_vision import viz
     from warp_vision.eye.optics import NavarroEye
     from warp_vision.eye.retina import Retina
-    from warp_vision.frames import eye_look_at, look_at
     from warp_vision.fileio import require_output
+    from warp_vision.frames import eye_look_at, look_at
     from warp_vision.kernels.launch import require_device
     from warp_vision.kernels.render import render_camera, render_onv
     from warp_vision.scene.room import make_room
