@@ -389,6 +389,23 @@ def test_workers_synthesise_the_same_dataset_in_several_processes(tmp_path, smok
     assert "positive integer or 'auto'" in capsys.readouterr().err
 
 
+def test_evaluate_renders_a_dataset_gone_from_its_cache_again(tmp_path, smoke_data):
+    """Datasets are a cache (runs/datasets/...): deleted to free the disk, evaluate said only "not a ChunkedStore"."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(smoke_data, data)
+    foveation.run(smoke(tmp_path, data, epochs=1), progress=False, log=lambda *a: None)
+    before = foveation.evaluate_run(str(tmp_path / "run"), log=lambda *a: None)
+    shutil.rmtree(data)
+    lines = []
+    after = foveation.evaluate_run(str(tmp_path / "run"), log=lines.append, progress=False)
+    assert lines[0] == f"the run's dataset {data} is gone or incomplete: rendering it again (the same ONVs as in training)"
+    assert after["mse"] == before["mse"] and after["median_deg"] == before["median_deg"]
+    for f in sorted(smoke_data.glob("chunk_*.npy")):
+        assert (data / f.name).read_bytes() == f.read_bytes(), f.name
+
+
 def test_the_mse_is_split_into_missed_balls_and_the_rest(tmp_path, smoke_data, capsys):
     se = torch.tensor([0.001, 0.003, 2.0, 0.002])
     err = torch.tensor([0.5, 1.5, 30.0, 4.9])

@@ -244,7 +244,9 @@ def _evaluate(argv: list[str]) -> int:
                 if given and task != "foveation":
                     raise ValueError(f"{flag}: {only} only; {run_dir} is {a_run(task)}")
         for run_dir, task in zip(a.run_dirs, tasks):
-            kw = {"misses": True, "signal": a.signal, "progress": not a.no_progress} if a.misses else {}
+            kw = {"misses": True, "signal": a.signal} if a.misses else {}
+            if task == "foveation":
+                kw["progress"] = not a.no_progress
             if a.views is not None:
                 kw["views"] = a.views
             _module(task).evaluate_run(run_dir, a.split, checkpoint=a.checkpoint, **kw)

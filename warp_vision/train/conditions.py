@@ -55,7 +55,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
     from warp_vision.nn.trained import (CHECKPOINTS, checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets,
                                         read_checkpoint, saved_task)
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
-    from warp_vision.train.harness import pick_device, read_label
+    from warp_vision.train.harness import load_for_evaluation, pick_device, read_label
     from warp_vision.train.rundir import a_run, dataset_dir, run_config
 
     conditions = list(conditions or CONDITIONS[1:])
@@ -82,7 +82,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         model = net_from_checkpoint(ck, device, views, source=path)
         dtype = onv_dtype(ck["net"])
         task = FoveationTask(cfg, lambda *a, **k: None)
-        task.load((0, 1), progress=False, synthesize=False)
+        load_for_evaluation(task, print, progress)
         _, va, te = task.splits()
         te = te if len(te) else va
         row = {}

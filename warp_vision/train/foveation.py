@@ -395,7 +395,8 @@ def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = Fa
     if signal and not misses:
         raise ValueError("signal: a part of the misses' breakdown; pass misses=True too")
     detail = (lambda task, idx, ev, log: _misses(task, idx, ev, log, run_dir, split, signal, progress)) if misses else None
-    return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=detail, checkpoint=checkpoint, views=views)
+    return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=detail, checkpoint=checkpoint, views=views,
+                                progress=progress)
 
 
 def evaluate_agreement(run_dirs, split: str = "test", log=print) -> dict:

@@ -619,18 +619,31 @@ def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
     return f"{run_dir} ({'; '.join(how)})" if how else str(run_dir)
 
 
+def load_for_evaluation(task: Task, log=print, progress: bool = True) -> None:
+    """Load a finished run's dataset to evaluate it. One gone from its cache (deleted to free the disk, or a
+    run copied from another machine: "not a ChunkedStore" was all evaluate said) is rendered again first,
+    the same bytes as before, saying so; a task that renders in its run only (no :meth:`Task.dataset_dirs`)
+    still needs its dataset in place."""
+    missing = [Path(d) for d in task.dataset_dirs() if not _store_complete(Path(d))]
+    if missing:
+        log(f"the run's dataset {', '.join(map(str, missing))} is gone or incomplete: rendering it again "
+            "(the same ONVs as in training)")
+    task.load((0, 1), progress=progress and bool(missing), synthesize=bool(missing))
+
+
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None, checkpoint: str = "best",
-                 views: int | None = None) -> dict:
+                 views: int | None = None, progress: bool = True) -> dict:
     """Re-evaluate a run's ``checkpoint`` ("best": the best validation epoch's weights; "latest": the last
     epoch's) on one of its splits; prints the task's metrics. ``views``: read a foveation CNN out by the
     consensus of that many views instead of its spec's (1: the plain image). ``detail``:
     ``detail(task, idx, ev, log) -> dict``, more analysis of the evaluation ``ev`` (its tensors included)
-    whose entries join the returned metrics."""
+    whose entries join the returned metrics. ``progress``: a bar while a dataset gone from its cache is
+    rendered again (:func:`load_for_evaluation`)."""
     path = checkpoint_path(run_dir, checkpoint)
     ck = read_checkpoint(path)
     cfg = run_config(task_cls, Path(run_dir), ck)
     task = task_cls(cfg, log)
-    task.load((0, 1), progress=False, synthesize=False)
+    load_for_evaluation(task, log, progress)
     tr, va, te = task.splits()
     idx = {"test": te if len(te) else va, "val": va, "train": tr}[split]
     device = pick_device(cfg.device)
