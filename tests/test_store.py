@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from warp_vision.data.store import ChunkedStore, CorruptChunkError, parse_shard
+from warp_vision.data.store import ChunkedStore, CorruptChunkError, MissingStoreError, parse_shard
 
 FIELDS = {"onv": ((6,), "float16"), "target": ((2,), "float32"), "label": ((), "int64")}
 CONFIG = {"seed": 3, "retina": {"n": 1000, "layout": "logpolar"}, "sizes": (1, 2)}
@@ -445,3 +445,10 @@ def test_a_reader_waits_for_the_other_writers_shards_when_asked(tmp_path):
     from warp_vision.data import store
 
     assert store.WAIT_FOR_WRITERS_S == 0.0  # the block restores it
+
+
+def test_a_store_that_is_not_there_is_its_own_error(tmp_path):
+    # evaluate tells it from a damaged store and renders the dataset again (a cache that was deleted)
+    with pytest.raises(MissingStoreError, match="is not a ChunkedStore") as e:
+        ChunkedStore.open(tmp_path / "gone")
+    assert e.value.root == tmp_path / "gone" and isinstance(e.value, ValueError)

@@ -400,7 +400,7 @@ def test_evaluate_renders_a_dataset_gone_from_its_cache_again(tmp_path, smoke_da
     shutil.rmtree(data)
     lines = []
     after = foveation.evaluate_run(str(tmp_path / "run"), log=lines.append, progress=False)
-    assert lines[0] == f"the run's dataset {data} is gone or incomplete: rendering it again (the same ONVs as in training)"
+    assert lines[0] == f"the run's dataset {data} is gone: rendering it again (the same samples as in training)"
     assert after["mse"] == before["mse"] and after["median_deg"] == before["median_deg"]
     for f in sorted(smoke_data.glob("chunk_*.npy")):
         assert (data / f.name).read_bytes() == f.read_bytes(), f.name

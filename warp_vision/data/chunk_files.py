@@ -41,6 +41,14 @@ _IO_BLOCK = 1 << 22  # bytes per read when hashing/reading a file
 Fields = dict[str, tuple[tuple[int, ...], str]]
 
 
+class MissingStoreError(ValueError):
+    """No store at ``root`` (no manifest): never created, or deleted (datasets are a cache)."""
+
+    def __init__(self, root: os.PathLike | str):
+        self.root = Path(root)
+        super().__init__(f"{self.root / MANIFEST_NAME} not found: {self.root} is not a ChunkedStore (or was never created)")
+
+
 class CorruptChunkError(ValueError):
     """A chunk's file is missing, truncated, of the wrong size, fails its sha256 check or cannot be read.
 
@@ -177,13 +185,13 @@ def new_manifest(config_json: Any, total: int, chunk_size: int, fields: Fields) 
 
 
 def read_manifest(root: Path) -> dict:
-    """Read and check ``root/manifest.json``; ValueError if missing or invalid."""
+    """Read and check ``root/manifest.json``; ValueError if invalid (:class:`MissingStoreError` if missing)."""
     path = Path(root) / MANIFEST_NAME
     try:
         with open(path, encoding="utf-8") as f:
             m = json.load(f)
     except FileNotFoundError:
-        raise ValueError(f"{path} not found: {root} is not a ChunkedStore (or was never created)") from None
+        raise MissingStoreError(root) from None
     except (OSError, ValueError) as e:
         raise ValueError(f"{path}: unreadable manifest: {e}") from None
     if not isinstance(m, dict):

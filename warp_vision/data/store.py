@@ -54,6 +54,7 @@ from warp_vision.data.chunk_files import (
     FORMAT_VERSION,
     MANIFEST_NAME,
     CorruptChunkError,
+    MissingStoreError,
     fields_from_json,
     fields_to_json,
     first_difference,
@@ -70,7 +71,7 @@ from warp_vision.data.chunk_files import (
     write_npy,
 )
 
-__all__ = ["ChunkedStore", "CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "parse_shard"]
+__all__ = ["ChunkedStore", "CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "MissingStoreError", "parse_shard"]
 
 
 def dataset_bytes(fields: Mapping[str, tuple], samples: int) -> int:

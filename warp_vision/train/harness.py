@@ -620,15 +620,16 @@ def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
 
 
 def load_for_evaluation(task: Task, log=print, progress: bool = True) -> None:
-    """Load a finished run's dataset to evaluate it. One gone from its cache (deleted to free the disk, or a
-    run copied from another machine: "not a ChunkedStore" was all evaluate said) is rendered again first,
-    the same bytes as before, saying so; a task that renders in its run only (no :meth:`Task.dataset_dirs`)
-    still needs its dataset in place."""
-    missing = [Path(d) for d in task.dataset_dirs() if not _store_complete(Path(d))]
-    if missing:
-        log(f"the run's dataset {', '.join(map(str, missing))} is gone or incomplete: rendering it again "
-            "(the same ONVs as in training)")
-    task.load((0, 1), progress=progress and bool(missing), synthesize=bool(missing))
+    """Load a finished run's dataset to evaluate it. A store gone from the cache (deleted to free the disk, or
+    a run copied from another machine: "not a ChunkedStore" was all evaluate said) is rendered again, the
+    same bytes as in training, saying so."""
+    from warp_vision.data.store import MissingStoreError
+
+    try:
+        task.load((0, 1), progress=False, synthesize=False)
+    except MissingStoreError as e:
+        log(f"the run's dataset {e.root} is gone: rendering it again (the same samples as in training)")
+        task.load((0, 1), progress=progress, synthesize=True)
 
 
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None, checkpoint: str = "best",
