@@ -30,8 +30,9 @@ from warp_vision.train import config_intraocular as intraocular
 def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The flags every training command has besides its config's."""
     p.add_argument("--resume", metavar="RUN_DIR", default=None,
-                   help="continue the stopped run in RUN_DIR exactly; with --epochs N, under a new epoch cap "
-                        "(N = the epochs done ends it now: the best checkpoint is evaluated, figures written)")
+                   help="continue the stopped run in RUN_DIR exactly (one stopped before its first epoch ended starts "
+                        "again); with --epochs N, under a new epoch cap (N = the epochs done ends it now: the best "
+                        "checkpoint is evaluated, figures written)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--workers", type=_workers, default="auto", metavar="N",
