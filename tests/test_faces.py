@@ -191,3 +191,17 @@ def test_faces_smoke_end_to_end_and_resume(tmp_path, ids, smoke_data, capsys):
         TF.run(face_smoke(tmp_path / "e", smoke_data, ids[1]), progress=False, epochs=2)
     # bad input is refused with a message
     assert train_main(["faces", "--preset", "smoke", "--identities", "1", "--out", str(tmp_path / "c")]) == 2
+
+
+def test_a_file_that_is_not_an_identity_cache_is_refused_by_name_and_left_alone(tmp_path):
+    # --identities-cache README.md read as numpy's "pickled (object) data" error
+    for name, content in (("notes.md", b"# notes\n"), ("empty.npz", b""), ("other.npz", None)):
+        f = tmp_path / name
+        if content is None:
+            np.savez(f, something=np.zeros(3))
+        else:
+            f.write_bytes(content)
+        before = f.read_bytes()
+        with pytest.raises(ValueError, match=f"{name}: not a cache of face identities"):
+            FA.load_identities(2, 0, f, progress=False, log=lambda *a: None)
+        assert f.read_bytes() == before

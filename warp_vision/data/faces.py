@@ -160,9 +160,17 @@ class FaceIdentities:
 
     @classmethod
     def load(cls, path) -> "FaceIdentities":
-        with np.load(path) as z:
-            return cls(z["vertices"], z["faces"], z["colours"].astype(np.float32), z["pivot"], z["face_centre"],
-                       z["params"], [str(s) for s in z["param_names"]])
+        """The identities :meth:`save` wrote to ``path``; any other file is a ValueError naming it (it read as
+        numpy's "pickled (object) data" error, or a KeyError), and is left as it is."""
+        import zipfile
+
+        try:
+            with np.load(path) as z:
+                return cls(z["vertices"], z["faces"], z["colours"].astype(np.float32), z["pivot"], z["face_centre"],
+                           z["params"], [str(s) for s in z["param_names"]])
+        except (ValueError, KeyError, EOFError, zipfile.BadZipFile, AttributeError, TypeError) as e:
+            raise ValueError(f"{path}: not a cache of face identities ({type(e).__name__}); give --identities-cache "
+                             "a new path, or the file a run of this package wrote") from None
 
     def nearest_neighbour_mm(self) -> np.ndarray:
         """[N] each identity's RMS vertex distance (mm) to its nearest other identity (same topology,
