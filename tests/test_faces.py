@@ -205,3 +205,14 @@ def test_a_file_that_is_not_an_identity_cache_is_refused_by_name_and_left_alone(
         with pytest.raises(ValueError, match=f"{name}: not a cache of face identities"):
             FA.load_identities(2, 0, f, progress=False, log=lambda *a: None)
         assert f.read_bytes() == before
+
+
+def test_a_cache_of_another_identity_seed_is_refused_not_used(ids):
+    # an explicit --identities-cache of seed 0's heads gave a seed-1 dataset seed 0's identities, without a word
+    _, path = ids
+    assert FA.FaceIdentities.load(path).seed == 0 and FA.FaceIdentities.load(path).subset(2).seed == 0
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match="holds identity seed 0's identities, not seed 1's"):
+        FA.load_identities(3, seed=1, cache=path, progress=False, log=lambda *a: None)
+    assert path.read_bytes() == before
+    assert len(FA.load_identities(2, seed=0, cache=path, progress=False, log=lambda *a: None)) == 2

@@ -133,13 +133,14 @@ class FaceIdentities:
     face_centre: np.ndarray  # [N, 3] midway between the eyes and the mouth (the eye fixates it)
     params: np.ndarray  # [N, K] float32 the drawn shape and colour parameters
     param_names: list
+    seed: int | None = None  # the identity seed they were drawn with (None: a cache written before it was kept)
 
     def __len__(self) -> int:
         return len(self.vertices)
 
     def subset(self, n: int) -> "FaceIdentities":
         return FaceIdentities(self.vertices[:n], self.faces, self.colours[:n], self.pivot[:n], self.face_centre[:n],
-                              self.params[:n], self.param_names)
+                              self.params[:n], self.param_names, self.seed)
 
     def mesh(self, i: int):
         import trimesh
@@ -154,7 +155,8 @@ class FaceIdentities:
         def write(f) -> None:
             np.savez_compressed(f, vertices=self.vertices, faces=self.faces, colours=self.colours.astype(np.float16),
                                 pivot=self.pivot, face_centre=self.face_centre, params=self.params,
-                                param_names=np.array(self.param_names))
+                                param_names=np.array(self.param_names),
+                                **({} if self.seed is None else {"identity_seed": np.int64(self.seed)}))
 
         atomic_write(path, write)
 
@@ -167,7 +169,8 @@ class FaceIdentities:
         try:
             with np.load(path) as z:
                 return cls(z["vertices"], z["faces"], z["colours"].astype(np.float32), z["pivot"], z["face_centre"],
-                           z["params"], [str(s) for s in z["param_names"]])
+                           z["params"], [str(s) for s in z["param_names"]],
+                           int(z["identity_seed"]) if "identity_seed" in z.files else None)
         except (ValueError, KeyError, EOFError, zipfile.BadZipFile, AttributeError, TypeError) as e:
             raise ValueError(f"{path}: not a cache of face identities ({type(e).__name__}); give --identities-cache "
                              "a new path, or the file a run of this package wrote") from None
@@ -310,7 +313,7 @@ def build_identities(n: int, seed: int = 0, progress: bool = True) -> FaceIdenti
         Cp.append(np.concatenate([[ph[k] for k in pheno], lc, cpar]).astype(np.float32))
     names = pheno + local + [f"{k}_{c}" for k in ("skin", "lips", "hair", "iris") for c in "rgb"] + \
         ["flush", "brow_width", "brow_thickness", "brow_lift"]
-    return FaceIdentities(np.stack(V), faces, np.stack(C), np.stack(P), np.stack(F), np.stack(Cp), names)
+    return FaceIdentities(np.stack(V), faces, np.stack(C), np.stack(P), np.stack(F), np.stack(Cp), names, int(seed))
 
 
 def identities_cache(n: int, seed: int) -> Path:
@@ -326,6 +329,9 @@ def load_identities(n: int, seed: int = 0, cache: str | Path | None = None, prog
     path = Path(cache) if cache else identities_cache(n, seed)
     if path.exists():
         ids = FaceIdentities.load(path)
+        if ids.seed is not None and ids.seed != seed:  # (a cache given by name; the default names carry the seed)
+            raise ValueError(f"{path}: holds identity seed {ids.seed}'s identities, not seed {seed}'s; "
+                             "give --identities-cache another path")
         if len(ids) >= n:
             return ids.subset(n)
     t0 = time.perf_counter()
