@@ -305,8 +305,8 @@ def test_ctrl_c_lets_a_net_s_training_stop_its_helpers_and_say_where_it_stands(t
     from warp_vision.sim.provision import _run_training
 
     done = tmp_path / "stopped"
-    child = [sys.executable, "-c", f"import time, pathlib; time.sleep(1.5); pathlib.Path({str(done)!r}).write_text('')"]
-    threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()  # Ctrl-C reaches this process first
+    child = [sys.executable, "-c", f"import time, pathlib; time.sleep(3.0); pathlib.Path({str(done)!r}).write_text('')"]
+    threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT)).start()  # Ctrl-C, once the child runs
     with pytest.raises(KeyboardInterrupt):
         _run_training(child)
     assert done.exists()  # the child was waited for, not killed
