@@ -59,7 +59,7 @@ def test_layer_sizes_are_floor_of_previous_over_f(onv_pos):
         sizes.append(c.num_units)
     # 6000 / 3.5 = 1714.28 -> 1714; 1714 / 3.5 = 489.7 -> 489; 489 / 3.5 = 139.7 -> 139; 139 / 3.5 -> 39
     assert sizes == [6000, 1714, 489, 139, 39]
-    assert layer_sizes(6000, [7, 6, 5, 4], 3.5) == sizes  # the arithmetic the training configs check first
+    assert layer_sizes(6000, 4, [7, 6, 5, 4], 3.5) == sizes  # the arithmetic the training configs check first
     assert [c.receptive_field for c in conns] == [7, 6, 5, 4]
     for c in conns:
         assert c.index.dtype == np.int64 and c.positions.dtype == np.float64

@@ -533,7 +533,7 @@ def test_a_synthesis_helper_leaves_ctrl_c_to_its_parent_and_unwinds_when_stopped
     one stopped by its parent left the resource tracker warning of leaked semaphores."""
     import multiprocessing as mp
 
-    from warp_vision.train.harness import _render_shard
+    from warp_vision.train.workers import _render_shard
 
     p = mp.get_context("spawn").Process(target=_render_shard, args=(_SlowRender, str(tmp_path), (1, 2), 1), daemon=True)
     p.start()
@@ -565,7 +565,7 @@ def test_a_synthesis_helper_ends_when_its_parent_is_killed_outright(tmp_path):
         "import multiprocessing as mp, sys, time\n"
         f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
         "from test_faults import _SlowRender\n"
-        "from warp_vision.train.harness import _render_shard\n"
+        "from warp_vision.train.workers import _render_shard\n"
         "if __name__ == '__main__':\n"
         f"    p = mp.get_context('spawn').Process(target=_render_shard, args=(_SlowRender, {str(tmp_path)!r}, (1, 2), 1))\n"
         "    p.start()\n"

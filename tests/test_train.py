@@ -13,7 +13,7 @@ import torch
 from warp_vision.data.foveation import FoveationDataConfig, sample_params, synthesize
 from warp_vision.data.store import ChunkedStore
 from warp_vision.frames import gaze_directions
-from warp_vision.train import foveation, harness
+from warp_vision.train import foveation, harness, workers
 from warp_vision.train.cli import main as train_main
 from warp_vision.train.config import resolve
 
@@ -381,7 +381,7 @@ def test_workers_synthesise_the_same_dataset_in_several_processes(tmp_path, smok
     lines.clear()
     foveation.run(smoke(tmp_path / "again", tmp_path / "data", epochs=1), progress=False, log=lines.append, workers=2)
     assert not any("processes" in line for line in lines)
-    assert harness.auto_workers("cuda:0", 50_000) == 1 and harness.auto_workers("cpu", 160) == 1
+    assert workers.auto_workers("cuda:0", 50_000) == 1 and workers.auto_workers("cpu", 160) == 1
     with pytest.raises(ValueError, match="workers"):
         foveation.run(smoke(tmp_path / "bad", smoke_data), progress=False, workers=0)
     with pytest.raises(SystemExit):
@@ -521,7 +521,7 @@ def test_a_failing_synthesis_helper_is_an_error(tmp_path, monkeypatch):
     # the spawned helper renders with the task's (invalid) config and fails; this process's shard is a no-op
     monkeypatch.setattr(foveation.FoveationTask, "render", lambda self, shard, progress: None)
     with pytest.raises(RuntimeError, match="synthesis helper"):
-        harness.render_in_processes(task, 2, progress=False)
+        workers.render_in_processes(task, 2, progress=False)
 
 
 def test_torchrun_two_processes(tmp_path, smoke_data):

@@ -113,12 +113,13 @@ def _receptive_fields(receptive_field: int | Sequence[int], layers: int) -> list
     return [int(r) for r in rfs]
 
 
-def layer_sizes(n_in: int, receptive_fields: Sequence[int], reduction: float) -> list[int]:
-    """[N_0 = n_in, N_1, ..., N_H] of a liNet with the receptive fields R_1..R_H: N_h = floor(N_(h-1) / f).
-    A ValueError names the layer left empty, or the receptive field larger than the layer it reads
-    (checked by the training configs before any data is rendered: arithmetic only)."""
+def layer_sizes(n_in: int, layers: int, receptive_field: int | Sequence[int], reduction: float) -> list[int]:
+    """[N_0 = n_in, N_1, ..., N_H] of a liNet of H = ``layers`` hidden layers with the receptive fields
+    ``receptive_field`` (one int, or R_1..R_H): N_h = floor(N_(h-1) / f). A ValueError names the layer left
+    empty, or the receptive field larger than the layer it reads (checked by the training configs before
+    any data is rendered: arithmetic only)."""
     sizes = [int(n_in)]
-    for h, r in enumerate(receptive_fields, start=1):
+    for h, r in enumerate(_receptive_fields(receptive_field, layers), start=1):
         n = math.floor(sizes[-1] / reduction)
         if n < 1:
             raise ValueError(
@@ -180,7 +181,7 @@ def build_connectivity(
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed: expected an int, got {seed!r}")
 
-    sizes = layer_sizes(len(prev), rfs, reduction)
+    sizes = layer_sizes(len(prev), int(layers), rfs, reduction)
 
     rng = np.random.default_rng(int(seed))
     out: list[LayerConnectivity] = []

@@ -28,11 +28,11 @@ def check_net_sizes(cfg) -> None:
     (``layers`` of 1/``reduction`` the units, each reading ``receptive_field`` of the 3P inputs or the layer
     below) or the conv net (sites thinned by ``reduction`` per layer). The nets' builders refuse the same
     settings, but only once the dataset is rendered: ``--layers 8`` began by synthesising 6,112 ONVs."""
-    from warp_vision.nn.connectivity import _receptive_fields, layer_sizes
+    from warp_vision.nn.connectivity import layer_sizes
     from warp_vision.nn.retina_conv import site_counts
 
     if cfg.model in ("linet", "fc"):
-        layer_sizes(3 * cfg.photoreceptors, _receptive_fields(cfg.receptive_field, cfg.layers), cfg.reduction)
+        layer_sizes(3 * cfg.photoreceptors, cfg.layers, cfg.receptive_field, cfg.reduction)
     elif cfg.model == "conv":
         if not cfg.reduction > 1:
             raise ValueError(f"reduction: the conv net's stride between its layers' sites, expected > 1, got {cfg.reduction}")

@@ -231,12 +231,12 @@ class FoveationTask(harness.OnvTask):
         task = saved_task(run)
         if task != cls.name:
             raise ValueError(f"init: {run} is {a_run(task)}; --init takes a foveation run of the net this run trains")
-        saved = json.loads((run / "config.json").read_text())
-        model = saved.get("model", "linet")
-        differ = ["model"] if model != cfg.model else [k for k in SHAPE_SETTINGS[cfg.model] if k in saved and saved[k] != getattr(cfg, k)]
+        there = {"model": "linet", **json.loads((run / "config.json").read_text())}  # (a config older than its model)
+        keys = ("model",) if there["model"] != cfg.model else SHAPE_SETTINGS[cfg.model]
+        differ = [k for k in keys if k in there and there[k] != getattr(cfg, k)]
         if differ:
             raise ValueError(f"init: {run} trained another net than this run's: "
-                             + ", ".join(f"--{k.replace('_', '-')} {saved.get(k, model)} there, {getattr(cfg, k)} here" for k in differ))
+                             + ", ".join(f"--{k.replace('_', '-')} {there[k]} there, {getattr(cfg, k)} here" for k in differ))
 
     def dataset_dirs(self):
         return [harness.dataset_dir(self.cfg, "foveation", self.cfg.data_config())]

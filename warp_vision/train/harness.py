@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
-import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -44,6 +42,7 @@ from warp_vision.nn.trained import ONV_DTYPES, build_net, checkpoint_path, net_f
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, run_config, save_checkpoint, sync_metrics)
+from warp_vision.train.workers import auto_workers, render_in_processes
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
 #: without a better validation metric.
@@ -337,99 +336,6 @@ def warm_start(model: torch.nn.Module, run_dir) -> None:
         raise ValueError(f"init: {best} holds another net than this run builds ({str(e).splitlines()[0]})") from None
 
 
-def auto_workers(device: str, samples: int) -> int:
-    """Synthesis processes a run uses by default: on the CPU one per usable core (at most
-    :data:`MAX_WORKERS`) for a dataset of at least :data:`AUTO_MIN_SAMPLES`; otherwise one (a helper's
-    start, importing torch and Warp and building its scene, costs seconds; on a GPU the launches are
-    not where the time goes)."""
-    from warp_vision.kernels.launch import cpu_threads
-
-    if device.startswith("cuda") or samples < AUTO_MIN_SAMPLES:
-        return 1
-    return max(1, min(MAX_WORKERS, cpu_threads()))
-
-
-#: The most synthesis processes ``workers="auto"`` starts (each holds its own Warp, torch and scene).
-MAX_WORKERS = 8
-#: ``workers="auto"`` renders datasets smaller than this in one process (the smoke preset's, tests').
-AUTO_MIN_SAMPLES = 1000
-
-
-def _store_complete(path: Path) -> bool:
-    from warp_vision.data.store import ChunkedStore
-
-    try:
-        return ChunkedStore.open(path).complete
-    except (ValueError, OSError):  # no store there yet
-        return False
-
-
-def _exit_with(parent: int, every_s: float = 1.0) -> None:
-    """End this process once ``parent`` is gone (killed outright, it can stop no helper): a daemon thread
-    that looks every ``every_s`` seconds (the render launches release the GIL)."""
-    import threading
-
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(every_s)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
-
-
-def _render_shard(task_cls, cfg, shard: tuple[int, int], threads: int) -> None:
-    """A helper process of :func:`render_in_processes`: render shard ``shard`` quietly. Ctrl-C, which the
-    terminal sends to every process of the command, is left to the parent, which stops its helpers (each
-    printed a traceback of its own)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # the parent's terminate(): unwind (the semaphores this process registered are released, where a plain
-    # SIGTERM left the resource tracker to warn of them at exit)
-    signal.signal(signal.SIGTERM, lambda *_a: sys.exit(128 + signal.SIGTERM))
-    _exit_with(os.getppid())
-    os.environ["WARP_VISION_THREADS"] = str(threads)
-    torch.set_num_threads(threads)
-    task_cls(cfg, log=lambda *a, **k: None).render(shard, progress=False)
-
-
-def render_in_processes(task: Task, workers: int, progress: bool) -> bool:
-    """Synthesise ``task``'s missing dataset in ``workers`` processes: this one renders shard 0 of
-    ``workers`` (with the progress bar), ``workers - 1`` spawned helpers the others, all at once (the
-    samples do not depend on the shard that renders them: the dataset is the same as one process's).
-    Returns False, doing nothing, when there is nothing to render, one worker, or a task that renders
-    in one process only. A helper that fails is a RuntimeError after the others finish (the chunks
-    written stay: run again to resume)."""
-    import multiprocessing as mp
-
-    from warp_vision.kernels.launch import cpu_threads, threads_set
-
-    dirs = task.dataset_dirs()
-    if workers <= 1 or not dirs or all(_store_complete(Path(d)) for d in dirs):
-        return False
-    threads = max(1, cpu_threads() // workers)
-    task.log(f"synthesis in {workers} processes (this one and {workers - 1} helper{'s' if workers > 2 else ''}), "
-             f"{threads} thread{'s' if threads > 1 else ''} each; the bar counts this process's shard")
-    ctx = mp.get_context("spawn")  # a fresh interpreter: no fork of torch's or Warp's threads
-    helpers = [ctx.Process(target=_render_shard, args=(type(task), task.cfg, (i, workers), threads), daemon=True)
-               for i in range(1, workers)]
-    for h in helpers:
-        h.start()
-    try:
-        with threads_set(threads):
-            task.render((0, workers), progress)
-    except BaseException:
-        for h in helpers:
-            h.terminate()
-        raise
-    finally:
-        for h in helpers:
-            h.join()
-    failed = [h.exitcode for h in helpers if h.exitcode != 0]
-    if failed:
-        raise RuntimeError(f"{len(failed)} of {workers - 1} synthesis helper(s) failed (exit code {failed[0]}); the "
-                           "chunks written are kept: run the same command again to resume, or with --workers 1 to see the error")
-    return True
-
-
 def train_precision(model: torch.nn.Module, device: str) -> str:
     """What ``model`` trains in on ``device``: "bfloat16" (a CNN whose ``train_precision``, set by
     :func:`set_train_precision`, resolves to autocast there: :func:`warp_vision.nn.retina_cnn.training_autocast`)
@@ -565,7 +471,7 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     ``overwrite``, which deletes them first. ``epochs`` gives a resumed run a new epoch cap (see
     :func:`open_run`). ``stop_after_epoch`` (tests) interrupts the run after that epoch, as Ctrl-C would,
     and returns ``{"interrupted": True}``. ``workers``: processes that synthesise a missing dataset
-    (:func:`render_in_processes`; "auto": :func:`auto_workers`)."""
+    (:func:`warp_vision.train.workers.render_in_processes`; "auto": :func:`~warp_vision.train.workers.auto_workers`)."""
     if workers != "auto" and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
         raise ValueError(f"workers: expected a positive integer or 'auto', got {workers!r}")
     rank0 = int(os.environ.get("RANK", "0")) == 0  # (torchrun's; Dist reads it again below)

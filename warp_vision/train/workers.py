@@ -1,0 +1,111 @@
+"""Synthesis of a run's missing dataset in several processes, without torchrun (``--workers``).
+
+A single process's split Warp launches leave about half a core idle in the per-sample Python and scene
+work, so :func:`render_in_processes` renders shard 0 here and the other shards in spawned helpers, each
+with 1/N of the CPU threads; the samples do not depend on the shard that renders them, so the dataset is
+the same as one process's. A helper leaves Ctrl-C to its parent (which stops it), unwinds on the parent's
+SIGTERM, and ends on its own once the parent is gone. :func:`auto_workers` picks N.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def auto_workers(device: str, samples: int) -> int:
+    """Synthesis processes a run uses by default: on the CPU one per usable core (at most
+    :data:`MAX_WORKERS`) for a dataset of at least :data:`AUTO_MIN_SAMPLES`; otherwise one (a helper's
+    start, importing torch and Warp and building its scene, costs seconds; on a GPU the launches are
+    not where the time goes)."""
+    from warp_vision.kernels.launch import cpu_threads
+
+    if device.startswith("cuda") or samples < AUTO_MIN_SAMPLES:
+        return 1
+    return max(1, min(MAX_WORKERS, cpu_threads()))
+
+
+#: The most synthesis processes ``workers="auto"`` starts (each holds its own Warp, torch and scene).
+MAX_WORKERS = 8
+#: ``workers="auto"`` renders datasets smaller than this in one process (the smoke preset's, tests').
+AUTO_MIN_SAMPLES = 1000
+
+
+def _store_complete(path: Path) -> bool:
+    from warp_vision.data.store import ChunkedStore
+
+    try:
+        return ChunkedStore.open(path).complete
+    except (ValueError, OSError):  # no store there yet
+        return False
+
+
+def _exit_with(parent: int, every_s: float = 1.0) -> None:
+    """End this process once ``parent`` is gone (killed outright, it can stop no helper): a daemon thread
+    that looks every ``every_s`` seconds (the render launches release the GIL)."""
+    import threading
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(every_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def _render_shard(task_cls, cfg, shard: tuple[int, int], threads: int) -> None:
+    """A helper process of :func:`render_in_processes`: render shard ``shard`` quietly. Ctrl-C, which the
+    terminal sends to every process of the command, is left to the parent, which stops its helpers (each
+    printed a traceback of its own)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # the parent's terminate(): unwind (the semaphores this process registered are released, where a plain
+    # SIGTERM left the resource tracker to warn of them at exit)
+    signal.signal(signal.SIGTERM, lambda *_a: sys.exit(128 + signal.SIGTERM))
+    _exit_with(os.getppid())
+    os.environ["WARP_VISION_THREADS"] = str(threads)
+    torch.set_num_threads(threads)
+    task_cls(cfg, log=lambda *a, **k: None).render(shard, progress=False)
+
+
+def render_in_processes(task, workers: int, progress: bool) -> bool:
+    """Synthesise ``task``'s (a :class:`warp_vision.train.harness.Task`) missing dataset in ``workers`` processes: this one renders shard 0 of
+    ``workers`` (with the progress bar), ``workers - 1`` spawned helpers the others, all at once (the
+    samples do not depend on the shard that renders them: the dataset is the same as one process's).
+    Returns False, doing nothing, when there is nothing to render, one worker, or a task that renders
+    in one process only. A helper that fails is a RuntimeError after the others finish (the chunks
+    written stay: run again to resume)."""
+    import multiprocessing as mp
+
+    from warp_vision.kernels.launch import cpu_threads, threads_set
+
+    dirs = task.dataset_dirs()
+    if workers <= 1 or not dirs or all(_store_complete(Path(d)) for d in dirs):
+        return False
+    threads = max(1, cpu_threads() // workers)
+    task.log(f"synthesis in {workers} processes (this one and {workers - 1} helper{'s' if workers > 2 else ''}), "
+             f"{threads} thread{'s' if threads > 1 else ''} each; the bar counts this process's shard")
+    ctx = mp.get_context("spawn")  # a fresh interpreter: no fork of torch's or Warp's threads
+    helpers = [ctx.Process(target=_render_shard, args=(type(task), task.cfg, (i, workers), threads), daemon=True)
+               for i in range(1, workers)]
+    for h in helpers:
+        h.start()
+    try:
+        with threads_set(threads):
+            task.render((0, workers), progress)
+    except BaseException:
+        for h in helpers:
+            h.terminate()
+        raise
+    finally:
+        for h in helpers:
+            h.join()
+    failed = [h.exitcode for h in helpers if h.exitcode != 0]
+    if failed:
+        raise RuntimeError(f"{len(failed)} of {workers - 1} synthesis helper(s) failed (exit code {failed[0]}); the "
+                           "chunks written are kept: run the same command again to resume, or with --workers 1 to see the error")
+    return True
