@@ -138,6 +138,20 @@ def test_resume_reports_missing_and_checks_settings(tmp_path):
         new_store(tmp_path, fields={**FIELDS, "extra": ((1,), "float32")})
 
 
+def test_check_settings_refuses_what_resuming_would_and_writes_nothing(tmp_path):
+    ChunkedStore.check_settings(tmp_path / "none", CONFIG)  # no store yet: nothing to compare
+    assert not (tmp_path / "none").exists()
+    new_store(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    ChunkedStore.check_settings(tmp_path, dict(CONFIG))  # (tuples compare as the JSON lists they become)
+    with pytest.raises(ValueError, match=r"manifest.json was written with other settings.*config\['retina'\]\['n'\]"):
+        ChunkedStore.check_settings(tmp_path, {**CONFIG, "retina": {"n": 999, "layout": "logpolar"}})
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    (tmp_path / "manifest.json").write_text("{")
+    with pytest.raises(ValueError, match="manifest"):
+        ChunkedStore.check_settings(tmp_path, CONFIG)
+
+
 def test_missing_record_means_missing_chunk_and_is_not_read(tmp_path):
     data = make_data()
     store = new_store(tmp_path)

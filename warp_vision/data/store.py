@@ -127,6 +127,17 @@ def waiting_for_writers(seconds: float):
         WAIT_FOR_WRITERS_S = old
 
 
+def _refuse_other_settings(path: Path, manifest: dict, requested: dict) -> None:
+    """ValueError naming the first of ``requested``'s entries that differs from ``manifest``'s."""
+    for key, new in requested.items():
+        diff = first_difference(key, manifest[key], new)
+        if diff is not None:
+            raise ValueError(
+                f"{path} was written with other settings; first difference: {diff}. "
+                f"Use another directory, or delete this one to rebuild the dataset."
+            )
+
+
 class ChunkedStore:
     """A dataset of ``total`` samples stored as checksummed chunks of ``chunk_size`` samples in ``root``.
 
@@ -195,20 +206,22 @@ class ChunkedStore:
                 return cls(root, manifest, shard, writable=True)
 
         manifest = read_manifest(root)
-        requested = {
+        _refuse_other_settings(path, manifest, {
             "config": config_json,
             "total": int(total),
             "chunk_size": int(chunk_size),
             "fields": fields_to_json(fields_n),
-        }
-        for key, new in requested.items():
-            diff = first_difference(key, manifest[key], new)
-            if diff is not None:
-                raise ValueError(
-                    f"{path} was written with other settings; first difference: {diff}. "
-                    f"Use another directory, or delete this one to rebuild the dataset."
-                )
+        })
         return cls(root, manifest, shard, writable=True)
+
+    @staticmethod
+    def check_settings(root: os.PathLike | str, config: dict) -> None:
+        """Refuse now what :meth:`create_or_resume` would refuse later: ``root`` holding a store written
+        with another ``config`` (ValueError naming the first difference, or an unreadable manifest).
+        Nothing is written; a directory without a manifest passes (its store is yet to be made)."""
+        root = Path(root)
+        if (root / MANIFEST_NAME).exists():
+            _refuse_other_settings(root / MANIFEST_NAME, read_manifest(root), {"config": json_roundtrip(config)})
 
     @classmethod
     def open(cls, root: os.PathLike | str) -> "ChunkedStore":

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from warp_vision.data.store import ChunkedStore
 from warp_vision.fileio import atomic_write, probe_writable, require_output
 from warp_vision.nn.trained import read_checkpoint, saved_task, seal, task_command
 
@@ -112,6 +113,8 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         _check_device(cfg.device)  # before anything is written
         task_cls.resolve_paths(cfg)
         task_cls.check_new_run(cfg)
+        # a --data-dir holding a dataset of other settings: refused before the run directory is claimed
+        ChunkedStore.check_settings(cfg.data_dir, cfg.data_config().manifest())
         out = Path(cfg.out)
         require_output(out, "--out")
         # a complete dataset may sit in a read-only directory: synthesis probes its own writes
@@ -164,8 +167,6 @@ def check_checkpoint_space(model, out: Path, log) -> None:
 
 def _missing_chunks(data_dir: Path) -> bool:
     """Whether the store in ``data_dir`` still lacks chunks (a store that does not open counts as missing)."""
-    from warp_vision.data.store import ChunkedStore
-
     try:
         return bool(ChunkedStore.open(data_dir).missing_chunks())
     except ValueError:
