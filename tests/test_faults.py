@@ -491,6 +491,38 @@ def test_an_interrupted_and_resumed_run_writes_the_same_bytes(data, finished, tm
         assert (run / name).read_bytes() == (finished / name).read_bytes(), name
 
 
+def test_a_run_directory_another_process_trains_is_refused_and_freed_when_it_ends(data, finished, tmp_path, capsys):
+    """Two processes training one run directory interleaved its checkpoints and metrics rows, and
+    --overwrite deleted them under the other: now the second is refused, naming the first."""
+    run = copy_run(finished, tmp_path)
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path; "
+                               "from warp_vision.train.rundir import hold_run_dir; hold_run_dir(Path(sys.argv[1])); "
+                               "print('held', flush=True); time.sleep(300)", str(run)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = {f.name: f.read_bytes() for f in run.iterdir() if f.is_file()}
+        for argv in (["--resume", str(run), "--epochs", "4"],
+                     ["--preset", "smoke", "--out", str(run), "--data-dir", str(data), "--overwrite"]):
+            code, err = cli(argv, capsys)
+            assert code == 2 and one_line_naming(err, str(run)) and f"process {holder.pid}" in err, err
+            assert {f.name: f.read_bytes() for f in run.iterdir() if f.is_file()} == before
+    finally:
+        holder.kill()  # (SIGKILL: the kernel lets go of the lock)
+        holder.wait()
+    assert cli(["--resume", str(run), "--epochs", "4"], capsys)[0] == 0
+    # this process let go of it at the end: another can take it
+    out = subprocess.run([sys.executable, "-c", "import sys; from pathlib import Path; "
+                          "from warp_vision.train.rundir import hold_run_dir; hold_run_dir(Path(sys.argv[1]))", str(run)],
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    # and a refused new run (the directory holds one) lets go of it too
+    assert cli(["--preset", "smoke", "--out", str(run), "--data-dir", str(data)], capsys)[0] == 2
+    from warp_vision.train import rundir
+
+    assert not rundir._held
+
+
 def test_ctrl_c_before_the_first_epoch_says_so_and_resume_starts_the_run_again(data, finished, tmp_path, monkeypatch):
     """It said nothing, and --resume then refused the run: "no checkpoint to resume from"."""
     from warp_vision.train import harness

@@ -41,7 +41,7 @@ from warp_vision.fileio import write_json
 from warp_vision.nn.trained import ONV_DTYPES, build_net, checkpoint_path, net_from_checkpoint, read_checkpoint
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
-                                      preflight, record_epoch, run_config, save_checkpoint, sync_metrics)
+                                      preflight, record_epoch, release_run_dir, run_config, save_checkpoint, sync_metrics)
 from warp_vision.train.workers import auto_workers, render_in_processes
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
@@ -477,6 +477,15 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     rank0 = int(os.environ.get("RANK", "0")) == 0  # (torchrun's; Dist reads it again below)
     say = log if rank0 else (lambda *a, **k: None)
     cfg, out, ck = open_run(task_cls, cfg, resume, overwrite, epochs, say)
+    try:
+        return _train(task_cls, cfg, out, ck, progress, say, rank0, stop_after_epoch, workers)
+    finally:
+        release_run_dir(out)  # (the lock open_run took on --out)
+
+
+def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0: bool,
+           stop_after_epoch: int | None, workers: int | str) -> dict:
+    """:func:`run`'s work once the run directory is open (and locked): data, training, evaluation."""
     device = pick_device(cfg.device)
     task = task_cls(cfg, say)
     if rank0:

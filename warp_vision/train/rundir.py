@@ -11,6 +11,7 @@ that verifies and brings ``metrics.jsonl`` to exactly its epochs.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import json
@@ -103,7 +104,9 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         cfg.out = str(out)
         task_cls.resolve_paths(cfg)  # (a run made before paths were recorded absolute: as the working directory says)
         _check_device(cfg.device)
-        ck = _usable_checkpoint(out, log)
+        hold_run_dir(out)  # (before a checkpoint is read: another process may be writing them)
+        with _released_on_error(out):
+            ck = _usable_checkpoint(out, log)
     elif epochs is not None:
         raise ValueError("epochs: only a resumed run takes a new epoch cap; set it in the config otherwise")
     elif cfg is None:
@@ -119,8 +122,62 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         require_output(out, "--out")
         # a complete dataset may sit in a read-only directory: synthesis probes its own writes
         require_output(getattr(cfg, "data_dir", "") or ".", "--data-dir", writable=False)
-        claim_out_dir(out, overwrite)
+        hold_run_dir(out)  # (before --overwrite deletes a run another process may be training)
+        with _released_on_error(out):
+            claim_out_dir(out, overwrite)
     return cfg, out, ck
+
+
+@contextlib.contextmanager
+def _released_on_error(out: Path):
+    """Within the block, an exception lets go of ``out``'s run lock before it propagates."""
+    try:
+        yield
+    except BaseException:
+        release_run_dir(out)
+        raise
+
+
+#: the lock file a training process holds in its run directory while it trains (``flock``: the kernel
+#: lets go of it when the process ends, however it ends)
+LOCK_NAME = ".training.lock"
+_held: dict[Path, int] = {}
+
+
+def hold_run_dir(out: Path) -> None:
+    """Take ``out``'s run lock for this process (rank 0 of a distributed run; the others share its run),
+    creating ``out``; a ValueError naming the process that holds it when another training process does:
+    two processes training one run directory would interleave its checkpoints and metrics rows, and
+    ``--overwrite`` would delete them under the other. Released by :func:`release_run_dir` or at exit.
+    A file system without ``flock`` (some network mounts) goes unlocked."""
+    import fcntl
+
+    if int(os.environ.get("RANK", "0")) != 0 or out in _held:
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 64).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        raise ValueError(f"--out {out} is being trained by process {holder} (it holds {out / LOCK_NAME}); "
+                         f"wait for it to end, stop it, or choose another --out") from None
+    except OSError as e:
+        if e.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+            os.close(fd)
+            raise
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    _held[out] = fd
+
+
+def release_run_dir(out: Path) -> None:
+    """Let go of ``out``'s run lock, if this process holds it (the file stays: removing it could let two
+    processes lock two different files of one name)."""
+    fd = _held.pop(out, None)
+    if fd is not None:
+        os.close(fd)
 
 
 def _check_device(name: str) -> None:
