@@ -523,6 +523,30 @@ def test_a_run_directory_another_process_trains_is_refused_and_freed_when_it_end
     assert not rundir._held
 
 
+def test_a_run_waits_for_another_process_rendering_its_dataset_and_renders_nothing(data, tmp_path):
+    """Two runs of one missing dataset started at once (a sweep) both rendered it, and one could fail
+    reading a chunk the other was rewriting ("record missing"): now the second waits, then uses it."""
+    d = tmp_path / "data"
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(d)})
+    other = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path\n"
+                              "from warp_vision.data.foveation import synthesize; from warp_vision.fileio import FileLock\n"
+                              "from warp_vision.train.config import resolve\n"
+                              "d = Path(sys.argv[1]); d.mkdir(); FileLock(d / '.render.lock').acquire(); print('held', flush=True)\n"
+                              "time.sleep(2); synthesize(d, resolve('smoke', {}).data_config(), progress=False, log=print)",
+                              str(d)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline().strip() == "held"
+        said = []
+        foveation.run(cfg, progress=False, log=said.append)
+    finally:
+        other.wait()
+    assert other.returncode == 0
+    assert any(f"waiting for process {other.pid}" in x for x in said), said
+    assert not any(x.startswith("synthesised") for x in said), said
+    for f in sorted(data.glob("chunk_*.npy")):
+        assert (d / f.name).read_bytes() == f.read_bytes(), f.name
+
+
 def test_ctrl_c_before_the_first_epoch_says_so_and_resume_starts_the_run_again(data, finished, tmp_path, monkeypatch):
     """It said nothing, and --resume then refused the run: "no checkpoint to resume from"."""
     from warp_vision.train import harness

@@ -466,3 +466,22 @@ def test_a_store_that_is_not_there_is_its_own_error(tmp_path):
     with pytest.raises(MissingStoreError, match="is not a ChunkedStore") as e:
         ChunkedStore.open(tmp_path / "gone")
     assert e.value.root == tmp_path / "gone" and isinstance(e.value, ValueError)
+
+
+def test_render_missing_skips_a_chunk_another_process_wrote_meanwhile(tmp_path):
+    from warp_vision.data.synth import render_missing
+
+    data = make_data()
+    mine, other = new_store(tmp_path), new_store(tmp_path)  # two writers of one dataset
+    asked, said = [], []
+
+    def render(r):
+        asked.append((r.start, r.stop))
+        if len(asked) == 1:  # while this one renders chunk 0, the other writes chunks 1 and 3
+            fill(other, data, chunks=[1, 3])
+        return {k: v[r.start:r.stop] for k, v in data.items()}
+
+    render_missing(mine, render, batch=CHUNK, progress=False, log=said.append)
+    assert asked == [mine.chunk_range(c) for c in (0, 2, 4)]
+    assert said[0].startswith("synthesised 13 ONVs") and "10 were written meanwhile by another process" in said[0]
+    assert_bit_equal(ChunkedStore.open(tmp_path).load(), data)

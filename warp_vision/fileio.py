@@ -131,3 +131,47 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2, exclus
                allow_nan: bool = True) -> bool:
     """``obj`` as JSON (a trailing newline) to ``path``, atomically (see :func:`atomic_write`)."""
     return atomic_write(path, json.dumps(obj, indent=indent, allow_nan=allow_nan) + "\n", exclusive=exclusive)
+
+
+class FileLock:
+    """An exclusive ``flock`` on ``path`` (created; it holds the owner's pid while held), which the kernel
+    drops when the owning process ends, however it ends: no stale lock to clean up. The file stays after
+    :meth:`release` (removing it could let two processes lock two different files of one name). A file
+    system without ``flock`` (some network mounts) counts as locked."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.fd: int | None = None
+        #: the pid the holder wrote, after an :meth:`acquire` that found the lock taken
+        self.holder = ""
+
+    def acquire(self, block: bool = False) -> bool:
+        """Take the lock: True; False (without ``block``) when another process holds it, its pid in
+        :attr:`holder`. With ``block``, wait for it (Ctrl-C interrupts the wait)."""
+        import fcntl
+
+        if self.fd is not None:
+            return True
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if block else fcntl.LOCK_NB))
+        except BlockingIOError:
+            self.holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
+            os.close(fd)
+            return False
+        except OSError as e:
+            if e.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                os.close(fd)
+                raise
+        except BaseException:
+            os.close(fd)
+            raise
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self.fd = fd
+        return True
+
+    def release(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None

@@ -298,6 +298,11 @@ class ChunkedStore:
         the wrong size. Sizes only, no hashing (use ``verify`` for that)."""
         return [c for c in self.my_chunks() if not self._chunk_present(c)]
 
+    def written(self, c: int) -> bool:
+        """Whether chunk ``c`` is written whole now (the quick check of :meth:`missing_chunks`): a writer
+        asks again before rendering a chunk that another process may have written meanwhile."""
+        return self._chunk_present(self._check_chunk(c))
+
     def _all_missing(self) -> list[int]:
         return [c for c in range(self.num_chunks) if not self._chunk_present(c)]
 

@@ -40,7 +40,8 @@ def pending(store: ChunkedStore) -> tuple[int, int]:
 def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: int, progress: bool, log,
                    what: str = "ONVs") -> None:
     """Render this shard's missing chunks, ``batch`` samples per ``render(range)`` call, with a progress
-    bar (rate and time left), and write each chunk when it is whole."""
+    bar (rate and time left), and write each chunk when it is whole; a chunk another process wrote
+    meanwhile is skipped."""
     from tqdm import tqdm
 
     from warp_vision.fileio import probe_writable
@@ -48,15 +49,20 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
     todo, mine = pending(store)
     if todo:
         probe_writable(store.root)  # a read-only or full directory fails now, not after the first chunk
-    t0 = time.perf_counter()
+    t0, skipped = time.perf_counter(), 0
     unit = "ONV" if what == "ONVs" else "sample"
     with tqdm(total=mine, initial=mine - todo, unit=unit, desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:
         for c in store.missing_chunks():
             lo, hi = store.chunk_range(c)
+            if store.written(c):  # another process (a run of the same dataset, `data`) wrote it meanwhile
+                bar.update(hi - lo)
+                skipped += hi - lo
+                continue
             parts = []
             for s in range(lo, hi, batch):
                 parts.append(render(range(s, min(hi, s + batch))))
                 bar.update(min(hi, s + batch) - s)
             store.write_chunk(c, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
-    dt = time.perf_counter() - t0
-    log(f"synthesised {todo:,} {what} in {dt:.0f} s ({todo / dt:.1f} {what}/s)")
+    dt, done = time.perf_counter() - t0, todo - skipped
+    log(f"synthesised {done:,} {what} in {dt:.0f} s ({done / dt:.1f} {what}/s)"
+        + (f"; {skipped:,} were written meanwhile by another process" if skipped else ""))

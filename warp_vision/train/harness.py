@@ -42,7 +42,7 @@ from warp_vision.nn.trained import ONV_DTYPES, build_net, checkpoint_path, net_f
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, release_run_dir, run_config, save_checkpoint, sync_metrics)
-from warp_vision.train.workers import auto_workers, render_in_processes
+from warp_vision.train.workers import auto_workers, render_in_processes, rendering_lock
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
 #: without a better validation metric.
@@ -360,12 +360,13 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
     """Load the data (synthesising a missing dataset in ``workers`` processes unless under torchrun, whose
     ranks render their own shards), fit the normalisation, build the net and optimiser, restore a resumed
     run from checkpoint ``ck``."""
-    if dd.world == 1:
-        render_in_processes(task, workers, progress)
-    # the ranks render their shards of a missing dataset, then each reads the whole: one done first waits
-    # for the others' chunks (an hour at most) rather than calling the dataset incomplete
-    with waiting_for_writers(3600.0 if dd.world > 1 else 0.0):
-        task.load((dd.rank, dd.world), progress)
+    with rendering_lock(task, task.log, take=dd.rank == 0):  # (another run rendering this dataset: wait for it)
+        if dd.world == 1:
+            render_in_processes(task, workers, progress)
+        # the ranks render their shards of a missing dataset, then each reads the whole: one done first waits
+        # for the others' chunks (an hour at most) rather than calling the dataset incomplete
+        with waiting_for_writers(3600.0 if dd.world > 1 else 0.0):
+            task.load((dd.rank, dd.world), progress)
     dd.barrier()
     tr, va, te = task.splits()
     norm = task.fit_norm(tr)
@@ -544,7 +545,8 @@ def load_for_evaluation(task: Task, log=print, progress: bool = True) -> None:
         task.load((0, 1), progress=False, synthesize=False)
     except MissingStoreError as e:
         log(f"the run's dataset {e.root} is gone: rendering it again (the same samples as in training)")
-        task.load((0, 1), progress=progress, synthesize=True)
+        with rendering_lock(task, log):
+            task.load((0, 1), progress=progress, synthesize=True)
 
 
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None, checkpoint: str = "best",

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from warp_vision.data.store import ChunkedStore
-from warp_vision.fileio import atomic_write, probe_writable, require_output
+from warp_vision.fileio import FileLock, atomic_write, probe_writable, require_output
 from warp_vision.nn.trained import read_checkpoint, saved_task, seal, task_command
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
@@ -138,46 +138,31 @@ def _released_on_error(out: Path):
         raise
 
 
-#: the lock file a training process holds in its run directory while it trains (``flock``: the kernel
-#: lets go of it when the process ends, however it ends)
+#: the lock a training process holds in its run directory while it trains (:class:`warp_vision.fileio.FileLock`)
 LOCK_NAME = ".training.lock"
-_held: dict[Path, int] = {}
+_held: dict[Path, FileLock] = {}
 
 
 def hold_run_dir(out: Path) -> None:
     """Take ``out``'s run lock for this process (rank 0 of a distributed run; the others share its run),
     creating ``out``; a ValueError naming the process that holds it when another training process does:
     two processes training one run directory would interleave its checkpoints and metrics rows, and
-    ``--overwrite`` would delete them under the other. Released by :func:`release_run_dir` or at exit.
-    A file system without ``flock`` (some network mounts) goes unlocked."""
-    import fcntl
-
+    ``--overwrite`` would delete them under the other. Released by :func:`release_run_dir` or at exit."""
     if int(os.environ.get("RANK", "0")) != 0 or out in _held:
         return
     out.mkdir(parents=True, exist_ok=True)
-    fd = os.open(out / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.read(fd, 64).decode(errors="replace").strip() or "another process"
-        os.close(fd)
-        raise ValueError(f"--out {out} is being trained by process {holder} (it holds {out / LOCK_NAME}); "
-                         f"wait for it to end, stop it, or choose another --out") from None
-    except OSError as e:
-        if e.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
-            os.close(fd)
-            raise
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-    _held[out] = fd
+    lock = FileLock(out / LOCK_NAME)
+    if not lock.acquire():
+        raise ValueError(f"--out {out} is being trained by process {lock.holder} (it holds {lock.path}); "
+                         f"wait for it to end, stop it, or choose another --out")
+    _held[out] = lock
 
 
 def release_run_dir(out: Path) -> None:
-    """Let go of ``out``'s run lock, if this process holds it (the file stays: removing it could let two
-    processes lock two different files of one name)."""
-    fd = _held.pop(out, None)
-    if fd is not None:
-        os.close(fd)
+    """Let go of ``out``'s run lock, if this process holds it."""
+    lock = _held.pop(out, None)
+    if lock is not None:
+        lock.release()
 
 
 def _check_device(name: str) -> None:

@@ -5,10 +5,14 @@ work, so :func:`render_in_processes` renders shard 0 here and the other shards i
 with 1/N of the CPU threads; the samples do not depend on the shard that renders them, so the dataset is
 the same as one process's. A helper leaves Ctrl-C to its parent (which stops it), unwinds on the parent's
 SIGTERM, and ends on its own once the parent is gone. :func:`auto_workers` picks N.
+
+Two runs of one missing dataset (a sweep started at once) render it once: :func:`rendering_lock` lets the
+first render it while the others wait, then find it whole.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -34,6 +38,39 @@ def auto_workers(device: str, samples: int) -> int:
 MAX_WORKERS = 8
 #: ``workers="auto"`` renders datasets smaller than this in one process (the smoke preset's, tests').
 AUTO_MIN_SAMPLES = 1000
+
+
+#: the lock a process rendering a dataset holds in its directory (:func:`rendering_lock`)
+RENDER_LOCK = ".render.lock"
+
+
+@contextlib.contextmanager
+def rendering_lock(task, log=print, take: bool = True):
+    """Within the block, ``task``'s (a :class:`warp_vision.train.harness.Task`) dataset directory is this
+    process's to render: another process rendering it holds ``RENDER_LOCK`` there, and this one waits for
+    it, saying so (it then finds the dataset whole, or carries on where that one stopped). Nothing is
+    locked when ``take`` is False (a torchrun rank but the first), the datasets are whole, or the directory
+    cannot be written (a complete dataset read in place)."""
+    from warp_vision.fileio import FileLock
+
+    root = Path(task.cfg.data_dir)
+    if not take or all(_store_complete(Path(d)) for d in (task.dataset_dirs() or [root])):
+        yield
+        return
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        lock = FileLock(root / RENDER_LOCK)
+        taken = lock.acquire()
+    except OSError:
+        yield
+        return
+    if not taken:
+        log(f"waiting for process {lock.holder}, which is rendering this run's dataset {root} (it is used once whole)")
+        lock.acquire(block=True)
+    try:
+        yield
+    finally:
+        lock.release()
 
 
 def _store_complete(path: Path) -> bool:
