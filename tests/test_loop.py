@@ -61,8 +61,20 @@ def test_provide_resumes_a_stopped_run_and_stops_on_a_failed_one(tmp_path):
 
     specs = plan(str(tmp_path / "fl"), str(tmp_path / "fr"), str(tmp_path / "ocu"))
     os.makedirs(tmp_path / "fl")
+    # stopped part way (Ctrl-C, a crash): best.pt and latest.pt, but not the summary.json a run writes
+    # last; the loop used that half-trained net as it stood
     (tmp_path / "fl" / "latest.pt").write_bytes(b"x")
-    assert specs[0].command() == ["--resume", str(tmp_path / "fl")]
+    (tmp_path / "fl" / "best.pt").write_bytes(b"x")
+    assert not specs[0].ready() and specs[0].command() == ["--resume", str(tmp_path / "fl")]
+    calls = []
+
+    def finish(cmd):  # the resumed training ends the run
+        calls.append(cmd)
+        (tmp_path / "fl" / "summary.json").write_text("{}")
+        return 0
+
+    provide(specs[:1], progress=False, log=lambda _m: None, runner=finish)
+    assert [c[3:5] for c in calls] == [["--resume", str(tmp_path / "fl")]] and specs[0].ready()
     assert specs[2].command()[:3] == ["oculomotor", "--preset", "default"]
     with pytest.raises(SystemExit, match="right eye's foveation net failed"):
         provide(specs[1:], progress=False, log=lambda _m: None, runner=_fake_trainer([], fail_on=str(tmp_path / "fr")))

@@ -6,7 +6,8 @@ before they build the loop.
 It looks for each net's run directory (``best.pt``), prints the plan for the missing ones with an
 estimate of their wall time, and trains them with the training command (``python -m warp_vision.train
 ...``, a process of its own: the simulation never imports the training code), whose progress bars show.
-A stopped training run (``latest.pt`` without ``best.pt``) is resumed. Later runs find the nets there and
+A stopped training run (``latest.pt`` without ``summary.json``: Ctrl-C or a crash part way) is resumed, not
+used half-trained. Later runs find the nets there and
 reuse them; the datasets behind them stay cached in ``runs/datasets``.
 
 Two sets: the default nets (``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``,
@@ -59,7 +60,11 @@ class NetSpec:
         return os.path.join(self.run, "best.pt")
 
     def ready(self) -> bool:
-        return os.path.isfile(self.checkpoint)
+        """Whether the run holds its trained net: ``best.pt``, and not a stopped run's (``latest.pt``
+        without the ``summary.json`` a finished run writes last), which :meth:`command` resumes rather than
+        the loop using a net stopped part way (by Ctrl-C, a crash, or the other process still training it)."""
+        stopped = os.path.isfile(os.path.join(self.run, "latest.pt")) and not os.path.isfile(os.path.join(self.run, "summary.json"))
+        return os.path.isfile(self.checkpoint) and not stopped
 
     def command(self) -> list[str]:
         """The training command (after ``python -m warp_vision.train``)."""
