@@ -491,6 +491,23 @@ def test_an_interrupted_and_resumed_run_writes_the_same_bytes(data, finished, tm
         assert (run / name).read_bytes() == (finished / name).read_bytes(), name
 
 
+def test_a_file_lock_is_one_process_at_a_time_and_absent_flock_counts_as_taken(tmp_path, monkeypatch):
+    import builtins
+
+    from warp_vision.fileio import FileLock
+
+    a, b = FileLock(tmp_path / "x.lock"), FileLock(tmp_path / "x.lock")  # two opens: as two processes
+    assert a.acquire() and a.acquire()  # (again: still held)
+    assert not b.acquire() and b.holder == str(os.getpid()) and b.fd is None
+    a.release()
+    assert b.acquire(block=True)
+    b.release()
+    real = builtins.__import__
+    monkeypatch.setattr(builtins, "__import__", lambda name, *r, **k: (_ for _ in ()).throw(ImportError(name))
+                        if name == "fcntl" else real(name, *r, **k))
+    assert FileLock(tmp_path / "y.lock").acquire()  # a platform without flock runs unlocked
+
+
 def test_a_run_directory_another_process_trains_is_refused_and_freed_when_it_ends(data, finished, tmp_path, capsys):
     """Two processes training one run directory interleaved its checkpoints and metrics rows, and
     --overwrite deleted them under the other: now the second is refused, naming the first."""

@@ -137,7 +137,7 @@ class FileLock:
     """An exclusive ``flock`` on ``path`` (created; it holds the owner's pid while held), which the kernel
     drops when the owning process ends, however it ends: no stale lock to clean up. The file stays after
     :meth:`release` (removing it could let two processes lock two different files of one name). A file
-    system without ``flock`` (some network mounts) counts as locked."""
+    system without ``flock`` (some network mounts), or a platform without it (not POSIX), counts as locked."""
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
@@ -148,8 +148,10 @@ class FileLock:
     def acquire(self, block: bool = False) -> bool:
         """Take the lock: True; False (without ``block``) when another process holds it, its pid in
         :attr:`holder`. With ``block``, wait for it (Ctrl-C interrupts the wait)."""
-        import fcntl
-
+        try:
+            import fcntl
+        except ImportError:  # (not POSIX: no flock to take)
+            return True
         if self.fd is not None:
             return True
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
