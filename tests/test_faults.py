@@ -126,6 +126,21 @@ def test_a_damaged_latest_pt_gives_one_line_before_any_work(damage, finished, tm
     assert code != 0 and one_line_naming(err, "latest.pt"), err
 
 
+@pytest.mark.parametrize("argv, named", [
+    (["--lr", "0.1"], "--lr does not apply"),  # it carried on at the run's own rate without a word
+    (["--preset", "quick", "--batch", "8"], "--batch, --preset do not apply"),
+    (["--overwrite"], "--overwrite does not apply"),
+    (["--out", "elsewhere"], "--out does not apply"),
+])
+def test_settings_given_with_resume_are_refused(argv, named, finished, tmp_path, capsys):
+    run = copy_run(finished, tmp_path)
+    before = {f.name: f.read_bytes() for f in run.iterdir() if f.is_file()}
+    code, err = cli(["--resume", str(run), *argv, "--epochs", "4"], capsys)
+    assert code == 2 and one_line_naming(err, f"--resume {run}") and named in err, err
+    assert {f.name: f.read_bytes() for f in run.iterdir() if f.is_file()} == before
+    assert not (tmp_path / "elsewhere").exists()
+
+
 def test_load_net_verifies_the_checkpoint(finished, tmp_path):
     from warp_vision.nn.trained import load_net
 

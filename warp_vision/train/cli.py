@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import fields
 
 from warp_vision.errors import add_debug_flag as _debug_flag
 from warp_vision.errors import ArgumentParser, guarded
@@ -30,7 +31,8 @@ from warp_vision.train import config_intraocular as intraocular
 def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The flags every training command has besides its config's."""
     p.add_argument("--resume", metavar="RUN_DIR", default=None,
-                   help="continue the stopped run in RUN_DIR exactly (one stopped before its first epoch ended starts "
+                   help="continue the stopped run in RUN_DIR exactly, with the settings of its config.json (other "
+                        "settings are refused; one stopped before its first epoch ended starts "
                         "again); with --epochs N, under a new epoch cap (N = the epochs done ends it now: the best "
                         "checkpoint is evaluated, figures written)")
     p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
@@ -267,13 +269,27 @@ def main(argv: list[str] | None = None) -> int:
         _, cls, presets, _ = TASKS[name]
         make = lambda: C.from_args(a, cls, presets)  # noqa: E731
     else:
-        name = "foveation"
+        name, cls = "foveation", C.TrainConfig
         a = _train_parser().parse_args(argv)
         make = lambda: C.from_args(a)  # noqa: E731
     run = _module(name).run
     if a.resume:
-        return _guarded(lambda: run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs, workers=a.workers), a.debug)
+        return _guarded(lambda: _refuse_settings_on_resume(a, cls, argv) or run(
+            resume=a.resume, progress=not a.no_progress, epochs=a.epochs, workers=a.workers), a.debug)
     return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite, workers=a.workers), a.debug)
+
+
+def _refuse_settings_on_resume(a: argparse.Namespace, cls, argv: list[str]) -> None:
+    """A ValueError for settings given with ``--resume`` (it used to drop them without a word: ``--resume
+    RUN --lr 0.1`` carried on at the run's own rate): a resumed run continues as its config.json says,
+    under a new epoch cap at most."""
+    given = [f"--{f.name.replace('_', '-')}" for f in fields(cls)
+             if f.name not in ("preset", "task", "epochs") and getattr(a, f.name, None) is not None]
+    given += [flag for flag in ("--preset", "--overwrite") if any(x == flag or x.startswith(flag + "=") for x in argv)]
+    if given:
+        raise ValueError(f"--resume {a.resume} continues the run as its config.json says; {', '.join(given)} "
+                         f"{'does' if len(given) == 1 else 'do'} not apply (--epochs does: a new epoch cap). To train "
+                         f"with other settings, start a new run in another --out")
 
 
 def _guarded(job, debug: bool = False) -> int:
