@@ -133,11 +133,12 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
 
     calls, lines = [], []
 
-    def fake(cmd):  # "trains" by writing best.pt where the command would
+    def fake(cmd):  # "trains" by writing best.pt where the command would, and the summary.json a run ends with
         calls.append(cmd)
         out = cmd[cmd.index("--out") + 1] if "--out" in cmd else cmd[cmd.index("--resume") + 1]
         os.makedirs(out, exist_ok=True)
         Path(out, "best.pt").write_bytes(b"net")
+        Path(out, "summary.json").write_text("{}")
         return 0
 
     assert provide([arm, left, right], progress=False, log=lines.append, runner=fake) == [arm, left, right]

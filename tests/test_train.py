@@ -629,3 +629,31 @@ def test_evaluate_agreement_needs_runs_on_one_split(tmp_path, smoke_data, capsys
     assert "does not share" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         train_main(["evaluate", run, "--agreement"])
+
+
+@pytest.mark.parametrize("argv, refused", [
+    (["--model", "cnn", "--receptive-field", "30"], "--receptive-field: the cnn net does not read it (the linet and fc nets do)"),
+    (["--model", "linet", "--views", "8"], "--views: the linet net does not read it (the cnn net does)"),
+    (["--preset", "smoke", "--channels", "32"], "--channels: the linet net does not read it"),  # smoke's model: linet
+    (["--model", "conv", "--receptive-field", "9"], "--receptive-field: the conv net does not read it"),
+    (["limb", "--model", "range", "--layers", "4"], "--layers: the range net does not read it"),
+    (["--model", "fc", "--receptive-field", "30"], None),  # the fc twin copies the liNet of these sizes
+    (["--model", "cnn", "--channels", "8", "--views", "1"], None),
+    (["--preset", "smoke", "--model", "cnn"], None),  # smoke's own layers and receptive field: not given, not refused
+])
+def test_a_net_setting_the_model_does_not_read_is_refused(argv, refused):
+    """They were dropped without a word: --model cnn --receptive-field 30 trained the cnn as if it were not there."""
+    from warp_vision.train import cli
+    from warp_vision.train import config as C
+
+    if argv[0] == "limb":
+        _, cls, presets, _ = cli.TASKS["limb"]
+        make = lambda a: C.from_args(a, cls, presets)  # noqa: E731
+        a = cli._task_parser("limb").parse_args(argv[1:])
+    else:
+        make, a = C.from_args, cli._train_parser().parse_args(argv)
+    if refused is None:
+        make(a)
+    else:
+        with pytest.raises(ValueError, match=re.escape(refused)):
+            make(a)

@@ -139,6 +139,9 @@ class TrainConfig:
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.
     LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset", "precision": "float32"}
+    #: the net settings only some models read: {field: those models} (a flag given for another is refused)
+    MODEL_FIELDS: ClassVar[dict] = {"layers": ("linet", "fc", "conv"), "receptive_field": ("linet", "fc"),
+                                    "reduction": ("linet", "fc", "conv"), "channels": ("conv", "cnn"), "views": ("cnn",)}
 
     def per_sample_input(self) -> bool:
         """Whether the net's input is scaled by each ONV's own mean irradiance (``input_norm``, "auto" resolved)."""
@@ -342,8 +345,17 @@ def _preset_defaults(presets: dict, name: str, value) -> str:
 
 
 def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
+    """The config of a command line: its preset with the flags given over it. A flag of a net setting the
+    chosen model does not read (``cls.MODEL_FIELDS``: ``--model cnn --receptive-field 30``) is a ValueError:
+    it was dropped without a word."""
     cls = cls or TrainConfig
-    return resolve(args.preset, {f.name: getattr(args, f.name, None) for f in fields(cls)}, cls, presets)
+    cfg = resolve(args.preset, {f.name: getattr(args, f.name, None) for f in fields(cls)}, cls, presets)
+    for name, models in getattr(cls, "MODEL_FIELDS", {}).items():
+        if getattr(args, name, None) is not None and cfg.model not in models:
+            which = f"the {models[0]} net does" if len(models) == 1 else f"the {', '.join(models[:-1])} and {models[-1]} nets do"
+            raise ValueError(f"--{name.replace('_', '-')}: the {cfg.model} net does not read it ({which}); leave it out, "
+                             f"or choose {'that' if len(models) == 1 else 'one of those'} with --model")
+    return cfg
 
 
 def asdict(cfg) -> dict:

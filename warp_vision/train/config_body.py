@@ -164,6 +164,9 @@ class LimbTrainConfig:
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.
     LEGACY_DEFAULTS = {"ball": "glowing", "precision": "float32"}
+    #: the net settings only some models read (see :attr:`warp_vision.train.config.TrainConfig.MODEL_FIELDS`)
+    MODEL_FIELDS: ClassVar[dict] = {"layers": ("linet", "fc"), "receptive_field": ("linet", "fc"),
+                                    "reduction": ("linet", "fc"), "channels": ("cnn", "range")}
 
     def data_config(self):
         from warp_vision.sim.limb import LimbDataConfig
