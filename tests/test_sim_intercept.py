@@ -70,6 +70,10 @@ def test_defaults_and_the_shots_they_pick(parsed):
     (["--perception-error-cm", "5"], "--perception-error-cm"),
     (["--shots", "2", "--perception-error-cm", "3", "-1"], "--perception-error-cm"),
     (["--shots", "2", "--perception-error-cm", "nan"], "--perception-error-cm"),
+    # run directories of nets the command will not run (they were dropped without a word)
+    (["--pupil", "mine"], "--pupil mine: the pupil nets run with --intraocular nets; this command's is analytic"),
+    (["--intraocular", "analytic", "--lens", "mine"], "--lens mine: the lens nets run with --intraocular nets"),
+    (["--perception", "fixation", "--limb", "mine"], "--limb mine: the limb vision nets run with --perception vision"),
 ])
 def test_bad_input_is_refused_in_one_line_before_any_training(argv, words, tmp_path, monkeypatch, capsys):
     from warp_vision.sim.cli import main

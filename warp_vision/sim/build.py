@@ -32,6 +32,20 @@ def net_specs(args) -> list:
     return specs
 
 
+def refuse_unused_given(args) -> None:
+    """A run directory named for nets the command will not run is a ValueError (it was dropped without a
+    word): ``--pupil`` or ``--lens`` with ``--intraocular analytic`` (intercept's default), ``--limb`` with
+    an intercept whose ``--perception`` is not vision."""
+    unused = []
+    if getattr(args, "intraocular", "nets") == "analytic":
+        unused += [f"--{flag} {getattr(args, flag)}: the {flag} nets run with --intraocular nets; this command's is analytic"
+                   for flag in ("pupil", "lens") if getattr(args, flag, None) is not None]
+    if getattr(args, "limb", None) is not None and getattr(args, "perception", "vision") != "vision":
+        unused.append(f"--limb {args.limb}: the limb vision nets run with --perception vision; this command's is {args.perception}")
+    if unused:
+        raise ValueError("; ".join(unused) + " (leave the flag out, or choose the mode that runs them)")
+
+
 def refuse_missing_given(args, specs: list) -> None:
     """A run directory named on the command line that holds no run (neither ``best.pt`` nor a stopped run's
     ``latest.pt``) is a ValueError, raised before anything is trained: a mistyped path would otherwise cost

@@ -44,7 +44,7 @@ from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
 from warp_vision.fileio import require_output, write_json
 from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.sim.scenarios import SETTLE_S, experiments, plot_experiments, run_scenario
-from warp_vision.sim.build import net_specs, refuse_missing_given, setup_loop
+from warp_vision.sim.build import net_specs, refuse_missing_given, refuse_unused_given, setup_loop
 from warp_vision.sim.strike import intercept, pick_shots
 
 
@@ -392,6 +392,7 @@ def _run(args) -> None:
         raise ValueError(f"--seed: expected a seed >= 0, got {args.seed}")
     if getattr(args, "out", None) is not None:
         require_output(args.out, "--out")
+    refuse_unused_given(args)
     if args.command == "oculomotor":
         from warp_vision.sim.provision import provide
 
