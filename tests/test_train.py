@@ -387,6 +387,10 @@ def test_workers_synthesise_the_same_dataset_in_several_processes(tmp_path, smok
     with pytest.raises(SystemExit):
         train_main(["--preset", "smoke", "--workers", "0"])
     assert "positive integer or 'auto'" in capsys.readouterr().err
+    # a task that renders in one process: --workers N was dropped without a word
+    assert train_main(["faces", "--preset", "smoke", "--workers", "2", "--out", str(tmp_path / "faces")]) == 2
+    assert "a faces run renders its dataset in one process" in capsys.readouterr().err
+    assert not (tmp_path / "faces").exists()
 
 
 def test_evaluate_renders_a_dataset_gone_from_its_cache_again(tmp_path, smoke_data):

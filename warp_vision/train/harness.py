@@ -40,7 +40,7 @@ from warp_vision.data.store import waiting_for_writers
 from warp_vision.fileio import write_json
 from warp_vision.nn.trained import ONV_DTYPES, build_net, checkpoint_path, net_from_checkpoint, read_checkpoint
 from warp_vision.train.config import epoch_lr, onv_dtype_name
-from warp_vision.train.rundir import (TIMING_FIELDS, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
+from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, release_run_dir, run_config, save_checkpoint, sync_metrics)
 from warp_vision.train.workers import auto_workers, render_in_processes, rendering_lock
 
@@ -475,6 +475,9 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     (:func:`warp_vision.train.workers.render_in_processes`; "auto": :func:`~warp_vision.train.workers.auto_workers`)."""
     if workers != "auto" and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
         raise ValueError(f"workers: expected a positive integer or 'auto', got {workers!r}")
+    if workers != "auto" and workers > 1 and task_cls.dataset_dirs is Task.dataset_dirs:  # (it was dropped without a word)
+        raise ValueError(f"workers: {a_run(task_cls.name)} renders its dataset in one process (foveation and limb "
+                         f"runs render in several); leave --workers out")
     rank0 = int(os.environ.get("RANK", "0")) == 0  # (torchrun's; Dist reads it again below)
     say = log if rank0 else (lambda *a, **k: None)
     cfg, out, ck = open_run(task_cls, cfg, resume, overwrite, epochs, say)
