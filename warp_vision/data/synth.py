@@ -62,7 +62,8 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
             for s in range(lo, hi, batch):
                 parts.append(render(range(s, min(hi, s + batch))))
                 bar.update(min(hi, s + batch) - s)
-            store.write_chunk(c, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
+            if not store.written(c):  # (written meanwhile: the same bytes, and a rewrite would hide it from readers)
+                store.write_chunk(c, {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
     dt, done = time.perf_counter() - t0, todo - skipped
     log(f"synthesised {done:,} {what} in {dt:.0f} s ({done / dt:.1f} {what}/s)"
         + (f"; {skipped:,} were written meanwhile by another process" if skipped else ""))
