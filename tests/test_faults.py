@@ -475,6 +475,28 @@ def _kill_and_resume(argv: list[str], out_files: list[Path], tmp_path: Path, see
     p.wait()
 
 
+def test_sigterm_during_training_says_where_the_run_stands_and_resume_finishes_it(data, finished, tmp_path):
+    """SIGTERM (kill, a scheduler's preemption) ended the run without a word (exit -15); now it stops as
+    Ctrl-C does: its line, exit 143, and --resume carries on to the same bytes."""
+    run = tmp_path / "run"
+    p = subprocess.Popen([sys.executable, "-m", "warp_vision.train", "--preset", "smoke", "--out", str(run), "--data-dir",
+                          str(data), "--epochs", "3", "--no-progress"], env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    for line in p.stdout:  # stop it at the first epoch's end (its checkpoint is written by then)
+        lines.append(line)
+        if line.startswith("epoch   1"):
+            p.send_signal(signal.SIGTERM)
+            break
+    lines += p.stdout.readlines()
+    code = p.wait()
+    assert code == 143, lines
+    assert any(x.startswith(f"interrupted: {run / 'latest.pt'}") for x in lines), lines
+    assert train_main(["--resume", str(run), "--no-progress"]) == 0
+    for name in ("latest.pt", "best.pt"):
+        assert (run / name).read_bytes() == (finished / name).read_bytes(), name
+
+
 def test_sigkill_during_synthesis_then_resume_is_bit_identical(data, tmp_path):
     d = tmp_path / "synth"
     cfg = resolve("smoke", {"data_dir": str(d)})

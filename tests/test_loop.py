@@ -322,3 +322,28 @@ def test_ctrl_c_lets_a_net_s_training_stop_its_helpers_and_say_where_it_stands(t
     with pytest.raises(KeyboardInterrupt):
         _run_training(child)
     assert done.exists()  # the child was waited for, not killed
+
+
+def test_sigterm_stops_the_command_as_ctrl_c_does_and_reaches_a_net_s_training(tmp_path):
+    """SIGTERM (kill, a scheduler) ended the process at once: no line on where the run stood, and a sim's
+    training child, which a SIGTERM to the sim does not reach, trained on."""
+    import signal
+    import sys
+    import threading
+    import time
+
+    from warp_vision.errors import Terminated, guarded, sigterm_as_interrupt
+    from warp_vision.sim.provision import _run_training
+
+    said = tmp_path / "said"
+    child = [sys.executable, "-c", "import signal, sys, time, pathlib\n"
+             f"signal.signal(signal.SIGTERM, lambda *a: (pathlib.Path({str(said)!r}).write_text('stopped'), sys.exit(143)))\n"
+             "time.sleep(30)"]
+    threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGTERM)).start()
+    with pytest.raises(Terminated):
+        with sigterm_as_interrupt():
+            _run_training(child)
+    assert said.read_text() == "stopped"  # the training got the SIGTERM, and was waited for
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler is the command's alone
+    threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM)).start()
+    assert guarded(lambda: time.sleep(10)) == 143

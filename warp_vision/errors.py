@@ -4,13 +4,17 @@ Every ``python -m warp_vision.<command>`` runs its work through :func:`guarded`.
 and file-system faults (OSError: no space, read-only, permissions, a file where a directory belongs)
 become one line on stderr, ``error: ...`` naming the file or the option, and exit code 2; so does a
 failed allocation (settings too large for the machine's memory). A traceback appears only with ``--debug``.
+Ctrl-C exits with 130; SIGTERM is taken as Ctrl-C is (the same clean stop) and exits with 143.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import signal
 import sys
+import threading
 from typing import Callable
 
 
@@ -45,14 +49,40 @@ def require_seeds(cfg) -> None:
             raise ValueError(f"{f.name}: expected a seed >= 0, got {getattr(cfg, f.name)}")
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a batch scheduler's preemption), raised where Python is when it arrives, as Ctrl-C
+    raises KeyboardInterrupt: what stops cleanly on Ctrl-C (a training run's "interrupted" line, its
+    synthesis helpers) stops the same way, and the command exits with 143 (128 + SIGTERM)."""
+
+
+def _terminate(signum, _frame):
+    raise Terminated(f"signal {signum}")
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within the block (in the main thread), SIGTERM raises :class:`Terminated`; the old handler after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, int] | None = None) -> int:
     """Run ``job``: 0 when it returns (or its own int exit code); ValueError, OSError and the exception
     types in ``codes`` ({type: exit code}) print one ``error:`` line on stderr and return 2 (or their
     code), as does a failed allocation (:func:`out_of_memory`; other RuntimeErrors raise); Ctrl-C returns
-    130. With ``debug`` the errors raise, traceback and all."""
+    130, SIGTERM 143 (:class:`Terminated`). With ``debug`` the errors raise, traceback and all."""
     codes = codes or {}
     try:
-        r = job()
+        with sigterm_as_interrupt():
+            r = job()
+    except Terminated:
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         return 130
     except (ValueError, OSError, *codes) as e:

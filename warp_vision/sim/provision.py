@@ -28,6 +28,7 @@ import time
 from dataclasses import dataclass
 
 from warp_vision.body import SIDES
+from warp_vision.errors import Terminated
 
 #: Wall minutes of each training on the 2-core reference CPU (measured; docs/RESULTS.md has the runs): the
 #: foveation net's dataset synthesis plus its training, the oculomotor net's holding-activation dataset
@@ -140,11 +141,14 @@ def _about(minutes: float) -> str:
 
 def _run_training(cmd: list[str]) -> int:
     """Run a training command; its exit code. On Ctrl-C (which the training got too) it is given time to
-    stop its helpers and say where it stands, where ``subprocess.run`` killed it after a quarter second."""
+    stop its helpers and say where it stands, where ``subprocess.run`` killed it after a quarter second; on
+    SIGTERM (:class:`warp_vision.errors.Terminated`) the training is sent SIGTERM and given the same time."""
     p = subprocess.Popen(cmd)
     try:
         return p.wait()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
+        if isinstance(e, Terminated):  # SIGTERM came to this process alone (Ctrl-C reaches the training too)
+            p.terminate()
         try:
             p.wait(timeout=60)
         except subprocess.TimeoutExpired:
