@@ -62,7 +62,7 @@ def test_provide_resumes_a_stopped_run_and_stops_on_a_failed_one(tmp_path):
     specs = plan(str(tmp_path / "fl"), str(tmp_path / "fr"), str(tmp_path / "ocu"))
     os.makedirs(tmp_path / "fl")
     # stopped part way (Ctrl-C, a crash): best.pt and latest.pt, but not the summary.json a run writes
-    # last; the loop used that half-trained net as it stood
+    # once its net is final; the loop used that half-trained net as it stood
     (tmp_path / "fl" / "latest.pt").write_bytes(b"x")
     (tmp_path / "fl" / "best.pt").write_bytes(b"x")
     assert not specs[0].ready() and specs[0].command() == ["--resume", str(tmp_path / "fl")]

@@ -137,7 +137,7 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
 
     calls, lines = [], []
 
-    def fake(cmd):  # "trains" by writing best.pt where the command would, and the summary.json a run ends with
+    def fake(cmd):  # "trains" by writing best.pt where the command would, and the summary.json of a final net
         calls.append(cmd)
         out = cmd[cmd.index("--out") + 1] if "--out" in cmd else cmd[cmd.index("--resume") + 1]
         os.makedirs(out, exist_ok=True)
