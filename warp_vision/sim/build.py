@@ -41,7 +41,8 @@ def refuse_unused_given(args) -> None:
         unused += [f"--{flag} {getattr(args, flag)}: the {flag} nets run with --intraocular nets; this command's is analytic"
                    for flag in ("pupil", "lens") if getattr(args, flag, None) is not None]
     if getattr(args, "limb", None) is not None and getattr(args, "perception", "vision") != "vision":
-        unused.append(f"--limb {args.limb}: the limb vision nets run with --perception vision; this command's is {args.perception}")
+        unused.append(f"--limb {args.limb}: the limb vision nets run with --perception vision; "
+                      f"this command's is {args.perception}")
     if unused:
         raise ValueError("; ".join(unused) + " (leave the flag out, or choose the mode that runs them)")
 

@@ -64,8 +64,10 @@ class NetSpec:
         """Whether the run holds its trained net: ``best.pt``, and not a stopped run's (``latest.pt``
         without the ``summary.json`` a run writes once its net is final), which :meth:`command` resumes rather
         than the loop using a net stopped part way (by Ctrl-C, a crash, or the other process still training it)."""
-        stopped = os.path.isfile(os.path.join(self.run, "latest.pt")) and not os.path.isfile(os.path.join(self.run, "summary.json"))
-        return os.path.isfile(self.checkpoint) and not stopped
+        def has(name: str) -> bool:
+            return os.path.isfile(os.path.join(self.run, name))
+
+        return os.path.isfile(self.checkpoint) and (has("summary.json") or not has("latest.pt"))
 
     def command(self) -> list[str]:
         """The training command (after ``python -m warp_vision.train``)."""

@@ -274,8 +274,11 @@ def main(argv: list[str] | None = None) -> int:
         make = lambda: C.from_args(a)  # noqa: E731
     run = _module(name).run
     if a.resume:
-        return _guarded(lambda: _refuse_settings_on_resume(a, cls, argv) or run(
-            resume=a.resume, progress=not a.no_progress, epochs=a.epochs, workers=a.workers), a.debug)
+        def resume():
+            _refuse_settings_on_resume(a, cls, argv)
+            return run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs, workers=a.workers)
+
+        return _guarded(resume, a.debug)
     return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite, workers=a.workers), a.debug)
 
 
