@@ -346,6 +346,18 @@ def test_an_output_under_a_directory_we_cannot_write_is_refused_by_name(tmp_path
         require_output(tmp_path, kind="folder")
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+def test_an_output_where_nothing_can_be_made_is_refused_whatever_the_mode_says(tmp_path):
+    """/proc lets root pass os.access's write check, yet no directory can be made there: it was let through,
+    and a sim demo trained its nets for minutes before it failed to write. The probe leaves nothing behind."""
+    from warp_vision.fileio import require_output
+
+    with pytest.raises(OSError, match="--out: /proc"):
+        require_output("/proc/warp_vision_out/run", "--out")
+    require_output(tmp_path / "new", "--out")
+    assert list(tmp_path.iterdir()) == []
+
+
 def _enospc_after(monkeypatch, name: str):
     """Make writes of files called ``name`` (their temporaries) fail with ENOSPC."""
     import warp_vision.fileio as fio

@@ -13,6 +13,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import tempfile
 import uuid
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
@@ -107,8 +108,10 @@ def probe_writable(directory: str | os.PathLike) -> None:
 def require_output(path: str | os.PathLike, flag: str = "--out", kind: str = "dir", writable: bool = True) -> None:
     """Refuse, before any work and creating nothing, an output ``path`` (``kind`` "dir" or "file") that
     cannot be written: a file where the directory belongs (or a directory where the file belongs), a file
-    among its parents, or (``writable``) a first existing parent that is read-only or not ours. Raises the
-    OSError, its message naming ``flag``; a path that can be made is left for the writer to make."""
+    among its parents, or (``writable``) a first existing parent where nothing can be made: read-only, not
+    ours, or refusing whatever its mode says (``/proc``; probed by making an empty directory there and
+    removing it). Raises the OSError, its message naming ``flag``; a path that can be made is left for the
+    writer to make."""
     p = Path(path)
     if kind not in ("dir", "file"):
         raise ValueError(f"kind: expected 'dir' or 'file', got {kind!r}")
@@ -125,6 +128,11 @@ def require_output(path: str | os.PathLike, flag: str = "--out", kind: str = "di
         read_only = bool(os.statvfs(a).f_flag & os.ST_RDONLY) if hasattr(os, "statvfs") else False
         code = errno.EROFS if read_only else errno.EACCES
         raise OSError(code, f"{flag}: {a}: {os.strerror(code)}", str(p))
+    if writable:  # what the mode bits allow is not always what can be made there (/proc, a root-squashed share)
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".warp_vision-probe-", dir=a))
+        except OSError as exc:
+            raise OSError(exc.errno, f"{flag}: {a}: nothing can be made there ({exc.strerror})", str(p)) from None
 
 
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2, exclusive: bool = False,
