@@ -63,9 +63,6 @@ def eye_from_optical_dir(directions: np.ndarray) -> np.ndarray:
     return d
 
 
-optical_from_eye_dir = eye_from_optical_dir  # a half turn is its own inverse
-
-
 # --- media ----------------------------------------------------------------------------------------
 _WAVELENGTHS_NM = np.array([458.0, 543.0, 589.0, 633.0])
 # columns: cornea, aqueous, lens (relaxed), vitreous; rows follow _WAVELENGTHS_NM (Navarro 1985)

@@ -25,8 +25,7 @@ import numpy as np
 
 from warp_vision.body import BODY_CONTYPE, SIDES, Body, BodyConfig
 
-#: The body's parts the detector tells apart; the arm parts come per side.
-PARTS = ("hand", "forearm", "upper_arm", "torso", "head")
+#: The arm's parts the detector tells apart (per side; the torso and head are parts too).
 ARM_PARTS = ("hand", "forearm", "upper_arm")
 #: Parts whose touch can deflect the ball (and whose distance to it is the closest approach).
 DEFLECTING_PARTS = ("hand", "forearm")
