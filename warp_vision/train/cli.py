@@ -263,15 +263,8 @@ def main(argv: list[str] | None = None) -> int:
         return _compare(argv[1:])
     if argv and argv[0] == "evaluate":
         return _evaluate(argv[1:])
-    if argv and argv[0] in TASKS:
-        name, argv = argv[0], argv[1:]
-        a = _task_parser(name).parse_args(argv)
-        _, cls, presets, _ = TASKS[name]
-        make = lambda: C.from_args(a, cls, presets)  # noqa: E731
-    else:
-        name, cls = "foveation", C.TrainConfig
-        a = _train_parser().parse_args(argv)
-        make = lambda: C.from_args(a)  # noqa: E731
+    name, cls, a, make = parse_training(argv)
+    argv = argv[1:] if argv and argv[0] in TASKS else argv
     run = _module(name).run
     if a.resume:
         def resume():
@@ -280,6 +273,19 @@ def main(argv: list[str] | None = None) -> int:
 
         return _guarded(resume, a.debug)
     return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite, workers=a.workers), a.debug)
+
+
+def parse_training(argv: list[str]):
+    """A training command line (``[TASK] --flag ...``, no ``compare`` or ``evaluate``) as ``(task, config
+    class, parsed flags, make)``: ``make()`` builds its config, refusing what :func:`config.from_args`
+    refuses. Exits as argparse does on unknown flags."""
+    if argv and argv[0] in TASKS:
+        name = argv[0]
+        a = _task_parser(name).parse_args(argv[1:])
+        _, cls, presets, _ = TASKS[name]
+        return name, cls, a, lambda: C.from_args(a, cls, presets)
+    a = _train_parser().parse_args(argv)
+    return "foveation", C.TrainConfig, a, lambda: C.from_args(a)
 
 
 def _refuse_settings_on_resume(a: argparse.Namespace, cls, argv: list[str]) -> None:
