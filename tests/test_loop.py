@@ -80,6 +80,70 @@ def test_provide_resumes_a_stopped_run_and_stops_on_a_failed_one(tmp_path):
         provide(specs[1:], progress=False, log=lambda _m: None, runner=_fake_trainer([], fail_on=str(tmp_path / "fr")))
 
 
+def _wait_for(lines, text, timeout=30.0):
+    import time
+
+    t0 = time.monotonic()
+    while not any(text in ln for ln in lines):
+        assert time.monotonic() - t0 < timeout, f"no line with {text!r}: {lines}"
+        time.sleep(0.02)
+
+
+def test_two_simulations_needing_one_net_train_it_once(tmp_path):
+    """A second simulation that needs a net the first is having trained waits for it and uses it; it
+    used to start the same training, which the run lock refused, and stopped with 'training ... failed'.
+    (flock treats two opens of one file as two owners, so two threads stand for two processes.)"""
+    import threading
+
+    from warp_vision.sim.provision import plan, provide
+
+    spec = plan(str(tmp_path / "fl"), str(tmp_path / "fr"), str(tmp_path / "ocu"))[0]
+    started, go = threading.Event(), threading.Event()
+    first_calls, second_calls, lines, results = [], [], [], {}
+
+    def slow(cmd):  # the first simulation's training, held until the second is seen waiting
+        started.set()
+        assert go.wait(30)
+        return _fake_trainer(first_calls)(cmd)
+
+    a = threading.Thread(target=lambda: results.setdefault("a", provide([spec], False, lambda _m: None, slow)))
+    a.start()
+    assert started.wait(30)
+    b = threading.Thread(target=lambda: results.setdefault("b", provide([spec], False, lines.append, _fake_trainer(second_calls))))
+    b.start()
+    _wait_for(lines, f"waiting for process {os.getpid()}, which is having the left eye's foveation net trained into")
+    go.set()
+    a.join(30)
+    b.join(30)
+    assert len(first_calls) == 1 and second_calls == []
+    assert results == {"a": [spec], "b": []}
+    assert any("the left eye's foveation net is ready: another process trained it" in ln for ln in lines)
+
+
+def test_a_simulation_waits_for_a_training_started_by_hand(tmp_path):
+    """``python -m warp_vision.train --out RUN`` running (it holds RUN's run lock): a simulation needing
+    that net waits for it, then uses the finished net, rather than failing on the lock."""
+    import threading
+
+    from warp_vision.fileio import FileLock
+    from warp_vision.nn.trained import TRAINING_LOCK
+    from warp_vision.sim.provision import plan, provide
+
+    spec = plan(str(tmp_path / "fl"), str(tmp_path / "fr"), str(tmp_path / "ocu"))[0]
+    os.makedirs(spec.run)
+    by_hand = FileLock(os.path.join(spec.run, TRAINING_LOCK))
+    assert by_hand.acquire()
+    lines, calls, results = [], [], {}
+    b = threading.Thread(target=lambda: results.setdefault("b", provide([spec], False, lines.append, _fake_trainer(calls))))
+    b.start()
+    _wait_for(lines, f"waiting for process {os.getpid()}, which is training the left eye's foveation net into {spec.run}")
+    for name in ("best.pt", "latest.pt", "summary.json"):  # the hand-started run ends
+        open(os.path.join(spec.run, name), "wb").close()
+    by_hand.release()
+    b.join(30)
+    assert calls == [] and results == {"b": []}
+
+
 def test_provide_refuses_a_run_directory_that_holds_another_net_before_training_any(tmp_path):
     import json
 

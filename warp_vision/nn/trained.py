@@ -209,6 +209,9 @@ def read_checkpoint(path, map_location="cpu") -> dict:
 
 #: a run's checkpoints: its best validation epoch's weights (best.pt) and its last epoch's (latest.pt)
 CHECKPOINTS = ("best", "latest")
+#: the lock file a training process holds in its run directory while it trains
+#: (:class:`warp_vision.fileio.FileLock`; taken by ``train.rundir.hold_run_dir``, waited on by the simulation)
+TRAINING_LOCK = ".training.lock"
 
 
 def saved_task(run_dir) -> str:

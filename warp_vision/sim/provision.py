@@ -7,7 +7,8 @@ It looks for each net's run directory (``best.pt``), prints the plan for the mis
 estimate of their wall time, and trains them with the training command (``python -m warp_vision.train
 ...``, a process of its own: the simulation never imports the training code), whose progress bars show.
 A stopped training run (``latest.pt`` without ``summary.json``: Ctrl-C or a crash part way) is resumed, not
-used half-trained. Later runs find the nets there and
+used half-trained. A net that another simulation is having trained, or a training command started by hand
+is training, is waited for and then used (:func:`_training_slot`). Later runs find the nets there and
 reuse them; the datasets behind them stay cached in ``runs/datasets``.
 
 Two sets: the default nets (``runs/foveation_left``, ``runs/foveation_right``, ``runs/oculomotor/<eye>``,
@@ -19,6 +20,7 @@ their run directories, training configs and the SHA-256 of their checkpoints.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -29,6 +31,12 @@ from dataclasses import dataclass
 
 from warp_vision.body import SIDES
 from warp_vision.errors import Terminated
+from warp_vision.fileio import FileLock
+from warp_vision.nn.trained import TRAINING_LOCK
+
+#: the lock a simulation holds in a net's run directory while it has the net trained there: a second
+#: simulation that needs the net waits for it rather than starting a training the run lock refuses
+PROVIDING_LOCK = ".providing.lock"
 
 #: Wall minutes of each training on the 2-core reference CPU (measured; docs/RESULTS.md has the runs): the
 #: foveation net's dataset synthesis plus its training, the oculomotor net's holding-activation dataset
@@ -178,14 +186,43 @@ def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None)
             f"python -m warp_vision.train {' '.join(s.command())}")
     runner = runner or _run_training
     t0 = time.perf_counter()
+    trained = []
     for k, s in enumerate(todo, 1):
-        cmd = [sys.executable, "-m", "warp_vision.train", *s.command()] + ([] if progress else ["--no-progress"])
-        log(f"[{k}/{len(todo)}] training the {s.what} ({(time.perf_counter() - t0) / 60:.1f} min so far)")
-        if runner(cmd) != 0 or not s.ready():
-            raise SystemExit(f"training the {s.what} failed (see above); rerun it with\n"
-                             f"  python -m warp_vision.train {' '.join(s.command())}")
-    log(f"trained {len(todo)} net(s) in {(time.perf_counter() - t0) / 60:.1f} min")
-    return todo
+        with _training_slot(s, log):
+            if s.ready():
+                log(f"[{k}/{len(todo)}] the {s.what} is ready: another process trained it into {s.run}")
+                continue
+            cmd = [sys.executable, "-m", "warp_vision.train", *s.command()] + ([] if progress else ["--no-progress"])
+            log(f"[{k}/{len(todo)}] training the {s.what} ({(time.perf_counter() - t0) / 60:.1f} min so far)")
+            if runner(cmd) != 0 or not s.ready():
+                raise SystemExit(f"training the {s.what} failed (see above); rerun it with\n"
+                                 f"  python -m warp_vision.train {' '.join(s.command())}")
+            trained.append(s)
+    log(f"trained {len(trained)} net(s) in {(time.perf_counter() - t0) / 60:.1f} min")
+    return trained
+
+
+@contextlib.contextmanager
+def _training_slot(s: NetSpec, log):
+    """Within the block, ``s``'s run directory is this process's to have trained: another simulation
+    having it trained holds :data:`PROVIDING_LOCK` there, and a training command started by hand holds
+    the run's :data:`TRAINING_LOCK`; this one waits for each, saying so (the run is then ready, or is
+    resumed where the other stopped). Two simulations started together on a fresh clone train each net
+    once; the second used to fail at once: its training was refused by the run lock."""
+    os.makedirs(s.run, exist_ok=True)
+    slot = FileLock(os.path.join(s.run, PROVIDING_LOCK))
+    if not slot.acquire():
+        log(f"waiting for process {slot.holder}, which is having the {s.what} trained into {s.run}")
+        slot.acquire(block=True)
+    try:
+        training = FileLock(os.path.join(s.run, TRAINING_LOCK))
+        if not training.acquire():
+            log(f"waiting for process {training.holder}, which is training the {s.what} into {s.run}")
+            training.acquire(block=True)
+        training.release()  # (the training command takes it)
+        yield
+    finally:
+        slot.release()
 
 
 def sha256_file(path: str) -> str:

@@ -25,7 +25,7 @@ import torch
 
 from warp_vision.data.store import ChunkedStore
 from warp_vision.fileio import FileLock, atomic_write, probe_writable, require_output
-from warp_vision.nn.trained import read_checkpoint, saved_task, seal, task_command
+from warp_vision.nn.trained import TRAINING_LOCK, read_checkpoint, saved_task, seal, task_command
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
 RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
@@ -138,8 +138,6 @@ def _released_on_error(out: Path):
         raise
 
 
-#: the lock a training process holds in its run directory while it trains (:class:`warp_vision.fileio.FileLock`)
-LOCK_NAME = ".training.lock"
 _held: dict[Path, FileLock] = {}
 
 
@@ -151,7 +149,7 @@ def hold_run_dir(out: Path) -> None:
     if int(os.environ.get("RANK", "0")) != 0 or out in _held:
         return
     out.mkdir(parents=True, exist_ok=True)
-    lock = FileLock(out / LOCK_NAME)
+    lock = FileLock(out / TRAINING_LOCK)
     if not lock.acquire():
         raise ValueError(f"--out {out} is being trained by process {lock.holder} (it holds {lock.path}); "
                          f"wait for it to end, stop it, or choose another --out")
