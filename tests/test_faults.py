@@ -613,6 +613,47 @@ def test_a_run_waits_for_another_process_rendering_its_dataset_and_renders_nothi
         assert (d / f.name).read_bytes() == f.read_bytes(), f.name
 
 
+_HOLD_A_CONDITION_SET = """import sys, time, dataclasses
+from pathlib import Path
+from warp_vision.data.foveation import synthesize
+from warp_vision.fileio import FileLock
+from warp_vision.nn.trained import read_checkpoint
+from warp_vision.train.conditions import condition_config
+from warp_vision.train.foveation import FoveationTask
+from warp_vision.train.rundir import dataset_dir, run_config
+run = Path(sys.argv[1])
+cfg = run_config(FoveationTask, run, read_checkpoint(run / "best.pt"))
+dcfg = condition_config(cfg.data_config(), "glow_dim", 10)
+d = dataset_dir(dataclasses.replace(cfg, data_dir=""), "foveation", dcfg)  # (as evaluate --conditions names it)
+d.mkdir(parents=True)
+FileLock(d / ".render.lock").acquire()
+print("held", flush=True)
+time.sleep(2)
+synthesize(d, dcfg, progress=False, log=print)
+"""
+
+
+def test_evaluate_conditions_waits_for_another_process_rendering_a_held_out_set(finished, tmp_path, monkeypatch):
+    """Two evaluations of runs of one dataset (two seeds, say) started at once each rendered the held-out
+    condition sets: now the second waits for the first's, then reads it."""
+    from warp_vision.train.conditions import evaluate_conditions
+
+    run = copy_run(finished, tmp_path)
+    monkeypatch.chdir(tmp_path)  # the held-out sets are cached under ./runs/datasets
+    other = subprocess.Popen([sys.executable, "-c", _HOLD_A_CONDITION_SET, str(run)], stdout=subprocess.PIPE,
+                             text=True, cwd=tmp_path)
+    try:
+        assert other.stdout.readline().strip() == "held"
+        said = []
+        res = evaluate_conditions([str(run)], 10, conditions=["glow_dim"], progress=False, log=said.append)
+    finally:
+        other.wait()
+    assert other.returncode == 0
+    assert any(f"waiting for process {other.pid}, which is rendering the dataset" in x for x in said), said
+    assert not any(x.startswith(("synthesising", "synthesised")) for x in said), said
+    assert res[str(run)]["glow_dim"]["n"] == 10
+
+
 def test_ctrl_c_before_the_first_epoch_says_so_and_resume_starts_the_run_again(data, finished, tmp_path, monkeypatch):
     """It said nothing, and --resume then refused the run: "no checkpoint to resume from"."""
     from warp_vision.train import harness

@@ -57,6 +57,7 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
     from warp_vision.train.harness import load_for_evaluation, pick_device, read_label
     from warp_vision.train.rundir import a_run, dataset_dir, run_config
+    from warp_vision.train.workers import dataset_lock
 
     conditions = list(conditions or CONDITIONS[1:])
     bad = [c for c in conditions if c not in CONDITIONS[1:]]
@@ -93,7 +94,8 @@ def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress:
         for c in conditions:
             dcfg = condition_config(cfg.data_config(), c, samples)
             ddir = dataset_dir(dataclasses.replace(cfg, data_dir=""), "foveation", dcfg)
-            synthesize(ddir, dcfg, progress=progress, log=log)
+            with dataset_lock(ddir, log):  # (another evaluation rendering this set: wait for it)
+                synthesize(ddir, dcfg, progress=progress, log=log)
             data = ChunkedStore.open(ddir).load(["onv", "target"])
             onv, target = torch.from_numpy(data["onv"]), torch.from_numpy(data["target"])
             pred = predict_targets(model, onv, ck["norm"], device, dtype)

@@ -7,7 +7,8 @@ the same as one process's. A helper leaves Ctrl-C to its parent (which stops it)
 SIGTERM, and ends on its own once the parent is gone. :func:`auto_workers` picks N.
 
 Two runs of one missing dataset (a sweep started at once) render it once: :func:`rendering_lock` lets the
-first render it while the others wait, then find it whole.
+first render it while the others wait, then find it whole; :func:`dataset_lock` does the same for any
+dataset directory (the held-out condition sets of ``evaluate --conditions``).
 """
 
 from __future__ import annotations
@@ -44,17 +45,27 @@ AUTO_MIN_SAMPLES = 1000
 RENDER_LOCK = ".render.lock"
 
 
-@contextlib.contextmanager
 def rendering_lock(task, log=print, take: bool = True):
-    """Within the block, ``task``'s (a :class:`warp_vision.train.harness.Task`) dataset directory is this
-    process's to render: another process rendering it holds ``RENDER_LOCK`` there, and this one waits for
-    it, saying so (it then finds the dataset whole, or carries on where that one stopped). Nothing is
-    locked when ``take`` is False (a torchrun rank but the first), the datasets are whole, or the directory
-    cannot be written (a complete dataset read in place)."""
+    """A context within which ``task``'s (a :class:`warp_vision.train.harness.Task`) dataset directory is
+    this process's to render (:func:`dataset_lock`); nothing is locked when ``take`` is False (a torchrun
+    rank but the first)."""
+    if not take:
+        return contextlib.nullcontext()
+    root = Path(task.cfg.data_dir)
+    return dataset_lock(root, log, [Path(d) for d in task.dataset_dirs()] or [root])
+
+
+@contextlib.contextmanager
+def dataset_lock(root: Path, log=print, stores: list[Path] | None = None):
+    """Within the block, the dataset directory ``root`` (holding the stores ``stores``, default ``root``
+    itself) is this process's to render: another process rendering it holds ``RENDER_LOCK`` there, and
+    this one waits for it, saying so (it then finds the dataset whole, or carries on where that one
+    stopped). Nothing is locked when the stores are whole or the directory cannot be written (a complete
+    dataset read in place)."""
     from warp_vision.fileio import FileLock
 
-    root = Path(task.cfg.data_dir)
-    if not take or all(_store_complete(Path(d)) for d in (task.dataset_dirs() or [root])):
+    root = Path(root)
+    if all(_store_complete(d) for d in (stores or [root])):
         yield
         return
     try:
@@ -65,7 +76,7 @@ def rendering_lock(task, log=print, take: bool = True):
         yield
         return
     if not taken:
-        log(f"waiting for process {lock.holder}, which is rendering this run's dataset {root} (it is used once whole)")
+        log(f"waiting for process {lock.holder}, which is rendering the dataset {root} (it is used once whole)")
         lock.acquire(block=True)
     try:
         yield
