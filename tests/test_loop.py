@@ -142,6 +142,29 @@ def test_a_simulation_waits_for_a_training_started_by_hand(tmp_path):
     by_hand.release()
     b.join(30)
     assert calls == [] and results == {"b": []}
+    # a run of another net trained there meanwhile (the other eye's) is refused, not used
+    spec = plan(str(tmp_path / "fl2"), str(tmp_path / "fr"), str(tmp_path / "ocu"))[0]
+    os.makedirs(spec.run)
+    by_hand = FileLock(os.path.join(spec.run, TRAINING_LOCK))
+    assert by_hand.acquire()
+    errors = []
+
+    def provide_catching():
+        try:
+            provide([spec], False, lines.append, _fake_trainer(calls))
+        except ValueError as e:
+            errors.append(str(e))
+
+    b = threading.Thread(target=provide_catching)
+    b.start()
+    _wait_for(lines, f"which is training the left eye's foveation net into {spec.run}")
+    with open(os.path.join(spec.run, "config.json"), "w") as f:
+        json.dump({"eye": "right"}, f)
+    open(os.path.join(spec.run, "best.pt"), "wb").close()
+    by_hand.release()
+    b.join(30)
+    assert calls == [] and len(errors) == 1
+    assert "fl2 holds the right eye's foveation net, not the left eye's foveation net" in errors[0], errors
 
 
 def test_provide_refuses_a_run_directory_that_holds_another_net_before_training_any(tmp_path):

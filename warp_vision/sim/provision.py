@@ -174,7 +174,7 @@ def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None)
     anything is trained."""
     wrong = [m for m in (s.mismatch() for s in specs) if m]
     if wrong:
-        raise ValueError("; ".join(wrong) + " (check the run directories given to the command)")
+        raise ValueError("; ".join(wrong) + _CHECK)
     todo = [s for s in specs if not s.ready()]
     if not todo:
         return []
@@ -189,6 +189,8 @@ def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None)
     trained = []
     for k, s in enumerate(todo, 1):
         with _training_slot(s, log):
+            if wrong := s.mismatch():  # (what another process trained there while this one waited)
+                raise ValueError(wrong + _CHECK)
             if s.ready():
                 log(f"[{k}/{len(todo)}] the {s.what} is ready: another process trained it into {s.run}")
                 continue
@@ -200,6 +202,9 @@ def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None)
             trained.append(s)
     log(f"trained {len(trained)} net(s) in {(time.perf_counter() - t0) / 60:.1f} min")
     return trained
+
+
+_CHECK = " (check the run directories given to the command)"
 
 
 @contextlib.contextmanager
