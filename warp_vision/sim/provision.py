@@ -166,6 +166,9 @@ def _run_training(cmd: list[str]) -> int:
         raise
 
 
+_CHECK = " (check the run directories given to the command)"
+
+
 def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None) -> list[NetSpec]:
     """Train every net of ``specs`` that is missing; returns those it trained. Prints the plan and its
     estimated wall time first. ``runner(cmd) -> returncode`` runs a command (default: a subprocess);
@@ -202,9 +205,6 @@ def provide(specs: list[NetSpec], progress: bool = True, log=print, runner=None)
             trained.append(s)
     log(f"trained {len(trained)} net(s) in {(time.perf_counter() - t0) / 60:.1f} min")
     return trained
-
-
-_CHECK = " (check the run directories given to the command)"
 
 
 @contextlib.contextmanager
