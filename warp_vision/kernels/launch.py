@@ -106,9 +106,12 @@ def cpu_threads() -> int:
     """Worker threads for split CPU launches: ``WARP_VISION_THREADS`` or the usable core count."""
     env = os.environ.get("WARP_VISION_THREADS")
     if env:
-        n = int(env)
+        try:
+            n = int(env)
+        except ValueError:
+            n = 0
         if n < 1:
-            raise ValueError(f"WARP_VISION_THREADS must be >= 1, got {env!r}")
+            raise ValueError(f"WARP_VISION_THREADS must be a whole number >= 1, got {env!r}")
         return n
     try:
         return max(1, len(os.sched_getaffinity(0)))
