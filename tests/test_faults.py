@@ -853,3 +853,20 @@ def test_set_intraocular_refuses_non_finite_commands(kw):
     body = Body(BodyConfig(arms=False))
     with pytest.raises(ValueError, match=next(iter(kw))):
         body.set_intraocular("left", **kw)
+
+
+@pytest.mark.parametrize("value", ["abc", "-1", "0", "nan", "inf", "8 GB"])
+def test_a_bad_memory_cap_in_the_environment_is_refused_by_name(value, monkeypatch):
+    """WARP_VISION_MEMORY_LIMIT=abc said only "could not convert string to float: 'abc'", nan "cannot
+    convert float NaN to integer", inf raised an OverflowError with a traceback, and 0 or -1 went through
+    as caps that refuse everything."""
+    from warp_vision.resources import available_memory_bytes, require_memory
+
+    monkeypatch.setenv("WARP_VISION_MEMORY_LIMIT", value)
+    with pytest.raises(ValueError, match=f"WARP_VISION_MEMORY_LIMIT: expected a number of bytes >= 1 .*got '{value}'"):
+        available_memory_bytes()
+    monkeypatch.setenv("WARP_VISION_MEMORY_LIMIT", "1e3")
+    assert available_memory_bytes() == 1000
+    require_memory(1000, "a dataset", "--samples")
+    with pytest.raises(ValueError, match="a dataset needs about 2 KiB, more than the 1 KiB of memory available; lower --samples"):
+        require_memory(2000, "a dataset", "--samples")

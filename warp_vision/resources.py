@@ -7,6 +7,7 @@ to lower, before anything is allocated.
 
 from __future__ import annotations
 
+import math
 import os
 
 
@@ -28,7 +29,19 @@ def available_memory_bytes() -> int:
         except (ValueError, OSError, AttributeError):
             avail = 1 << 62
     cap = os.environ.get("WARP_VISION_MEMORY_LIMIT")
-    return min(avail, int(float(cap))) if cap else avail
+    return min(avail, _memory_cap(cap)) if cap else avail
+
+
+def _memory_cap(text: str) -> int:
+    """``WARP_VISION_MEMORY_LIMIT`` in bytes ("8e9" reads too); anything but a positive finite number is a
+    ValueError naming the variable."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 1):
+        raise ValueError(f"WARP_VISION_MEMORY_LIMIT: expected a number of bytes >= 1 (8e9, say), got {text!r}")
+    return int(v)
 
 
 def human_bytes(n: float) -> str:
