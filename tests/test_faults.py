@@ -870,3 +870,14 @@ def test_a_bad_memory_cap_in_the_environment_is_refused_by_name(value, monkeypat
     require_memory(1000, "a dataset", "--samples")
     with pytest.raises(ValueError, match="a dataset needs about 2 KiB, more than the 1 KiB of memory available; lower --samples"):
         require_memory(2000, "a dataset", "--samples")
+
+
+def test_a_kernel_cache_that_cannot_be_made_is_refused_by_name(tmp_path):
+    """WARP_VISION_KERNEL_CACHE naming a file: the error named Warp's subdirectory ("FILE/1.19.0: Not a
+    directory"), not the variable."""
+    (tmp_path / "FILE").write_text("x")
+    env = dict(os.environ, WARP_VISION_KERNEL_CACHE=str(tmp_path / "FILE"))
+    r = subprocess.run([sys.executable, "-m", "warp_vision.scene", "demo", "--out", str(tmp_path / "out")],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert "WARP_VISION_KERNEL_CACHE" in r.stderr and str(tmp_path / "FILE") in r.stderr, r.stderr

@@ -97,6 +97,10 @@ def init() -> None:
             return
         cache = os.environ.get("WARP_VISION_KERNEL_CACHE")
         if cache:
+            try:
+                os.makedirs(cache, exist_ok=True)
+            except OSError as e:  # (Warp's own error names a subdirectory, not the variable)
+                raise OSError(e.errno, f"WARP_VISION_KERNEL_CACHE: {e.strerror}", cache) from None
             wp.config.kernel_cache_dir = cache
         run_without_no_driver_warning(wp.init)
         _initialised = True
