@@ -12,6 +12,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import re
 import os
 import shutil
 import signal
@@ -881,3 +882,36 @@ def test_a_kernel_cache_that_cannot_be_made_is_refused_by_name(tmp_path):
                        capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
     assert "WARP_VISION_KERNEL_CACHE" in r.stderr and str(tmp_path / "FILE") in r.stderr, r.stderr
+
+
+#: config.json damage -> what the error says, and which readers refuse it: --resume, evaluate (it reads only
+#: the paths of config.json, the checkpoint holding the rest) and the simulation (it reads the task and the eye)
+_CONFIG_DAMAGE = [
+    (lambda c: "{garbage", "does not read as JSON", "resume evaluate sim"),
+    (lambda c: "[1, 2]", "a JSON list, where a run writes an object of settings", "resume evaluate sim"),
+    (lambda c: json.dumps({**c, "task": 5}), "task 5 is not a task's name", "resume evaluate sim"),
+    (lambda c: json.dumps({**c, "lr": "fast"}), "'lr' is 'fast'; expected a float", "resume"),
+    (lambda c: json.dumps({**c, "epochs": 2.5}), "'epochs' is 2.5; expected a int", "resume"),
+    (lambda c: json.dumps({**c, "out": 7}), "'out' is 7; expected a str", "resume evaluate"),
+    (lambda c: json.dumps({**c, "bogus": 1}), "'bogus': not a setting of this run's task", "resume"),
+]
+
+
+@pytest.mark.parametrize("damage, says, refused_by", _CONFIG_DAMAGE)
+def test_a_damaged_config_json_is_named_in_one_line(damage, says, refused_by, finished, tmp_path, capsys):
+    """A config.json cut short or edited by hand gave a bare JSON error ("Expecting property name ..."), or a
+    TypeError's or AttributeError's traceback, in --resume, evaluate and the simulation."""
+    from warp_vision.sim.provision import NetSpec
+
+    run = copy_run(finished, tmp_path)
+    path = run / "config.json"
+    path.write_text(damage(json.loads(path.read_text())))
+    for reader, argv in (("resume", ["--resume", str(run), "--epochs", "4"]), ("evaluate", ["evaluate", str(run)])):
+        code, err = cli(argv, capsys)
+        if reader in refused_by:
+            assert code == 2 and one_line_naming(err, str(path)) and says in err, err
+        else:
+            assert code == 0, err
+    if "sim" in refused_by:
+        with pytest.raises(ValueError, match=re.escape(says)):
+            NetSpec("foveation", "left", str(run), "default").mismatch()

@@ -214,11 +214,28 @@ CHECKPOINTS = ("best", "latest")
 TRAINING_LOCK = ".training.lock"
 
 
+def read_run_config(run_dir) -> dict | None:
+    """``run_dir/config.json`` as a dict, or None where there is none. A file that is not a JSON object (cut
+    short, edited by hand) is a ValueError naming it, where it was a bare JSON error or a traceback."""
+    path = Path(run_dir) / "config.json"
+    if not path.is_file():
+        return None
+    try:
+        cfg = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: not a run's config, it does not read as JSON ({e})") from None
+    if not isinstance(cfg, dict):
+        raise ValueError(f"{path}: not a run's config: a JSON {type(cfg).__name__}, where a run writes an object of settings")
+    return cfg
+
+
 def saved_task(run_dir) -> str:
     """The task of the run in ``run_dir`` as its config.json names it: "foveation" (the training command's
     default task, whose config names none) where it names none or there is no config.json."""
-    path = Path(run_dir) / "config.json"
-    return json.loads(path.read_text()).get("task", "foveation") if path.exists() else "foveation"
+    task = (read_run_config(run_dir) or {}).get("task", "foveation")
+    if not isinstance(task, str):
+        raise ValueError(f"{Path(run_dir) / 'config.json'}: task {task!r} is not a task's name")
+    return task
 
 
 def task_command(task: str) -> str:

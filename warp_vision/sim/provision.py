@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import os
 import subprocess
 import sys
@@ -32,7 +31,7 @@ from dataclasses import dataclass
 from warp_vision.body import SIDES
 from warp_vision.errors import Terminated
 from warp_vision.fileio import FileLock
-from warp_vision.nn.trained import TRAINING_LOCK
+from warp_vision.nn.trained import TRAINING_LOCK, read_run_config, saved_task
 
 #: the lock a simulation holds in a net's run directory while it has the net trained there: a second
 #: simulation that needs the net waits for it rather than starting a training the run lock refuses
@@ -97,14 +96,11 @@ class NetSpec:
     def mismatch(self) -> str | None:
         """Why the run directory holds another net than this one, read from its ``config.json`` (another
         task, or the other eye or arm), or None: it is this net's run, or holds no run yet."""
-        from warp_vision.nn.trained import saved_task
-
-        path = os.path.join(self.run, "config.json")
-        if not os.path.isfile(path):
+        config = read_run_config(self.run)
+        if config is None:
             return None
         kind = saved_task(self.run)
-        with open(path) as f:
-            side = json.load(f).get("side" if kind == "arm" else "eye")
+        side = config.get("side" if kind == "arm" else "eye")
         if kind == self.kind and side in (None, self.eye):
             return None
         found = f"the {NetSpec(kind, side, self.run, self.preset).what}" if side in SIDES else f"a {kind} run"
@@ -242,8 +238,6 @@ def manifest(specs: list[NetSpec]) -> dict:
     """Which nets a simulation used: per net its run directory, training config and checkpoint SHA-256."""
     out = {}
     for s in specs:
-        cfg_path = os.path.join(s.run, "config.json")
-        cfg = json.loads(open(cfg_path).read()) if os.path.isfile(cfg_path) else None
         out[f"{s.kind}_{s.eye}"] = {"run": os.path.abspath(s.run), "checkpoint": os.path.abspath(s.checkpoint),
-                                    "sha256": sha256_file(s.checkpoint), "config": cfg}
+                                    "sha256": sha256_file(s.checkpoint), "config": read_run_config(s.run)}
     return out

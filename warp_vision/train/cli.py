@@ -185,7 +185,7 @@ def _compare(argv: list[str]) -> int:
         from pathlib import Path
 
         from warp_vision.fileio import atomic_write, require_output
-        from warp_vision.nn.trained import saved_task
+        from warp_vision.nn.trained import read_run_config, saved_task
         from warp_vision.train.figures import plot_curves
         from warp_vision.train.rundir import a_run
 
@@ -199,7 +199,7 @@ def _compare(argv: list[str]) -> int:
             task = saved_task(r)
             if task not in ("foveation", "faces"):
                 raise ValueError(f"runs: {r} is {a_run(task)}; compare plots foveation and face runs' MSE curves")
-            cfg = json.loads((Path(r) / "config.json").read_text())
+            cfg = read_run_config(r) or {}
             name = names[i] if names.count(names[i]) == 1 else str(r)  # the directory's name, its path where names repeat
             label = f"{name} ({cfg['model']}, P={cfg['photoreceptors']:,})"
             if label in hists:

@@ -216,9 +216,8 @@ class FoveationTask(harness.OnvTask):
         if not cfg.init:
             return
         import errno
-        import json
 
-        from warp_vision.nn.trained import saved_task
+        from warp_vision.nn.trained import read_run_config, saved_task
         from warp_vision.train.rundir import a_run
 
         best = harness.init_checkpoint(cfg.init)
@@ -231,7 +230,7 @@ class FoveationTask(harness.OnvTask):
         task = saved_task(run)
         if task != cls.name:
             raise ValueError(f"init: {run} is {a_run(task)}; --init takes a foveation run of the net this run trains")
-        there = {"model": "linet", **json.loads((run / "config.json").read_text())}  # (a config older than its model)
+        there = {"model": "linet", **read_run_config(run)}  # (a config older than its model)
         keys = ("model",) if there["model"] != cfg.model else SHAPE_SETTINGS[cfg.model]
         differ = [k for k in keys if k in there and there[k] != getattr(cfg, k)]
         if differ:

@@ -18,14 +18,14 @@ import json
 import os
 import shutil
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import torch
 
 from warp_vision.data.store import ChunkedStore
 from warp_vision.fileio import FileLock, atomic_write, probe_writable, require_output
-from warp_vision.nn.trained import TRAINING_LOCK, read_checkpoint, saved_task, seal, task_command
+from warp_vision.nn.trained import TRAINING_LOCK, read_checkpoint, read_run_config, saved_task, seal, task_command
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
 RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
@@ -97,7 +97,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         if task != task_cls.name:
             raise ValueError(f"--resume {resume}: {a_run(task)}, not {a_run(task_cls.name)}; resume it with "
                              f"{task_command(task)} --resume {resume}")
-        cfg = task_cls.config_cls(**{**getattr(task_cls.config_cls, "LEGACY_DEFAULTS", {}), **json.loads((out / "config.json").read_text())})
+        cfg = config_from_saved(task_cls.config_cls, read_run_config(out), out / "config.json")
         if epochs is not None:
             cfg.epochs = epochs
         cfg.validate()
@@ -286,7 +286,26 @@ def reproducible_config(cfg) -> dict:
 def run_config(task_cls, run_dir, ck: dict):
     """The config of the run in ``run_dir`` whose checkpoint is ``ck``: the checkpoint's config (which
     carries no paths) with the paths of ``run_dir/config.json``."""
-    path = Path(run_dir) / "config.json"
-    saved = json.loads(path.read_text()) if path.exists() else {}
-    return task_cls.config_cls(**{**getattr(task_cls.config_cls, "LEGACY_DEFAULTS", {}), **ck["config"],
-                                 **{k: v for k, v in saved.items() if k in PATH_FIELDS}})
+    saved = read_run_config(run_dir) or {}
+    return config_from_saved(task_cls.config_cls, {**ck["config"], **{k: v for k, v in saved.items() if k in PATH_FIELDS}},
+                             Path(run_dir) / "config.json")
+
+
+_JSON_TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
+
+
+def config_from_saved(cls, saved: dict, source):
+    """A ``cls`` config from the settings of a saved run (config.json; a checkpoint's config with its
+    paths), under ``cls.LEGACY_DEFAULTS`` (settings added since). A setting ``cls`` lacks or a value of
+    another type (``"lr": "fast"``) is a ValueError naming ``source`` and the setting; both ended in a
+    TypeError's traceback."""
+    kinds = {f.name: f.type for f in fields(cls)}
+    unknown = [k for k in saved if k not in kinds]
+    if unknown:
+        raise ValueError(f"{source}: {', '.join(map(repr, unknown))}: not {'a setting' if len(unknown) == 1 else 'settings'} "
+                         f"of this run's task (edited by hand, or written by another version?)")
+    for k, v in saved.items():
+        ok = _JSON_TYPES.get(kinds[k])
+        if ok is not None and (not isinstance(v, ok) or (isinstance(v, bool) and bool not in ok)):
+            raise ValueError(f"{source}: {k!r} is {v!r}; expected a {kinds[k]}")
+    return cls(**{**getattr(cls, "LEGACY_DEFAULTS", {}), **saved})
