@@ -61,7 +61,7 @@ def cli(argv, capsys, cwd: Path | None = None) -> tuple[int, str]:
     if cwd is not None:
         os.chdir(cwd)
     try:
-        code = train_main([*argv, "--no-progress"] if argv and argv[0] != "evaluate" else argv)
+        code = train_main([*argv, "--no-progress"] if argv and argv[0] not in ("evaluate", "compare") else argv)
     finally:
         os.chdir(old)
     return code, capsys.readouterr().err
@@ -915,3 +915,19 @@ def test_a_damaged_config_json_is_named_in_one_line(damage, says, refused_by, fi
     if "sim" in refused_by:
         with pytest.raises(ValueError, match=re.escape(says)):
             NetSpec("foveation", "left", str(run), "default").mismatch()
+
+
+@pytest.mark.parametrize("line, says", [("{broken", "line 4 is not a metrics row (Expecting"),
+                                        ('{"epoch": 4}', "line 4 is not a metrics row: no train_mse, val_mse")])
+def test_compare_names_a_damaged_metrics_line(line, says, finished, tmp_path, capsys):
+    """A metrics.jsonl line that is not a row gave compare a bare JSON error, or a KeyError's traceback."""
+    run = copy_run(finished, tmp_path)
+    with open(run / "metrics.jsonl", "a") as f:
+        f.write(line + "\n")
+    code, err = cli(["compare", str(run), "--out", str(tmp_path / "c.png")], capsys)
+    assert code == 2 and one_line_naming(err, str(run / "metrics.jsonl")) and says in err, err
+    assert not (tmp_path / "c.png").exists()
+    (run / "config.json").unlink()  # (a run without its config.json is still drawn)
+    (run / "metrics.jsonl").write_text("".join(x + "\n" for x in (run / "metrics.jsonl").read_text().splitlines()[:3]))
+    assert cli(["compare", str(run), "--out", str(tmp_path / "c.png")], capsys)[0] == 0
+    assert (tmp_path / "c.png").stat().st_size > 0

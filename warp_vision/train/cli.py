@@ -181,13 +181,12 @@ def _compare(argv: list[str]) -> int:
 
     def job():
         import errno
-        import json
         from pathlib import Path
 
         from warp_vision.fileio import atomic_write, require_output
         from warp_vision.nn.trained import read_run_config, saved_task
         from warp_vision.train.figures import plot_curves
-        from warp_vision.train.rundir import a_run
+        from warp_vision.train.rundir import a_run, read_metrics
 
         require_output(a.out, "--out", kind="file")
         hists = {}
@@ -201,10 +200,11 @@ def _compare(argv: list[str]) -> int:
                 raise ValueError(f"runs: {r} is {a_run(task)}; compare plots foveation and face runs' MSE curves")
             cfg = read_run_config(r) or {}
             name = names[i] if names.count(names[i]) == 1 else str(r)  # the directory's name, its path where names repeat
-            label = f"{name} ({cfg['model']}, P={cfg['photoreceptors']:,})"
+            p = cfg.get("photoreceptors")
+            label = f"{name} ({cfg.get('model', 'linet')}{f', P={p:,}' if isinstance(p, int) else ''})"  # (linet: before the choice)
             if label in hists:
                 raise ValueError(f"runs: {r} is given twice")
-            hists[label] = [json.loads(x) for x in m.read_text().splitlines()]
+            hists[label] = read_metrics(m, need=("epoch", "train_mse", "val_mse"))
         fig = plot_curves(hists, a.title)
         atomic_write(a.out, lambda f: fig.savefig(f, format="png", dpi=120, bbox_inches="tight"))
         print(f"wrote {a.out}")

@@ -271,6 +271,24 @@ def sync_metrics(out: Path, history: list) -> None:
         atomic_write(path, "".join(x + "\n" for x in kept))
 
 
+def read_metrics(path, need: tuple[str, ...] = ("epoch",)) -> list[dict]:
+    """The rows of a run's ``metrics.jsonl``; a line that is not a JSON object holding the keys ``need`` is a
+    ValueError naming the file and the line (it was a bare JSON error or a KeyError's traceback)."""
+    rows = []
+    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except ValueError as e:
+            raise ValueError(f"{path}: line {n} is not a metrics row ({e})") from None
+        missing = [k for k in need if not isinstance(row, dict) or k not in row]
+        if missing:
+            raise ValueError(f"{path}: line {n} is not a metrics row: no {', '.join(missing)}")
+        rows.append(row)
+    return rows
+
+
 def _row_epoch(line: str) -> int:
     try:
         return int(json.loads(line)["epoch"])
