@@ -5,6 +5,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from warp_vision.data.store import ChunkedStore
 from warp_vision.frames import gaze_directions
 from warp_vision.train import foveation, harness, workers
 from warp_vision.train.cli import main as train_main
+from warp_vision.train import config as C
 from warp_vision.train.config import resolve
 
 
@@ -301,13 +303,14 @@ def test_every_task_config_shares_the_checks_and_the_default_out(cls, presets):
 def test_presets_pick_the_scene_generator_and_model_and_the_help_says_so():
     """quick and default train the retina CNN on v9, paper the paper's liNet on v9, smoke a small v7 liNet;
     --help gives the default preset's value and the others' where they differ."""
-    from warp_vision.train.config import PRESETS, _preset_defaults
+    from warp_vision.errors import preset_defaults
+    from warp_vision.train.config import PRESETS
 
     picks = {p: (resolve(p, {}).generator, resolve(p, {}).model) for p in PRESETS}
     assert picks == {"smoke": (7, "linet"), "quick": (9, "cnn"), "default": (9, "cnn"), "paper": (9, "linet")}
     assert resolve("paper", {}).samples_per_receptor == 8 and resolve("default", {"generator": 7}).generator == 7
-    assert _preset_defaults(PRESETS, "generator", 7) == "default: 9; --preset smoke: 7"
-    assert _preset_defaults({"default": {}, "smoke": {}}, "batch", 64) == "default: 64"
+    assert preset_defaults(PRESETS, "generator", 7) == "default: 9; --preset smoke: 7"
+    assert preset_defaults({"default": {}, "smoke": {}}, "batch", 64) == "default: 64"
 
 
 def test_evaluate_offers_the_checkpoints_the_reader_knows():
@@ -661,3 +664,38 @@ def test_a_net_setting_the_model_does_not_read_is_refused(argv, refused):
     else:
         with pytest.raises(ValueError, match=re.escape(refused)):
             make(a)
+
+
+@pytest.mark.parametrize("kind", ["foveation", "faces"])
+def test_the_data_command_builds_the_dataset_a_training_preset_reads(kind):
+    """``python -m warp_vision.data foveation`` built v7's glowing-ball dataset of 4,000 ONVs and ``data faces``
+    the paper's poses, whatever the run it was meant for (the default run trains on v9's 12,000, faces on
+    4-degree poses): its dataset was refused by ``train --data-dir``. Now ``--preset`` (default: default) and
+    the same flags give the training run's dataset."""
+    from warp_vision.data.cli import config_of, parser
+    from warp_vision.train.cli import parse_training
+
+    task = [] if kind == "foveation" else [kind]
+    presets = C.PRESETS if kind == "foveation" else C.FACE_PRESETS
+    for preset in presets:
+        built = config_of(kind, parser().parse_args([kind, "--preset", preset]))
+        assert built == parse_training([*task, "--preset", preset])[3]().data_config(), preset
+    assert config_of(kind, parser().parse_args([kind])) == parse_training(task)[3]().data_config()
+    flags = (["--samples", "20000", "--generator", "8"] if kind == "foveation" else ["--identities", "7"]) + ["--eye", "right"]
+    built = config_of(kind, parser().parse_args([kind, *flags, "--seed", "3"]))
+    assert built == parse_training([*task, *flags, "--data-seed", "3"])[3]().data_config()
+
+
+def test_the_data_command_writes_where_the_training_run_looks(tmp_path, monkeypatch, capsys):
+    """Its default --out is the run's dataset cache, so the run finds the dataset without --data-dir."""
+    from warp_vision.data.cli import main as data_main
+    from warp_vision.data.store import ChunkedStore
+    from warp_vision.train.foveation import FoveationTask
+
+    monkeypatch.chdir(tmp_path)
+    assert data_main(["foveation", "--preset", "smoke", "--samples", "24", "--shard", "0/2"]) == 0
+    assert data_main(["foveation", "--preset", "smoke", "--samples", "24", "--shard", "1/2"]) == 0
+    cfg = resolve("smoke", {"samples": 24})
+    FoveationTask.resolve_paths(cfg)
+    assert ChunkedStore.open(cfg.data_dir).complete
+    assert f"{Path(cfg.data_dir).relative_to(tmp_path)}: shard 1/2 done; dataset complete" in capsys.readouterr().out

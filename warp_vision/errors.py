@@ -41,6 +41,26 @@ def add_debug_flag(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
+def field_help(cls, name: str) -> str:
+    """The comment after field ``name`` in the source of dataclass ``cls`` (``samples: int = 4000  # number of
+    ONVs``): a config's --help text, written once beside the field."""
+    import inspect
+
+    for line in inspect.getsource(cls).splitlines():
+        s = line.strip()
+        if s.startswith(f"{name}:") and "#" in s:
+            return s.split("#", 1)[1].strip()
+    return ""
+
+
+def preset_defaults(presets: dict, name: str, value) -> str:
+    """The default preset's value of field ``name`` and the other presets' where they differ, for --help:
+    "default: 8; --preset smoke: 7" (``value``: the field's own default, kept by a preset that does not set it)."""
+    shown = presets.get("default", {}).get(name, value)
+    others = [f"{k}: {v.get(name, value)!r}" for k, v in presets.items() if k != "default" and v.get(name, value) != shown]
+    return "; ".join([f"default: {shown!r}"] + [f"--preset {o}" for o in others])
+
+
 def require_seeds(cfg) -> None:
     """Every field of the dataclass ``cfg`` named ``seed`` or ``*_seed`` is >= 0 (numpy's generators take
     no negative seed, and said so only as "expected non-negative integer", after the work had begun)."""

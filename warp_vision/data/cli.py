@@ -1,7 +1,13 @@
-"""``python -m warp_vision.data foveation|faces [--flag value ...] --out DIR [--shard I/N]``: build a dataset alone.
+"""``python -m warp_vision.data foveation|faces [--preset NAME] [--flag value ...] [--out DIR] [--shard I/N]``:
+build a dataset alone.
 
-N processes (or machines sharing a directory) given --shard 0/N .. N-1/N build disjoint chunks of one
-dataset, which then reads as one. An interrupted run resumes where it stopped when run again.
+``--preset`` names a training preset: the dataset built is the one ``python -m warp_vision.train [faces]
+--preset NAME`` with the same flags trains on (its settings come from ``PRESET_DATA`` of
+:mod:`warp_vision.data.foveation` and :mod:`warp_vision.data.faces`, which the training presets are built on),
+and by default it goes where that run looks for it, ``runs/datasets/<kind>-<config hash>``, so the run finds it
+without ``--data-dir``. N processes (or machines sharing a directory) given --shard 0/N .. N-1/N build
+disjoint chunks of one dataset, which then reads as one. An interrupted run resumes where it stopped when
+run again.
 """
 
 from __future__ import annotations
@@ -9,61 +15,80 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from pathlib import Path
 
 from warp_vision.data.foveation import FoveationDataConfig, synthesize
-from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
+from warp_vision.errors import ArgumentParser, add_debug_flag, field_help, guarded, preset_defaults
 
 
-def _add_config_flags(parser: argparse.ArgumentParser, cls) -> None:
+def _add_config_flags(parser: argparse.ArgumentParser, cls, presets: dict) -> None:
+    parser.add_argument("--preset", choices=list(presets), default="default",
+                        help="the dataset of this training preset (default: default), under the flags given")
     defaults = cls()
     for fld in dataclasses.fields(cls):
-        parser.add_argument(f"--{fld.name.replace('_', '-')}", type=type(getattr(defaults, fld.name)),
-                            default=getattr(defaults, fld.name), help=f"(default {getattr(defaults, fld.name)!r})")
-    parser.add_argument("--out", required=True, help="dataset directory")
+        value = getattr(defaults, fld.name)
+        parser.add_argument(f"--{fld.name.replace('_', '-')}", type=type(value), default=None,
+                            help=f"{field_help(cls, fld.name)} ({preset_defaults(presets, fld.name, value)})")
+    parser.add_argument("--out", default=None,
+                        help="dataset directory (default: runs/datasets/<kind>-<config hash>, where the training run "
+                             "of these settings looks for it)")
     parser.add_argument("--shard", default="0/1", help="I/N: build only shard I of N (default 0/1, everything)")
     parser.add_argument("--batch", type=int, default=16, help="ONVs rendered per launch (default 16)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     add_debug_flag(parser)
 
 
-def main(argv: list[str] | None = None) -> int:
-    from warp_vision.data.faces import FaceDataConfig
+def config_of(kind: str, args: argparse.Namespace):
+    """The dataset config of a parsed command line: its preset's settings with the flags given over them."""
+    from warp_vision.data import faces, foveation
+
+    cls, presets = (FoveationDataConfig, foveation.PRESET_DATA) if kind == "foveation" else (faces.FaceDataConfig, faces.PRESET_DATA)
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if getattr(args, f.name) is not None}
+    return cls(**{**presets[args.preset], **given})
+
+
+def parser() -> argparse.ArgumentParser:
+    from warp_vision.data import faces, foveation
 
     p = ArgumentParser(prog="python -m warp_vision.data", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="kind", required=True)
     fov = sub.add_parser("foveation", help="ONVs of a ball in a room (--generator 7: a glowing white ball; 8: ordinary "
                                            "balls among distractors; 9: and decoys), with the eye rotation that foveates it")
-    _add_config_flags(fov, FoveationDataConfig)
-    faces = sub.add_parser("faces", help="ONVs of anny-built faces across yaw and pitch poses, with identity and pose")
-    _add_config_flags(faces, FaceDataConfig)
-    faces.add_argument("--identities-cache", default=None, help="identity meshes' cache file (default runs/faces/...)")
-    a = p.parse_args(argv)
-    from warp_vision.data.store import parse_shard
+    _add_config_flags(fov, FoveationDataConfig, foveation.PRESET_DATA)
+    fc = sub.add_parser("faces", help="ONVs of anny-built faces across yaw and pitch poses, with identity and pose")
+    _add_config_flags(fc, faces.FaceDataConfig, faces.PRESET_DATA)
+    fc.add_argument("--identities-cache", default=None, help="identity meshes' cache file (default runs/faces/...)")
+    return p
 
-    cls = FoveationDataConfig if a.kind == "foveation" else FaceDataConfig
-    cfg = cls(**{fld.name: getattr(a, fld.name) for fld in dataclasses.fields(cls)})
+
+def main(argv: list[str] | None = None) -> int:
+    a = parser().parse_args(argv)
+    from warp_vision.data.store import parse_shard
 
     def job():
         from warp_vision.fileio import require_output
         from warp_vision.kernels.launch import require_device
 
         require_device(a.device)  # before the manifest is written
-        require_output(a.out, "--out", writable=False)  # (a complete dataset may be read-only; synthesis probes)
+        cfg = config_of(a.kind, a)
+        cfg.validate()
+        out = a.out or str(Path("runs/datasets") / f"{a.kind}-{cfg.key()}")
+        require_output(out, "--out", writable=False)  # (a complete dataset may be read-only; synthesis probes)
         if a.kind == "foveation":
-            return synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
+            return out, synthesize(out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
         from warp_vision.data import faces as FA
 
-        return FA.synthesize(a.out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device,
-                             identities_path=a.identities_cache)
+        return out, FA.synthesize(out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device,
+                                  identities_path=a.identities_cache)
 
     def report():
         try:
-            store = job()
+            out, store = job()
         except KeyboardInterrupt:
             print("interrupted: the chunks written are kept; the same command carries on from them", file=sys.stderr)
             raise
         left = len(store.missing_chunks())
-        print(f"{a.out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
+        print(f"{out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
               f"{'' if not left else f' ({left} chunks of this shard missing)'}")
 
     return guarded(report, a.debug)

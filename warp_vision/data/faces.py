@@ -61,6 +61,17 @@ CAVITY = np.array([0.06, 0.03, 0.03])
 TONGUE = np.array([0.55, 0.22, 0.22])
 
 
+#: The dataset each face training preset trains on (``python -m warp_vision.train faces --preset NAME``), as
+#: the settings it changes from :class:`FaceDataConfig`'s defaults (the paper's poses):
+#: ``warp_vision.train.config.FACE_PRESETS`` is built on these, and ``python -m warp_vision.data faces --preset
+#: NAME`` builds the same dataset.
+PRESET_DATA: dict[str, dict] = {
+    "smoke": dict(identities=3, pose_step_deg=15.0, photoreceptors=400, samples_per_receptor=1),  # 3 x 4 x 4 poses
+    "default": dict(pose_step_deg=4.0),  # 50 identities x 15 x 15 poses: 11,250 ONVs
+    "paper": dict(pose_step_deg=2.0),  # the paper's 30 x 30 poses: 45,000 ONVs
+}
+
+
 @dataclass
 class FaceDataConfig:
     """What a face dataset is; equal configs give identical datasets."""
@@ -72,10 +83,10 @@ class FaceDataConfig:
     eye: str = "left"  # which eye's retina (the recognition is monocular)
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     distance_m: float = 0.5  # eye to the face's centre
-    pupil_diameter_mm: float = 4.0
+    pupil_diameter_mm: float = 4.0  # the pupil's diameter (mm)
     identity_seed: int = 0  # seed of the identities (shape and colour)
-    seed: int = 0  # seed of the rays
-    chunk_size: int = 256
+    seed: int = 0  # seed of the rays (the training command's --data-seed)
+    chunk_size: int = 256  # ONVs per stored chunk (a shard's unit)
 
     def validate(self) -> None:
         require_seeds(self)

@@ -47,6 +47,15 @@ GENERATORS = (7, 8, 9)
 #: The generator a config uses unless it says otherwise: v7, so configs saved before the field existed
 #: read as v7's; the training presets choose v9 (warp_vision.train.config.PRESETS).
 GENERATOR_VERSION = 7
+#: The dataset each training preset trains on (``python -m warp_vision.train --preset NAME``), as the settings
+#: it changes from :class:`FoveationDataConfig`'s defaults: ``warp_vision.train.config.PRESETS`` is built on
+#: these, and ``python -m warp_vision.data foveation --preset NAME`` builds the same dataset.
+PRESET_DATA: dict[str, dict] = {
+    "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1),
+    "quick": dict(samples=2000, generator=9),
+    "default": dict(samples=12_000, generator=9),
+    "paper": dict(samples=25_000, samples_per_receptor=8, generator=9),
+}
 #: Seeds of the two eyes' retinas: each eye has its own photoreceptor layout, hence its own net.
 RETINA_SEEDS = {"left": 1, "right": 2}
 ROOM_SIZE = (10.0, 10.0, 4.0)
@@ -74,10 +83,10 @@ class FoveationDataConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
     occluded_fraction: float = 0.2  # samples with a panel partly hiding the ball
-    accommodation_D: float = 0.5
-    pupil_diameter_mm: float = 4.0
-    seed: int = 0
-    chunk_size: int = 256
+    accommodation_D: float = 0.5  # the lens's accommodation (dioptres)
+    pupil_diameter_mm: float = 4.0  # the pupil's diameter (mm)
+    seed: int = 0  # seed of the scenes (the training command's --data-seed)
+    chunk_size: int = 256  # ONVs per stored chunk (a shard's unit)
     generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room), 8 (ordinary balls: foveation_scenes) or 9 (v8 + decoys)
     rooms: str = "train"  # v8: the room family, "train" or "heldout" (disjoint seeds)
     condition: str = "mixed"  # v8: "mixed" (training) or a test condition of foveation_scenes.CONDITIONS

@@ -11,8 +11,10 @@ import math
 from dataclasses import dataclass, fields
 from typing import ClassVar
 
+from warp_vision.data.faces import PRESET_DATA as FACE_DATA
+from warp_vision.data.foveation import PRESET_DATA as FOVEATION_DATA
 from warp_vision.data.foveation import FoveationDataConfig
-from warp_vision.errors import require_seeds
+from warp_vision.errors import field_help, preset_defaults, require_seeds
 
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
@@ -199,20 +201,22 @@ class TrainConfig:
         self.data_config().validate()
 
 
+#: Each preset: its dataset (``data.foveation.PRESET_DATA``, which ``python -m warp_vision.data foveation
+#: --preset`` builds too) and the net and training settings over it.
 PRESETS: dict[str, dict] = {
     # end to end in well under a minute (tests)
-    "smoke": dict(samples=160, photoreceptors=400, samples_per_receptor=1, layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
+    "smoke": dict(**FOVEATION_DATA["smoke"], layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
     # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU
     # (1.7 measured, synthesis included)
-    "quick": dict(samples=2000, epochs=12, patience=12, generator=9, model="cnn", lr=2e-3),
+    "quick": dict(**FOVEATION_DATA["quick"], epochs=12, patience=12, model="cnn", lr=2e-3),
     # the default run: the retina CNN on generator v9, about 12-14 minutes on a 2-core CPU that trains it in
     # bfloat16 (11.7 and 13.6 measured on two days), 14.6 in float32 (12,000 ONVs of P=14,400, S=4 rendered
     # in 4.5-5.2 by two processes; 20 epochs of 19-27 s, 29 in float32: docs/RESULTS.md "20 epochs", fewer
     # balls missed than with 12, and "bfloat16 training"). v7's liNet: --generator 7 --model linet --lr 0.001
     # --epochs 40 --samples 8000
-    "default": dict(generator=9, model="cnn", samples=12_000, lr=2e-3, epochs=20),
+    "default": dict(**FOVEATION_DATA["default"], model="cnn", lr=2e-3, epochs=20),
     # the paper's set-up on v9: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
-    "paper": dict(samples=25_000, samples_per_receptor=8, epochs=60, patience=10, generator=9),
+    "paper": dict(**FOVEATION_DATA["paper"], epochs=60, patience=10),
 }
 
 
@@ -273,14 +277,15 @@ class FaceTrainConfig:
         self.data_config().validate()
 
 
+#: Each face preset: its dataset (``data.faces.PRESET_DATA``, which ``python -m warp_vision.data faces --preset``
+#: builds too) and the net and training settings over it.
 FACE_PRESETS: dict[str, dict] = {
     # seconds, for tests: 3 identities x 4 x 4 poses on a small retina
-    "smoke": dict(identities=3, pose_step_deg=15.0, photoreceptors=400, samples_per_receptor=1, layers=3,
-                  receptive_field=8, batch=8, epochs=3, patience=3),
+    "smoke": dict(**FACE_DATA["smoke"], layers=3, receptive_field=8, batch=8, epochs=3, patience=3),
     # 50 identities x 15 x 15 poses (4-degree steps): 11,250 ONVs
-    "default": {},
+    "default": dict(**FACE_DATA["default"]),
     # the paper's protocol: 50 identities x 30 x 30 poses (2-degree steps): 45,000 ONVs
-    "paper": dict(pose_step_deg=2.0, epochs=200),
+    "paper": dict(**FACE_DATA["paper"], epochs=200),
 }
 
 
@@ -299,15 +304,6 @@ def resolve(preset: str, overrides: dict, cls=None, presets: dict | None = None)
     return cfg
 
 
-def _help(cls, name: str) -> str:
-    import inspect
-
-    for line in inspect.getsource(cls).splitlines():
-        s = line.strip()
-        if s.startswith(f"{name}:") and "#" in s:
-            return s.split("#", 1)[1].strip()
-    return ""
-
 
 def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = None) -> None:
     """One ``--flag`` per field of ``cls`` (TrainConfig by default; default None: the preset decides)."""
@@ -318,30 +314,22 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
         if f.name == "task":  # fixed per config class, not a choice
             continue
         if f.name == "preset":
-            p.add_argument("--preset", choices=sorted(presets), default="default", help=_help(cls, f.name))
+            p.add_argument("--preset", choices=sorted(presets), default="default", help=field_help(cls, f.name))
             continue
         value = getattr(defaults, f.name)
         choices = getattr(cls, "CHOICES", CHOICES)
         extra = {"choices": choices[f.name]} if f.name in choices else {}
         if isinstance(value, bool):
             p.add_argument(f"--{f.name.replace('_', '-')}", action="store_const", const=True, default=None,
-                           help=f"{_help(cls, f.name)} (default: off)")
+                           help=f"{field_help(cls, f.name)} (default: off)")
             continue
         p.add_argument(
             f"--{f.name.replace('_', '-')}",
             type=type(value),
             default=None,
-            help=f"{_help(cls, f.name)} ({_preset_defaults(presets, f.name, value)})",
+            help=f"{field_help(cls, f.name)} ({preset_defaults(presets, f.name, value)})",
             **extra,
         )
-
-
-def _preset_defaults(presets: dict, name: str, value) -> str:
-    """The default preset's value of field ``name`` and the other presets' where they differ, for --help:
-    "default: 8; --preset smoke: 7" (``value``: the field's own default, kept by a preset that does not set it)."""
-    shown = presets.get("default", {}).get(name, value)
-    others = [f"{k}: {v.get(name, value)!r}" for k, v in presets.items() if k != "default" and v.get(name, value) != shown]
-    return "; ".join([f"default: {shown!r}"] + [f"--preset {o}" for o in others])
 
 
 def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
