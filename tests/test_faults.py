@@ -891,7 +891,7 @@ _CONFIG_DAMAGE = [
     (lambda c: "[1, 2]", "a JSON list, where a run writes an object of settings", "resume evaluate sim"),
     (lambda c: json.dumps({**c, "task": 5}), "task 5 is not a task's name", "resume evaluate sim"),
     (lambda c: json.dumps({**c, "lr": "fast"}), "'lr' is 'fast'; expected a float", "resume"),
-    (lambda c: json.dumps({**c, "epochs": 2.5}), "'epochs' is 2.5; expected a int", "resume"),
+    (lambda c: json.dumps({**c, "epochs": 2.5}), "'epochs' is 2.5; expected an int", "resume"),
     (lambda c: json.dumps({**c, "out": 7}), "'out' is 7; expected a str", "resume evaluate"),
     (lambda c: json.dumps({**c, "bogus": 1}), "'bogus': not a setting of this run's task", "resume"),
 ]

@@ -325,5 +325,5 @@ def config_from_saved(cls, saved: dict, source):
     for k, v in saved.items():
         ok = _JSON_TYPES.get(kinds[k])
         if ok is not None and (not isinstance(v, ok) or (isinstance(v, bool) and bool not in ok)):
-            raise ValueError(f"{source}: {k!r} is {v!r}; expected a {kinds[k]}")
+            raise ValueError(f"{source}: {k!r} is {v!r}; expected {'an' if kinds[k] == 'int' else 'a'} {kinds[k]}")
     return cls(**{**getattr(cls, "LEGACY_DEFAULTS", {}), **saved})
