@@ -491,3 +491,14 @@ def test_render_missing_skips_a_chunk_another_process_wrote_meanwhile(tmp_path):
     a, b = mine.chunk_range(2)
     assert_bit_equal(ChunkedStore.open(tmp_path).load(), {k: np.concatenate([v[:a], theirs[k][a:b], v[b:]])
                                                            for k, v in data.items()})
+
+
+def test_whole_at_says_whether_a_directory_holds_a_whole_store(tmp_path):
+    assert not ChunkedStore.whole_at(tmp_path / "none")  # no store yet
+    store = new_store(tmp_path)
+    fill(store, make_data(), chunks=[0, 1])
+    assert not ChunkedStore.whole_at(tmp_path)  # chunks missing
+    fill(store, make_data())
+    assert ChunkedStore.whole_at(tmp_path)
+    (tmp_path / "manifest.json").write_text("{")
+    assert not ChunkedStore.whole_at(tmp_path)  # a store that does not open

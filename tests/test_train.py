@@ -14,9 +14,9 @@ import torch
 from warp_vision.data.foveation import FoveationDataConfig, sample_params, synthesize
 from warp_vision.data.store import ChunkedStore
 from warp_vision.frames import gaze_directions
+from warp_vision.train import config as C
 from warp_vision.train import foveation, harness, workers
 from warp_vision.train.cli import main as train_main
-from warp_vision.train import config as C
 from warp_vision.train.config import resolve
 
 
@@ -650,20 +650,14 @@ def test_evaluate_agreement_needs_runs_on_one_split(tmp_path, smoke_data, capsys
 ])
 def test_a_net_setting_the_model_does_not_read_is_refused(argv, refused):
     """They were dropped without a word: --model cnn --receptive-field 30 trained the cnn as if it were not there."""
-    from warp_vision.train import cli
-    from warp_vision.train import config as C
+    from warp_vision.train.cli import parse_training
 
-    if argv[0] == "limb":
-        _, cls, presets, _ = cli.TASKS["limb"]
-        make = lambda a: C.from_args(a, cls, presets)  # noqa: E731
-        a = cli._task_parser("limb").parse_args(argv[1:])
-    else:
-        make, a = C.from_args, cli._train_parser().parse_args(argv)
+    make = parse_training(argv)[3]
     if refused is None:
-        make(a)
+        make()
     else:
         with pytest.raises(ValueError, match=re.escape(refused)):
-            make(a)
+            make()
 
 
 @pytest.mark.parametrize("kind", ["foveation", "faces"])
@@ -689,7 +683,6 @@ def test_the_data_command_builds_the_dataset_a_training_preset_reads(kind):
 def test_the_data_command_writes_where_the_training_run_looks(tmp_path, monkeypatch, capsys):
     """Its default --out is the run's dataset cache, so the run finds the dataset without --data-dir."""
     from warp_vision.data.cli import main as data_main
-    from warp_vision.data.store import ChunkedStore
     from warp_vision.train.foveation import FoveationTask
 
     monkeypatch.chdir(tmp_path)

@@ -311,6 +311,15 @@ class ChunkedStore:
         """True when every chunk of the dataset (all shards) is written (quick size check, no hashing)."""
         return all(self._chunk_present(c) for c in range(self.num_chunks))
 
+    @classmethod
+    def whole_at(cls, root: os.PathLike | str) -> bool:
+        """Whether ``root`` holds a store with every chunk written (:attr:`complete`); False where there is
+        no store yet, or one that does not open."""
+        try:
+            return cls.open(root).complete
+        except (ValueError, OSError):
+            return False
+
     # ------------------------------------------------------------------ writing
 
     def write_chunk(self, c: int, arrays: Mapping[str, np.ndarray]) -> None:

@@ -229,10 +229,11 @@ def read_run_config(run_dir) -> dict | None:
     return cfg
 
 
-def saved_task(run_dir) -> str:
+def saved_task(run_dir, config: dict | None = None) -> str:
     """The task of the run in ``run_dir`` as its config.json names it: "foveation" (the training command's
-    default task, whose config names none) where it names none or there is no config.json."""
-    task = (read_run_config(run_dir) or {}).get("task", "foveation")
+    default task, whose config names none) where it names none or there is no config.json. ``config``: the
+    file as :func:`read_run_config` already read it (not read again)."""
+    task = (config if config is not None else read_run_config(run_dir) or {}).get("task", "foveation")
     if not isinstance(task, str):
         raise ValueError(f"{Path(run_dir) / 'config.json'}: task {task!r} is not a task's name")
     return task

@@ -99,7 +99,7 @@ class NetSpec:
         config = read_run_config(self.run)
         if config is None:
             return None
-        kind = saved_task(self.run)
+        kind = saved_task(self.run, config)
         side = config.get("side" if kind == "arm" else "eye")
         if kind == self.kind and side in (None, self.eye):
             return None

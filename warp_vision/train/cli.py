@@ -195,10 +195,10 @@ def _compare(argv: list[str]) -> int:
             m = Path(r) / "metrics.jsonl"
             if not m.exists():
                 raise FileNotFoundError(errno.ENOENT, "not found (is this a training run directory?)", str(m))
-            task = saved_task(r)
+            cfg = read_run_config(r) or {}
+            task = saved_task(r, cfg)
             if task not in ("foveation", "faces"):
                 raise ValueError(f"runs: {r} is {a_run(task)}; compare plots foveation and face runs' MSE curves")
-            cfg = read_run_config(r) or {}
             name = names[i] if names.count(names[i]) == 1 else str(r)  # the directory's name, its path where names repeat
             p = cfg.get("photoreceptors")
             label = f"{name} ({cfg.get('model', 'linet')}{f', P={p:,}' if isinstance(p, int) else ''})"  # (linet: before the choice)

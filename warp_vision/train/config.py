@@ -304,7 +304,6 @@ def resolve(preset: str, overrides: dict, cls=None, presets: dict | None = None)
     return cfg
 
 
-
 def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = None) -> None:
     """One ``--flag`` per field of ``cls`` (TrainConfig by default; default None: the preset decides)."""
     cls = cls or TrainConfig

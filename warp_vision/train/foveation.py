@@ -225,12 +225,13 @@ class FoveationTask(harness.OnvTask):
             raise FileNotFoundError(errno.ENOENT, "no such checkpoint (--init takes a foveation run directory or its best.pt)",
                                     str(best))
         run = best.parent
-        if not (run / "config.json").is_file():
+        saved = read_run_config(run)
+        if saved is None:
             return  # a checkpoint on its own: its weights are checked as they load
-        task = saved_task(run)
+        task = saved_task(run, saved)
         if task != cls.name:
             raise ValueError(f"init: {run} is {a_run(task)}; --init takes a foveation run of the net this run trains")
-        there = {"model": "linet", **read_run_config(run)}  # (a config older than its model)
+        there = {"model": "linet", **saved}  # (a config older than its model)
         keys = ("model",) if there["model"] != cfg.model else SHAPE_SETTINGS[cfg.model]
         differ = [k for k in keys if k in there and there[k] != getattr(cfg, k)]
         if differ:

@@ -181,7 +181,7 @@ def preflight(task, out: Path, data_dir: Path, log) -> None:
     need = task.dataset_bytes()
     if not need:
         return
-    complete = (data_dir / "manifest.json").exists() and not _missing_chunks(data_dir)
+    complete = ChunkedStore.whole_at(data_dir)
     where = next(p for p in (data_dir, *data_dir.parents) if p.exists())
     free = shutil.disk_usage(where).free
     log(f"dataset: about {_mib(need)} at {data_dir} ({'already there' if complete else f'{_mib(free)} free'}); "
@@ -203,14 +203,6 @@ def check_checkpoint_space(model, out: Path, log) -> None:
     if need > free:
         raise OSError(errno.ENOSPC, f"No space left for the checkpoints: they need about {human_bytes(need)}, "
                                     f"{human_bytes(free)} are free", str(out))
-
-
-def _missing_chunks(data_dir: Path) -> bool:
-    """Whether the store in ``data_dir`` still lacks chunks (a store that does not open counts as missing)."""
-    try:
-        return bool(ChunkedStore.open(data_dir).missing_chunks())
-    except ValueError:
-        return True
 
 
 def dataset_dir(cfg, kind: str, data_config) -> Path:

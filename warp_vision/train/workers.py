@@ -22,6 +22,8 @@ from pathlib import Path
 
 import torch
 
+from warp_vision.data.store import ChunkedStore
+
 
 def auto_workers(device: str, samples: int) -> int:
     """Synthesis processes a run uses by default: on the CPU one per usable core (at most
@@ -65,7 +67,7 @@ def dataset_lock(root: Path, log=print, stores: list[Path] | None = None):
     from warp_vision.fileio import FileLock
 
     root = Path(root)
-    if all(_store_complete(d) for d in (stores or [root])):
+    if all(ChunkedStore.whole_at(d) for d in (stores or [root])):
         yield
         return
     try:
@@ -82,15 +84,6 @@ def dataset_lock(root: Path, log=print, stores: list[Path] | None = None):
         yield
     finally:
         lock.release()
-
-
-def _store_complete(path: Path) -> bool:
-    from warp_vision.data.store import ChunkedStore
-
-    try:
-        return ChunkedStore.open(path).complete
-    except (ValueError, OSError):  # no store there yet
-        return False
 
 
 def _exit_with(parent: int, every_s: float = 1.0) -> None:
@@ -132,7 +125,7 @@ def render_in_processes(task, workers: int, progress: bool) -> bool:
     from warp_vision.kernels.launch import cpu_threads, threads_set
 
     dirs = task.dataset_dirs()
-    if workers <= 1 or not dirs or all(_store_complete(Path(d)) for d in dirs):
+    if workers <= 1 or not dirs or all(ChunkedStore.whole_at(d) for d in dirs):
         return False
     threads = max(1, cpu_threads() // workers)
     task.log(f"synthesis in {workers} processes (this one and {workers - 1} helper{'s' if workers > 2 else ''}), "
