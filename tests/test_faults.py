@@ -289,13 +289,19 @@ def test_out_naming_a_file_is_one_line(tmp_path, capsys):
     assert not (tmp_path / "d").exists()
 
 
-@pytest.mark.parametrize("command, flags", [([], ["--samples", "200"]), (["pupil", "--eye", "left"], [])])
-def test_a_data_dir_of_other_settings_is_refused_before_the_run_is_claimed(command, flags, tmp_path, capsys, data):
+@pytest.mark.parametrize("command, flags, says", [
+    ([], ["--samples", "200"], "first difference: config['samples']"),
+    # a foveation dataset given to a pupil run: it used to name the first differing setting and advise
+    # deleting the directory "to rebuild the dataset", the foveation run's dataset
+    (["pupil", "--eye", "left"], [], "holds another kind of dataset: its samples hold onv, target, meta;"),
+])
+def test_a_data_dir_of_other_settings_is_refused_before_the_run_is_claimed(command, flags, says, tmp_path, capsys, data):
     # it used to be found by the store after the preflight had printed "(already there)" and the run
     # directory had been claimed with its config.json
     manifest = (data / "manifest.json").read_bytes()
     code, err = cli([*command, "--preset", "smoke", *flags, "--out", str(tmp_path / "run"), "--data-dir", str(data)], capsys)
-    assert code == 2 and one_line_naming(err, str(data / "manifest.json")) and "first difference" in err, err
+    assert code == 2 and one_line_naming(err, str(data / "manifest.json")) and says in err, err
+    assert ("delete" in err) == (not command), err
     assert not (tmp_path / "run").exists()
     assert (data / "manifest.json").read_bytes() == manifest
 

@@ -152,6 +152,20 @@ def test_check_settings_refuses_what_resuming_would_and_writes_nothing(tmp_path)
         ChunkedStore.check_settings(tmp_path, CONFIG)
 
 
+def test_a_store_of_another_kind_is_called_so_and_not_offered_for_deletion(tmp_path):
+    new_store(tmp_path)
+    other = {k: v for k, v in CONFIG.items() if k != "retina"} | {"gazes": 10}  # each lacks a setting of the other
+    for refuse in (lambda: ChunkedStore.check_settings(tmp_path, other),
+                   lambda: ChunkedStore.create_or_resume(tmp_path, other, TOTAL, CHUNK, FIELDS)):
+        with pytest.raises(ValueError) as e:
+            refuse()
+        assert "holds another kind of dataset: its samples hold onv, target, label;" in str(e.value)
+        assert "does not (retina) and lacks its (gazes)" in str(e.value) and "delete" not in str(e.value)
+    # a dataset of the kind from before a setting was added (one side only) is the kind's, of other settings
+    with pytest.raises(ValueError, match=r"first difference: config\['gazes'\]: the manifest has no such key"):
+        ChunkedStore.check_settings(tmp_path, CONFIG | {"gazes": 10})
+
+
 def test_missing_record_means_missing_chunk_and_is_not_read(tmp_path):
     data = make_data()
     store = new_store(tmp_path)

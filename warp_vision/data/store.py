@@ -23,7 +23,8 @@ deletes an old record before it replaces a chunk's data. There is no shared file
 of ``n`` (``my_chunks``: the chunks with ``c % n == i``) writes only its own chunks' files, so ``n``
 processes can fill one directory concurrently. The manifest is created once, with an exclusive
 link, and afterwards only read: ``create_or_resume`` with settings that differ from the manifest's raises
-``ValueError`` naming the first differing key, so a dataset built with other settings is never reused.
+``ValueError`` naming the first differing key (or, where each side has settings the other lacks, saying it
+is another kind of dataset and what its samples hold), so a dataset built with other settings is never reused.
 The files themselves (manifest, records, checksummed ``.npy``) are read and written by
 :mod:`warp_vision.data.chunk_files`.
 
@@ -127,8 +128,26 @@ def waiting_for_writers(seconds: float):
         WAIT_FOR_WRITERS_S = old
 
 
+def _another_kind(manifest: dict, config: Any) -> bool:
+    """Whether a manifest's settings are of another kind of dataset than ``config``: each has settings the
+    other lacks. (A newer generator of one kind only adds settings, so an older dataset of the kind is not
+    called another kind; manifests do not record their kind.)"""
+    old = manifest.get("config")
+    return isinstance(old, dict) and isinstance(config, dict) and bool(set(old) - set(config)) \
+        and bool(set(config) - set(old))
+
+
 def _refuse_other_settings(path: Path, manifest: dict, requested: dict) -> None:
-    """ValueError naming the first of ``requested``'s entries that differs from ``manifest``'s."""
+    """ValueError naming the first of ``requested``'s entries that differs from ``manifest``'s; or, for a
+    dataset of another kind, saying so (with what its samples hold) rather than advising to delete it."""
+    if "config" in requested and _another_kind(manifest, requested["config"]):
+        old, new = set(manifest["config"]), set(requested["config"])
+        held = ", ".join(manifest.get("fields") or {}) or "no fields"
+        raise ValueError(
+            f"{path} holds another kind of dataset: its samples hold {held}; it has settings the one asked for "
+            f"does not ({', '.join(sorted(old - new))}) and lacks its ({', '.join(sorted(new - old))}). "
+            f"Use another directory: this one's dataset belongs to another kind of run."
+        )
     for key, new in requested.items():
         diff = first_difference(key, manifest[key], new)
         if diff is not None:
