@@ -30,6 +30,8 @@ ALLOWED = {
     "bench": {"foundation", "eye", "viz", "kernels", "scene", "nn", "body", "data", "sim"},
     "package": {"foundation"},
 }
+# python -m warp_vision: the commands' index, above them all (it runs each command's cli by name)
+ALLOWED["index"] = set(ALLOWED) - {"package"}
 
 
 def stage_of(module: str) -> str:
@@ -37,6 +39,8 @@ def stage_of(module: str) -> str:
     if len(parts) == 1:
         return "package"
     head = parts[1]
+    if head == "__main__":
+        return "index"
     if head in ("frames", "fileio", "resources", "errors"):
         return "foundation"
     if head not in ALLOWED:

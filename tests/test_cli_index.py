@@ -1,0 +1,44 @@
+"""``python -m warp_vision``: lists every command and runs one as ``python -m warp_vision.COMMAND`` would."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import warp_vision
+from warp_vision.__main__ import COMMANDS, main
+
+PACKAGE = Path(warp_vision.__file__).parent
+
+
+def test_every_command_of_the_package_is_listed_and_each_listed_one_exists():
+    runnable = {p.parent.name for p in PACKAGE.glob("*/__main__.py")}
+    assert runnable == set(COMMANDS)
+
+
+def test_no_command_prints_the_list(capsys):
+    assert main([]) == 0
+    out = capsys.readouterr().out
+    assert all(f"  {name}" in out for name in COMMANDS), out
+
+
+def test_a_mistyped_command_is_refused_with_the_nearest(capsys):
+    assert main(["trian", "--preset", "smoke"]) == 2
+    err = capsys.readouterr().err
+    assert "error: 'trian' is not a command (did you mean 'train'?); expected one of train, sim" in err, err
+
+
+@pytest.mark.parametrize("command", ["scene", "data"])
+def test_a_command_runs_as_its_own_module_does(command):
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", *args, "--help"], capture_output=True, text=True, timeout=120)
+
+    via_index, direct = run("warp_vision", command), run(f"warp_vision.{command}")
+    assert via_index.returncode == direct.returncode == 0, via_index.stderr
+    assert via_index.stdout == direct.stdout and f"python -m warp_vision.{command}" in direct.stdout
+
+
+def test_the_exit_code_is_the_commands(tmp_path, capsys):
+    assert main(["train", "evaluate", str(tmp_path / "nothing")]) == 2
+    assert "no best.pt" in capsys.readouterr().err
