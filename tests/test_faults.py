@@ -233,6 +233,21 @@ def test_an_abbreviated_option_is_refused_not_matched_to_a_longer_one(command, a
     with pytest.raises(SystemExit) as e:
         main(argv)
     assert e.value.code == 2 and "unrecognized arguments" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["evalute", "runs/foveation"], "'evalute' is not a task or command (did you mean 'evaluate'?): expected one of "
+                                    "faces, oculomotor, arm, limb, pupil, lens, evaluate, compare"),
+    (["occulomotor", "--eye", "left"], "(did you mean 'oculomotor'?)"),
+    (["runs/foveation"], "'runs/foveation' is not a task or command: expected"),
+])
+def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys):
+    # it was "unrecognized arguments: evalute runs/foveation" from the foveation task's parser
+    from warp_vision.train.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2 and says in capsys.readouterr().err
     assert not list(tmp_path.iterdir())  # nothing rendered, trained or written
 
 

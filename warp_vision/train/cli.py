@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import sys
 from dataclasses import fields
 
@@ -284,7 +285,13 @@ def parse_training(argv: list[str]):
         a = _task_parser(name).parse_args(argv[1:])
         _, cls, presets, _ = TASKS[name]
         return name, cls, a, lambda: C.from_args(a, cls, presets)
-    a = _train_parser().parse_args(argv)
+    p = _train_parser()
+    if argv and not argv[0].startswith("-"):  # a mistyped task or command: argparse called it an unknown argument
+        words = [*TASKS, "evaluate", "compare"]
+        near = difflib.get_close_matches(argv[0], words, n=1)
+        p.error(f"{argv[0]!r} is not a task or command{f' (did you mean {near[0]!r}?)' if near else ''}: "
+                f"expected one of {', '.join(words)}, or the foveation task's flags alone")
+    a = p.parse_args(argv)
     return "foveation", C.TrainConfig, a, lambda: C.from_args(a)
 
 
