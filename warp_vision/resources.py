@@ -7,8 +7,11 @@ to lower, before anything is allocated.
 
 from __future__ import annotations
 
+import errno
 import math
 import os
+import shutil
+from pathlib import Path
 
 
 def available_memory_bytes() -> int:
@@ -58,3 +61,19 @@ def require_memory(nbytes: float, what: str, lower: str) -> None:
     if nbytes > avail:
         raise ValueError(f"{what} needs about {human_bytes(nbytes)}, more than the {human_bytes(avail)} of memory "
                          f"available; lower {lower}")
+
+
+def free_disk_bytes(path) -> int:
+    """The free space of the file system ``path`` is on (or would be: its nearest existing parent)."""
+    path = Path(path).absolute()
+    return shutil.disk_usage(next(p for p in (path, *path.parents) if p.exists())).free
+
+
+def require_disk(nbytes: float, path, what: str) -> int:
+    """The free space at ``path`` (:func:`free_disk_bytes`); an OSError (ENOSPC, naming ``path``) that says
+    how much ``what`` needs when it is less than ``nbytes``."""
+    free = free_disk_bytes(path)
+    if nbytes > free:
+        raise OSError(errno.ENOSPC, f"No space left for {what}: it needs about {human_bytes(nbytes)}, "
+                                    f"{human_bytes(free)} are free", str(path))
+    return free

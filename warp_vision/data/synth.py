@@ -44,11 +44,14 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
     meanwhile is skipped."""
     from tqdm import tqdm
 
+    from warp_vision.data.store import dataset_bytes
     from warp_vision.fileio import probe_writable
+    from warp_vision.resources import require_disk
 
     todo, mine = pending(store)
     if todo:
         probe_writable(store.root)  # a read-only or full directory fails now, not after the first chunk
+        require_disk(dataset_bytes(store.fields, todo), store.root, "the dataset's missing chunks")  # or a fuller one
     t0, skipped = time.perf_counter(), 0
     unit = "ONV" if what == "ONVs" else "sample"
     with tqdm(total=mine, initial=mine - todo, unit=unit, desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:

@@ -16,7 +16,6 @@ import errno
 import io
 import json
 import os
-import shutil
 import sys
 from dataclasses import asdict, fields
 from pathlib import Path
@@ -175,34 +174,29 @@ def preflight(task, out: Path, data_dir: Path, log) -> None:
     """Before any expensive work: ``out`` is a writable directory; the dataset (when it is not all
     there) fits in the free space of its directory; the dataset fits in memory. Prints the estimates;
     raises OSError (no space, read-only, permissions) or ValueError (memory) otherwise."""
-    from warp_vision.resources import available_memory_bytes, human_bytes as _mib, require_memory
+    from warp_vision.resources import available_memory_bytes, free_disk_bytes, human_bytes as _mib, require_disk, require_memory
 
     probe_writable(out)
     need = task.dataset_bytes()
     if not need:
         return
     complete = ChunkedStore.whole_at(data_dir)
-    where = next(p for p in (data_dir, *data_dir.parents) if p.exists())
-    free = shutil.disk_usage(where).free
-    log(f"dataset: about {_mib(need)} at {data_dir} ({'already there' if complete else f'{_mib(free)} free'}); "
+    log(f"dataset: about {_mib(need)} at {data_dir} "
+        f"({'already there' if complete else f'{_mib(free_disk_bytes(data_dir))} free'}); "
         f"{_mib(available_memory_bytes())} of memory available")
-    if not complete and need > free:
-        raise OSError(errno.ENOSPC, f"No space left for the dataset: it needs about {_mib(need)}, "
-                                    f"{_mib(free)} are free", str(data_dir))
+    if not complete:
+        require_disk(need, data_dir, "the dataset")
     require_memory(need, "loading the dataset", "--samples or --photoreceptors")
 
 
 def check_checkpoint_space(model, out: Path, log) -> None:
     """Before the first epoch: room in ``out`` for the run's three checkpoints (weights and Adam's two
     moments, float32, each), or an ENOSPC OSError that says how much is needed."""
-    from warp_vision.resources import human_bytes
+    from warp_vision.resources import free_disk_bytes, human_bytes, require_disk
 
     need = 3 * 12 * sum(p.numel() for p in model.parameters())
-    free = shutil.disk_usage(out).free
-    log(f"checkpoints: about {human_bytes(need)} in {out} ({human_bytes(free)} free)")
-    if need > free:
-        raise OSError(errno.ENOSPC, f"No space left for the checkpoints: they need about {human_bytes(need)}, "
-                                    f"{human_bytes(free)} are free", str(out))
+    log(f"checkpoints: about {human_bytes(need)} in {out} ({human_bytes(free_disk_bytes(out))} free)")
+    require_disk(need, out, "the checkpoints")
 
 
 def dataset_dir(cfg, kind: str, data_config) -> Path:
