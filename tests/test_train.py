@@ -571,6 +571,21 @@ def test_compare_labels_every_run_by_its_directory_and_titles_the_figure(tmp_pat
                     "title": "with and without"}
 
 
+def test_compare_writes_the_format_its_suffix_names(tmp_path, capsys):
+    # it wrote a PNG whatever the suffix: curves.pdf was a PNG
+    import json
+
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.json").write_text(json.dumps({"model": "cnn"}))
+    (tmp_path / "run" / "metrics.jsonl").write_text(json.dumps({"epoch": 1, "train_mse": 0.5, "val_mse": 0.6}) + "\n")
+    for name, magic in (("c.pdf", b"%PDF"), ("c.svg", b"<?xml"), ("c", b"\x89PNG"), ("c.PNG", b"\x89PNG")):
+        assert train_main(["compare", str(tmp_path / "run"), "--out", str(tmp_path / name)]) == 0
+        assert (tmp_path / name).read_bytes().startswith(magic), name
+    assert train_main(["compare", str(tmp_path / "run"), "--out", str(tmp_path / "c.xyz")]) == 2
+    assert ".xyz is not a figure format matplotlib writes; expected one of" in capsys.readouterr().err
+    assert not (tmp_path / "c.xyz").exists()
+
+
 def test_the_liNet_reads_the_stores_float16_onvs_and_float32_stays_available(tmp_path, smoke_data, monkeypatch):
     """By default a liNet is fed the store's float16 ONVs (standardised in its first layer: no float32
     copy of a batch); --onv-dtype float32 keeps the old path. Both train to similar errors."""

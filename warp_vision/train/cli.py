@@ -176,7 +176,8 @@ def _compare(argv: list[str]) -> int:
     p = ArgumentParser(prog="python -m warp_vision.train compare",
                        description="Plot several foveation (or face) runs' training and validation MSE curves in one figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
-    p.add_argument("--out", required=True, help="figure path (.png)")
+    p.add_argument("--out", required=True, help="figure path; its suffix picks the format (.png, .pdf, .svg, ...; "
+                                                 "none: PNG)")
     p.add_argument("--title", default="training and validation MSE", help="the figure's title (default: %(default)r)")
     a = _debug_flag(p).parse_args(argv)
 
@@ -190,6 +191,7 @@ def _compare(argv: list[str]) -> int:
         from warp_vision.train.rundir import a_run, read_metrics
 
         require_output(a.out, "--out", kind="file")
+        fmt = figure_format(a.out)
         hists = {}
         names = [Path(r).name for r in a.runs]
         for i, r in enumerate(a.runs):
@@ -207,10 +209,27 @@ def _compare(argv: list[str]) -> int:
                 raise ValueError(f"runs: {r} is given twice")
             hists[label] = read_metrics(m, need=("epoch", "train_mse", "val_mse"))
         fig = plot_curves(hists, a.title)
-        atomic_write(a.out, lambda f: fig.savefig(f, format="png", dpi=120, bbox_inches="tight"))
+        atomic_write(a.out, lambda f: fig.savefig(f, format=fmt, dpi=120, bbox_inches="tight"))
         print(f"wrote {a.out}")
 
     return _guarded(job, a.debug)
+
+
+def figure_format(path) -> str:
+    """The figure format a path's suffix names (png where it has none); a ValueError naming the formats
+    matplotlib writes for any other suffix (it wrote a PNG under ``curves.pdf``)."""
+    from pathlib import Path
+
+    from matplotlib.figure import Figure
+
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if not suffix:
+        return "png"
+    formats = Figure().canvas.get_supported_filetypes()
+    if suffix not in formats:
+        raise ValueError(f"--out {path}: .{suffix} is not a figure format matplotlib writes; "
+                         f"expected one of {', '.join('.' + f for f in sorted(formats))}, or no suffix (PNG)")
+    return suffix
 
 
 def _evaluate(argv: list[str]) -> int:
