@@ -107,7 +107,9 @@ def load_lens(run_dir: str, device: str = "cpu"):
 
 class Foveator:
     """An eye's trained foveation net (a liNet or the retina CNN): ONV [B, 3P] -> the ball's (yaw, pitch) in
-    the eye frame, rad."""
+    the eye frame, rad ([B, 2] numpy). What rendering an ONV for it takes comes with it, from the run's
+    dataset config: ``retina`` (its photoreceptors), ``trained_eye`` (the optics its training ONVs were
+    rendered through), ``samples_per_receptor``; and ``generator``, the dataset's version."""
 
     def __init__(self, run_dir: str, device: str = "cpu"):
         from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
