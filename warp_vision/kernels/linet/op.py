@@ -199,7 +199,8 @@ def _check_tensor(name: str, t: Any, rank: int, like: Tensor | None = None) -> N
         want = torch.float32 if like.dtype in _HALVES else like.dtype
         if t.dtype != want:
             why = f"float32 weights go with a {like.dtype} x" if like.dtype in _HALVES else "the dtype of x"
-            raise ValueError(f"{name}: expected dtype {want} ({why}), got {t.dtype}")
+            raise ValueError(f"{name}: expected dtype {want} ({why}), got {t.dtype}; convert x (x.to({t.dtype})) "
+                             f"or the layer (.to({want}))")
         if t.device != like.device:
             raise ValueError(f"{name}: expected device {like.device} (the device of x), got {t.device}")
 
