@@ -41,7 +41,7 @@ def stage_of(module: str) -> str:
     head = parts[1]
     if head == "__main__":
         return "index"
-    if head in ("frames", "fileio", "resources", "errors"):
+    if head in ("frames", "fileio", "resources", "errors", "provenance"):
         return "foundation"
     if head not in ALLOWED:
         raise AssertionError(f"{module}: in no stage; add its stage to ALLOWED and docs/ARCHITECTURE.md")

@@ -98,6 +98,8 @@ def test_smoke_preset_end_to_end(tmp_path, smoke_data, capsys):
     ck = torch.load(run / "best.pt", weights_only=True)
     assert {"model", "optimizer", "epoch", "norm", "config"} <= set(ck)
     assert summary["epochs"] == 3 and np.isfinite(summary["test_median_deg"])
+    saved = json.loads((run / "summary.json").read_text())
+    assert saved["software"]["warp_vision"] and saved["software"]["torch"]  # what code gave these numbers
     assert json.loads((run / "config.json").read_text())["preset"] == "smoke"
     assert train_main(["evaluate", str(run)]) == 0
     assert "angular error median" in capsys.readouterr().out

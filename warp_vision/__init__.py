@@ -8,3 +8,7 @@ import os as _os
 # This takes effect only when warp_vision is imported before torch; set the variable yourself to
 # choose otherwise.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from warp_vision.provenance import package_version as _package_version  # noqa: E402
+
+__version__ = _package_version()

@@ -179,7 +179,9 @@ def _bench(args) -> int:
         memory.plot(result, png)
         result["figure"] = png
         print(f"figure: {png}")
-    result = {"benchmark": args.bench, "machine": info, "seconds": time.time() - t0, **result}
+    from warp_vision.provenance import software
+
+    result = {"benchmark": args.bench, "machine": info, "software": software(), "seconds": time.time() - t0, **result}
     write_json(args.out, result)
     print(f"results: {args.out}")
     return 0

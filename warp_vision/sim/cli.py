@@ -42,6 +42,7 @@ import numpy as np
 
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
 from warp_vision.fileio import require_output, write_json
+from warp_vision.provenance import software
 from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.sim.scenarios import SETTLE_S, experiments, plot_experiments, run_scenario
 from warp_vision.sim.build import net_specs, refuse_missing_given, refuse_unused_given, setup_loop
@@ -428,7 +429,7 @@ def _run(args) -> None:
                 print(f"{mode:8s} {direction} steps ({f['steps']} eye-steps): in focus within {f['goal_s']} s: "
                       f"{f['in_focus_within_goal']}/{f['steps']}, median time to focus {_secs(f['median_in_focus_s'])}, "
                       f"median |defocus| at the end {f['median_abs_end_defocus_D']:.3f} D")
-        write_json(os.path.join(args.out, "intraocular.json"), result)
+        write_json(os.path.join(args.out, "intraocular.json"), {**result, "software": software()})
         print(f"wrote {os.path.join(args.out, 'intraocular.json')} and figures in {os.path.join(args.out, 'figures')}")
         return
     else:
@@ -438,7 +439,7 @@ def _run(args) -> None:
         figure = plot_experiments(traces, os.path.join(args.out, "figures", "experiments.png"),
                                   title=f"the {loop.ball} ball, gaze perception: {loop.perception}; "
                                         f"foveation nets {loop.fov['left'].run_dir} and {loop.fov['right'].run_dir}")
-    write_json(os.path.join(args.out, f"{args.command}.json"), result)
+    write_json(os.path.join(args.out, f"{args.command}.json"), {**result, "software": software()})
     print(json.dumps(result, indent=2))
     if args.command == "experiments":
         print(f"wrote {os.path.join(args.out, 'experiments.json')} and {figure}")

@@ -19,6 +19,7 @@ import numpy as np
 
 from warp_vision.body import SIDES, Body
 from warp_vision.fileio import write_json
+from warp_vision.provenance import software
 
 
 #: The interception video's camera: behind the body's left shoulder, the cannon at the left edge
@@ -295,7 +296,7 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
            "deflected_fraction": {m: r["deflected_fraction"] for m, r in results.items()},
            "perception_errors": seen, "limb_vision_heldout": heldout,
            "wall_s": wall, "timing_s": timing, "timing_shares": time_shares(timing, wall[loop_mode]),
-           "figures": figures}
+           "figures": figures, "software": software()}
     write_json(os.path.join(args.out, "intercept_stats.json"), out)
     print(f"\n{len(shots)} held-out shot(s) at the {args.side} arm (seeds {shots[0].seed}..{shots[-1].seed}):")
     print(f"{'mode':28s} {'deflected':>10s} {'fraction':>9s} {'median miss':>12s} {'median closest':>15s} {'wall s/shot':>12s}")

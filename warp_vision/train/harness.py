@@ -38,6 +38,7 @@ import torch.distributed as dist
 
 from warp_vision.data.store import waiting_for_writers
 from warp_vision.fileio import write_json
+from warp_vision.provenance import software
 from warp_vision.nn.trained import ONV_DTYPES, build_net, checkpoint_path, net_from_checkpoint, read_checkpoint
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
@@ -449,6 +450,7 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
             "train_precision": train_precision(model, device),
             "peak_rss_mib": peak_rss_mib(),
             "model_state_mib": 16 * n_params / 2**20,  # weights, gradients and Adam's two moments, float32
+            "software": software(),
         }
         write_json(out / "summary.json", summary)
         task.figures(out, h, test, test_ids)
