@@ -407,8 +407,8 @@ def test_the_data_command_refuses_a_dataset_the_disk_cannot_hold_before_renderin
     out = tmp_path / "d"
     assert data_main(["foveation", "--preset", "smoke", "--samples", "1000", "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert one_line_naming(err, str(out)) and "No space left for the dataset's missing chunks: it needs about 2 MiB, " \
-                                               "488 KiB are free" in err, err
+    assert one_line_naming(err, str(out)) and "No space left for the dataset's missing chunks: about 2 MiB needed, " \
+                                               "488 KiB free" in err, err
     assert not list(out.glob("chunk_*"))
 
 
@@ -421,8 +421,7 @@ def test_a_training_run_refuses_a_dataset_the_disk_cannot_hold_before_rendering(
     data = tmp_path / "d"
     code, err = cli(["--preset", "smoke", "--samples", "1000", "--out", str(tmp_path / "run"), "--data-dir", str(data)],
                     capsys)
-    assert code == 2 and "error: " + str(data) + ": No space left for the dataset: it needs about 2 MiB, 488 KiB are " \
-                         "free" in err, err
+    assert code == 2 and "error: " + str(data) + ": No space left for the dataset: about 2 MiB needed, 488 KiB free" in err, err
     assert not data.exists()
 
 

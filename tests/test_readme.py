@@ -49,8 +49,8 @@ def _help_argv(argv: list[str]) -> list[str]:
     module and its subcommand kept."""
     i = argv.index("-m") + 1
     module = argv[i]
-    rest = [a for a in argv[i + 1:] if not a.startswith("-")]
-    sub = rest[:1] if rest and re.fullmatch(r"[a-z]+", rest[0]) else []
+    nxt = argv[i + 1:i + 2]  # a subcommand comes right after the module (in "--preset smoke", smoke is a value)
+    sub = nxt if nxt and re.fullmatch(r"[a-z]+", nxt[0]) else []
     return [sys.executable, "-m", module, *sub, "--help"]
 
 

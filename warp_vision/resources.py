@@ -1,8 +1,9 @@
-"""How much memory this machine has left, and refusing work that cannot fit before it starts.
+"""How much memory and disk this machine has left, and refusing work that cannot fit before it starts.
 
 A size that would not fit (a retina of 10^9 photoreceptors, 10^9 rays per receptor, a dataset larger
 than the memory) is refused with a one-line ``ValueError`` that gives the estimate, the memory available and the option
-to lower, before anything is allocated.
+to lower, before anything is allocated; files that would not fit on their disk (a dataset's missing chunks, a run's
+checkpoints), with an ENOSPC ``OSError`` naming the directory, before they are rendered or trained.
 """
 
 from __future__ import annotations
@@ -74,6 +75,6 @@ def require_disk(nbytes: float, path, what: str) -> int:
     how much ``what`` needs when it is less than ``nbytes``."""
     free = free_disk_bytes(path)
     if nbytes > free:
-        raise OSError(errno.ENOSPC, f"No space left for {what}: it needs about {human_bytes(nbytes)}, "
-                                    f"{human_bytes(free)} are free", str(path))
+        raise OSError(errno.ENOSPC, f"No space left for {what}: about {human_bytes(nbytes)} needed, "
+                                    f"{human_bytes(free)} free", str(path))
     return free
