@@ -42,3 +42,13 @@ def test_a_command_runs_as_its_own_module_does(command):
 def test_the_exit_code_is_the_commands(tmp_path, capsys):
     assert main(["train", "evaluate", str(tmp_path / "nothing")]) == 2
     assert "no best.pt" in capsys.readouterr().err
+
+
+def test_version_names_the_package_and_its_commit(capsys, monkeypatch):
+    from warp_vision import __version__, provenance
+
+    monkeypatch.setattr(provenance, "commit", lambda: {"commit": "0123456789abcdef" * 2, "dirty": True})
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out == f"warp_vision {__version__} (commit 0123456789ab, with local changes)\n"
+    monkeypatch.setattr(provenance, "commit", lambda: None)
+    assert main(["--version"]) == 0 and capsys.readouterr().out == f"warp_vision {__version__}\n"

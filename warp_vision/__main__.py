@@ -21,16 +21,29 @@ COMMANDS = {
 def usage() -> str:
     width = max(map(len, COMMANDS))
     lines = ["usage: python -m warp_vision COMMAND [ARGS ...]   (the same as python -m warp_vision.COMMAND ARGS ...)",
+             "       python -m warp_vision --version",
              "", "commands:"]
     lines += [f"  {name:<{width}}  {what}" for name, what in COMMANDS.items()]
     lines += ["", "python -m warp_vision COMMAND --help says more; the README's quick start: python -m warp_vision.train"]
     return "\n".join(lines)
 
 
+def version_line() -> str:
+    """``warp_vision 0.1.0 (commit abc123def456, with local changes)``: what :mod:`warp_vision.provenance` records."""
+    from warp_vision.provenance import commit, package_version
+
+    c = commit()
+    where = "" if c is None else f" (commit {c['commit'][:12]}{', with local changes' if c['dirty'] else ''})"
+    return f"warp_vision {package_version()}{where}"
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if not argv or argv[0] in ("-h", "--help"):
         print(usage())
+        return 0
+    if argv[0] == "--version":
+        print(version_line())
         return 0
     name, rest = argv[0], argv[1:]
     if name not in COMMANDS:
