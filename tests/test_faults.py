@@ -425,6 +425,30 @@ def test_a_training_run_refuses_a_dataset_the_disk_cannot_hold_before_rendering(
     assert not data.exists()
 
 
+@pytest.mark.parametrize("flag", ["--conditions", "--misses"])
+def test_evaluating_a_read_only_run_is_refused_before_any_work(flag, finished, tmp_path, capsys, monkeypatch):
+    # --conditions rendered the held-out sets and evaluated every one, then failed to write conditions.json
+    # (its table unprinted); --misses printed its table and failed on the figure (measured on a read-only mount)
+    import warp_vision.data.foveation as F
+    import warp_vision.fileio as fio
+
+    run = copy_run(finished, tmp_path)
+    real = fio.probe_writable
+
+    def read_only(d):
+        if Path(d).resolve().is_relative_to(run.resolve()):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(d))
+        return real(d)
+
+    monkeypatch.setattr(fio, "probe_writable", read_only)
+    monkeypatch.setattr(F, "render_samples", lambda *a, **k: pytest.fail("rendered"))
+    before = sorted(p.name for p in run.rglob("*"))
+    code, err = cli(["evaluate", str(run), flag, *(["--samples", "10"] if flag == "--conditions" else [])], capsys)
+    assert code == 2 and one_line_naming(err, f"{run}: evaluate {flag} writes its results into the run directory, "
+                                              f"and nothing can be written there (Read-only file system)"), err
+    assert sorted(p.name for p in run.rglob("*")) == before
+
+
 def test_a_full_disk_while_checkpointing_leaves_a_consistent_run(data, tmp_path, capsys, monkeypatch):
     run = tmp_path / "run"
     foveation.run(resolve("smoke", {"out": str(run), "data_dir": str(data)}), **QUIET, stop_after_epoch=1)

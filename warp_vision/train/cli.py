@@ -232,6 +232,24 @@ def figure_format(path) -> str:
     return suffix
 
 
+def _refuse_unwritable_runs(run_dirs, flag: str) -> None:
+    """An OSError naming the first run directory (or its figures/) where nothing can be written: evaluate
+    ``flag`` writes its results there (it rendered the held-out sets, evaluated, and then failed to write)."""
+    from pathlib import Path
+
+    from warp_vision.fileio import probe_writable
+
+    for run in run_dirs:
+        if not (Path(run) / "config.json").exists():
+            continue  # (not a run: refused by name where it is read)
+        for d in (Path(run), Path(run) / "figures"):
+            try:
+                probe_writable(d)
+            except OSError as e:
+                raise OSError(e.errno, f"evaluate {flag} writes its results into the run directory, and nothing can be "
+                                       f"written there ({e.strerror}); evaluate a copy of the run", str(d)) from None
+
+
 def _evaluate(argv: list[str]) -> int:
     from warp_vision.nn.trained import saved_task
     from warp_vision.train.rundir import a_run
@@ -250,6 +268,8 @@ def _evaluate(argv: list[str]) -> int:
         p.error("--agreement: of two or more runs' own split, not with --misses or --conditions")
 
     def job():
+        if a.conditions or a.misses:  # (their table and figure go into each run: refused now, not after the renders)
+            _refuse_unwritable_runs(a.run_dirs, "--conditions" if a.conditions else "--misses")
         if a.conditions:
             from warp_vision.train.conditions import evaluate_conditions
 
