@@ -294,12 +294,18 @@ def test_every_task_config_shares_the_checks_and_the_default_out(cls, presets):
     assert resolve("smoke", {"out": "elsewhere"}, cls, presets).out == "elsewhere"
     with pytest.raises(ValueError, match="task: expected"):
         resolve("smoke", {"task": "foveation"}, cls, presets)
-    for bad in ({"val_fraction": 0.0}, {"test_fraction": 0.0}, {"val_fraction": 0.5, "test_fraction": 0.5}):
-        with pytest.raises(ValueError, match="val_fraction and test_fraction"):
+    # each named as what it is: "fractions that leave some training data" was said of a validation fraction of 0 too
+    for bad, says in (({"val_fraction": 0.0}, r"val_fraction: expected a fraction in \(0, 1\), got 0.0"),
+                      ({"test_fraction": 0.0}, r"test_fraction: expected a fraction in \(0, 1\), got 0.0"),
+                      ({"val_fraction": 0.5, "test_fraction": 0.5},
+                       r"val_fraction and test_fraction: 0.5 \+ 0.5 leave no training data; expected a sum < 1")):
+        with pytest.raises(ValueError, match=says):
             resolve("smoke", bad, cls, presets)
     with pytest.raises(ValueError, match="lr"):
         resolve("smoke", {"lr": float("nan")}, cls, presets)
     assert resolve("smoke", {"test_fraction": 0.0}).test_fraction == 0.0  # foveation's test split may be empty
+    with pytest.raises(ValueError, match=r"test_fraction: expected a fraction in \[0, 1\), got -0.1"):
+        resolve("smoke", {"test_fraction": -0.1})
 
 
 def test_presets_pick_the_scene_generator_and_model_and_the_help_says_so():

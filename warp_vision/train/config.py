@@ -61,9 +61,14 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
     require_seeds(cfg)
     if not cfg.lr > 0:
         raise ValueError(f"lr: expected > 0, got {cfg.lr}")
-    test_ok = 0 <= cfg.test_fraction < 1 if test_may_be_empty else 0 < cfg.test_fraction < 1
-    if not (0 < cfg.val_fraction < 1 and test_ok and cfg.val_fraction + cfg.test_fraction < 1):
-        raise ValueError("val_fraction and test_fraction: expected fractions that leave some training data")
+    if not 0 < cfg.val_fraction < 1:  # (early stopping and the best checkpoint are chosen on it)
+        raise ValueError(f"val_fraction: expected a fraction in (0, 1), got {cfg.val_fraction}")
+    if not (0 <= cfg.test_fraction < 1 if test_may_be_empty else 0 < cfg.test_fraction < 1):
+        interval = "[0, 1)" if test_may_be_empty else "(0, 1)"
+        raise ValueError(f"test_fraction: expected a fraction in {interval}, got {cfg.test_fraction}")
+    if not cfg.val_fraction + cfg.test_fraction < 1:
+        raise ValueError(f"val_fraction and test_fraction: {cfg.val_fraction} + {cfg.test_fraction} leave no "
+                         f"training data; expected a sum < 1")
     task = getattr(type(cfg), "task", None)  # the class's default: fixed per config class
     if task is not None and cfg.task != task:
         raise ValueError(f"task: expected {task!r}, got {cfg.task!r}")
