@@ -1006,3 +1006,14 @@ def test_compare_names_a_damaged_metrics_line(line, says, finished, tmp_path, ca
     (run / "metrics.jsonl").write_text("".join(x + "\n" for x in (run / "metrics.jsonl").read_text().splitlines()[:3]))
     assert cli(["compare", str(run), "--out", str(tmp_path / "c.png")], capsys)[0] == 0
     assert (tmp_path / "c.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("command, says", [
+    (["oculomotor", "--max-gaze-deg", "0"], r"max_gaze_deg: expected degrees in (0, 45], got 0.0"),
+    (["--max-field-deg", "0"], r"max_field_deg: expected degrees in (0, 80], got 0.0"),
+    (["lens", "--defocus-range-D", "0"], r"defocus_range_D: expected dioptres in (0, 5], got 0.0"),
+])
+def test_an_open_bound_is_said_to_be_open(command, says, tmp_path, capsys):
+    # "expected 0 to 45 degrees, got 0.0" refused the 0 it named as allowed
+    code, err = cli([*command, "--preset", "smoke", "--out", str(tmp_path / "run")], capsys)
+    assert code == 2 and says in err, err

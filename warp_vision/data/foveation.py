@@ -100,7 +100,7 @@ class FoveationDataConfig:
         if self.eye not in RETINA_SEEDS:
             raise ValueError(f"eye: expected one of {sorted(RETINA_SEEDS)}, got {self.eye!r}")
         if not 0 < self.max_field_deg <= 80:
-            raise ValueError(f"max_field_deg: expected 0 to 80 degrees, got {self.max_field_deg}")
+            raise ValueError(f"max_field_deg: expected degrees in (0, 80], got {self.max_field_deg}")
         if not 0 <= self.occluded_fraction <= 1:
             raise ValueError(f"occluded_fraction: expected 0 to 1, got {self.occluded_fraction}")
         if self.generator not in GENERATORS:

@@ -75,7 +75,7 @@ class PupilDataConfig:
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
         if not 0 < self.luminance_decades <= 8:
-            raise ValueError(f"luminance_decades: expected 0 to 8, got {self.luminance_decades}")
+            raise ValueError(f"luminance_decades: expected decades in (0, 8], got {self.luminance_decades}")
         if not 0 <= self.accommodation_D <= 10:
             raise ValueError(f"accommodation_D: expected 0 to 10 D, got {self.accommodation_D}")
 
@@ -229,7 +229,7 @@ class LensDataConfig:
         if not 0.5 <= self.central_deg <= 10:
             raise ValueError(f"central_deg: expected 0.5 to 10 degrees, got {self.central_deg}")
         if not 0 < self.defocus_range_D <= 5:
-            raise ValueError(f"defocus_range_D: expected 0 to 5 D, got {self.defocus_range_D}")
+            raise ValueError(f"defocus_range_D: expected dioptres in (0, 5], got {self.defocus_range_D}")
         lo, hi = self.pupil_range_mm
         if not 2 <= lo <= hi <= 8:
             raise ValueError(f"pupil_range_mm: expected 2 <= low <= high <= 8, got {self.pupil_range_mm}")

@@ -477,7 +477,7 @@ class NavarroEye:
         (their chief ray through the pupil is blocked), so layouts stop there.
         """
         if not 0.0 < fov_deg < 180.0:
-            raise ValueError(f"fov_deg: expected 0 to 180 degrees, got {fov_deg}")
+            raise ValueError(f"fov_deg: expected degrees in (0, 180), got {fov_deg}")
         rho = np.linspace(1e-3, np.radians(150.0), 1500)
         ang = self.field_angle_deg(rho, wavelength_nm)
         ok = np.isfinite(ang) & (ang <= 0.5 * fov_deg)

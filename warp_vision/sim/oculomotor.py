@@ -147,7 +147,7 @@ class HoldingDataConfig:
         if self.gazes < 4 or self.chunk_size < 1:
             raise ValueError(f"gazes: expected at least 4, got {self.gazes}")
         if not 0 < self.max_gaze_deg <= 45:
-            raise ValueError(f"max_gaze_deg: expected 0 to 45 degrees, got {self.max_gaze_deg}")
+            raise ValueError(f"max_gaze_deg: expected degrees in (0, 45], got {self.max_gaze_deg}")
 
     def manifest(self) -> dict:
         return {"generator": "holding_activations", "generator_version": HOLDING_VERSION, **asdict(self)}

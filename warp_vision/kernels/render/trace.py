@@ -152,7 +152,7 @@ def render_camera(
     if width < 1 or height < 1:
         raise ValueError(f"width, height: expected >= 1, got {width} x {height}")
     if not 0 < fov_deg < 180:
-        raise ValueError(f"fov_deg: expected 0 to 180, got {fov_deg}")
+        raise ValueError(f"fov_deg: expected degrees in (0, 180), got {fov_deg}")
     require_memory(width * height * 12, f"render_camera ({width:,} x {height:,})", "width and height")
     T = _poses("world_from_camera", world_from_camera, 1)
     _check_batch(scene, batch)
