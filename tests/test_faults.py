@@ -580,6 +580,7 @@ def test_sigterm_during_training_says_where_the_run_stands_and_resume_finishes_i
     code = p.wait()
     assert code == 143, lines
     assert any(x.startswith(f"interrupted: {run / 'latest.pt'}") for x in lines), lines
+    assert not any("stopped (SIGTERM)" in x for x in lines), lines  # its own line says it all
     assert train_main(["--resume", str(run), "--no-progress"]) == 0
     for name in ("latest.pt", "best.pt"):
         assert (run / name).read_bytes() == (finished / name).read_bytes(), name
@@ -1017,3 +1018,18 @@ def test_an_open_bound_is_said_to_be_open(command, says, tmp_path, capsys):
     # "expected 0 to 45 degrees, got 0.0" refused the 0 it named as allowed
     code, err = cli([*command, "--preset", "smoke", "--out", str(tmp_path / "run")], capsys)
     assert code == 2 and says in err, err
+
+
+def test_an_interrupted_command_says_so_unless_it_said_where_it_stopped(capsys):
+    # Ctrl-C in evaluate or a sim ended it without a word (exit 130; SIGTERM 143)
+    from warp_vision.errors import Terminated, guarded, told
+
+    def stop(e):
+        def job():
+            raise e
+        return job
+
+    assert guarded(stop(KeyboardInterrupt())) == 130 and capsys.readouterr().err == "interrupted (Ctrl-C)\n"
+    assert guarded(stop(Terminated("signal 15"))) == 143 and capsys.readouterr().err == "stopped (SIGTERM)\n"
+    assert guarded(stop(told(KeyboardInterrupt()))) == 130 and capsys.readouterr().err == ""
+    assert guarded(stop(told(Terminated("signal 15")))) == 143 and capsys.readouterr().err == ""

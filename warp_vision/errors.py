@@ -75,6 +75,13 @@ class Terminated(KeyboardInterrupt):
     synthesis helpers) stops the same way, and the command exits with 143 (128 + SIGTERM)."""
 
 
+def told(e: BaseException) -> BaseException:
+    """Mark an interruption whose command has told its user where things stand (a training run's
+    "interrupted: ..." line): :func:`guarded` then adds no line of its own. Returns ``e``."""
+    e.told = True
+    return e
+
+
 def _terminate(signum, _frame):
     raise Terminated(f"signal {signum}")
 
@@ -96,14 +103,19 @@ def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, in
     """Run ``job``: 0 when it returns (or its own int exit code); ValueError, OSError and the exception
     types in ``codes`` ({type: exit code}) print one ``error:`` line on stderr and return 2 (or their
     code), as does a failed allocation (:func:`out_of_memory`; other RuntimeErrors raise); Ctrl-C returns
-    130, SIGTERM 143 (:class:`Terminated`). With ``debug`` the errors raise, traceback and all."""
+    130, SIGTERM 143 (:class:`Terminated`), saying so in a line unless the command has said where it stopped
+    (:func:`told`). With ``debug`` the errors raise, traceback and all."""
     codes = codes or {}
     try:
         with sigterm_as_interrupt():
             r = job()
-    except Terminated:
+    except Terminated as e:
+        if not getattr(e, "told", False):
+            print("stopped (SIGTERM)", file=sys.stderr)
         return 128 + signal.SIGTERM
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
+        if not getattr(e, "told", False):  # (it used to end without a word)
+            print("interrupted (Ctrl-C)", file=sys.stderr)
         return 130
     except (ValueError, OSError, *codes) as e:
         if debug:

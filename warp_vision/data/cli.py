@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from warp_vision.data.foveation import FoveationDataConfig, synthesize
-from warp_vision.errors import ArgumentParser, add_debug_flag, field_help, guarded, preset_defaults
+from warp_vision.errors import ArgumentParser, add_debug_flag, field_help, guarded, preset_defaults, told
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, cls, presets: dict) -> None:
@@ -84,9 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     def report():
         try:
             out, store = job()
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:
             print("interrupted: the chunks written are kept; the same command carries on from them", file=sys.stderr)
-            raise
+            raise told(e)
         left = len(store.missing_chunks())
         print(f"{out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
               f"{'' if not left else f' ({left} chunks of this shard missing)'}")

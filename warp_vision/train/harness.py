@@ -37,6 +37,7 @@ import torch
 import torch.distributed as dist
 
 from warp_vision.data.store import waiting_for_writers
+from warp_vision.errors import told
 from warp_vision.fileio import write_json
 from warp_vision.provenance import software
 from warp_vision.nn.trained import ONV_DTYPES, build_net, checkpoint_path, net_from_checkpoint, read_checkpoint
@@ -503,9 +504,9 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
         workers = auto_workers(device, int(getattr(cfg, "samples", 0)))
     try:
         ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress, workers)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         say(_interrupted(out))
-        raise
+        raise told(e)
     t_data = time.perf_counter() - t_start
     spec = task.net_spec()
     if dd.rank == 0:
@@ -514,10 +515,10 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
     say(f"{task.describe(model)}; {len(ids[0]):,} train / {len(ids[1]):,} val / {len(ids[2]):,} test samples; device {device}")
     try:
         stopped = _epochs(task, net, model, opt, ids, norm, state, device, dd, progress, out, spec, stop_after_epoch)
-    except (KeyboardInterrupt, _Interrupt):
+    except (KeyboardInterrupt, _Interrupt) as e:
         say(_interrupted(out))
         if stop_after_epoch is None:
-            raise
+            raise told(e)
         return {"interrupted": True}
     say(stopped)
     summary = _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)
