@@ -268,7 +268,9 @@ def test_face_and_limb_runs_offer_only_the_models_they_train():
         assert next(a for a in p._actions if "--model" in a.option_strings).choices == own
     fov = argparse.ArgumentParser()
     add_arguments(fov)
-    assert "conv" in next(a for a in fov._actions if "--model" in a.option_strings).choices
+    assert next(a for a in fov._actions if "--model" in a.option_strings).choices == ["linet", "fc", "conv", "cnn"]
+    with pytest.raises(ValueError, match=re.escape("model: expected one of ['linet', 'fc', 'conv', 'cnn']")):
+        resolve("smoke", {"model": "range"})
 
 
 def _task_configs():

@@ -18,7 +18,7 @@ from warp_vision.errors import field_help, preset_defaults, require_seeds
 
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
-CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn", "range"], "eye": ["left", "right"],
+CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn"], "eye": ["left", "right"],
            "onv_dtype": ["auto", "float16", "bfloat16", "float32"], "precision": ["auto", "float32", "bfloat16"],
            "lr_schedule": ["cosine", "plateau", "constant"], "head": ["auto", "softargmax", "linear"],
            "input_norm": ["auto", "sample", "dataset"], "generator": [7, 8, 9],
@@ -177,9 +177,6 @@ class TrainConfig:
 
     def validate(self) -> None:
         _check_common(self, PRESETS, ("samples", "photoreceptors", "samples_per_receptor"), test_may_be_empty=True)
-        if self.model == "range":
-            raise ValueError("model: range is the limb vision task's (python -m warp_vision.train limb --model range); "
-                             "foveation: linet, fc, conv or cnn")
         if self.model == "fc" and self.head == "softargmax":
             raise ValueError("head: the fc baseline has no unit positions to vote with; use --head linear")
         if self.model in ("conv", "cnn") and self.head == "linear":
