@@ -9,6 +9,12 @@ import os as _os
 # choose otherwise.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from warp_vision.provenance import package_version as _package_version  # noqa: E402
 
-__version__ = _package_version()
+def __getattr__(name: str):
+    # __version__ read on first use: the distribution metadata lookup (~20 ms with its imports) stays off
+    # the import of every module of the package
+    if name == "__version__":
+        from warp_vision.provenance import package_version
+
+        return package_version()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -8,7 +8,7 @@ from typing import Callable
 
 import numpy as np
 
-from warp_vision.data.store import ChunkedStore
+from warp_vision.data.store import ChunkedStore, dataset_bytes
 
 
 def open_store(out_dir, manifest: dict, total: int, chunk_size: int, fields: dict, shard, retina, batch: int) -> ChunkedStore:
@@ -44,14 +44,13 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
     meanwhile is skipped."""
     from tqdm import tqdm
 
-    from warp_vision.data.store import dataset_bytes
     from warp_vision.fileio import probe_writable
     from warp_vision.resources import require_disk
 
     todo, mine = pending(store)
     if todo:
         probe_writable(store.root)  # a read-only or full directory fails now, not after the first chunk
-        require_disk(dataset_bytes(store.fields, todo), store.root, "the dataset's missing chunks")  # or a fuller one
+        require_disk(dataset_bytes(store.fields, todo), store.root, "the dataset's missing chunks")  # (a small disk, too)
     t0, skipped = time.perf_counter(), 0
     unit = "ONV" if what == "ONVs" else "sample"
     with tqdm(total=mine, initial=mine - todo, unit=unit, desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:

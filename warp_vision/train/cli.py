@@ -220,12 +220,12 @@ def figure_format(path) -> str:
     matplotlib writes for any other suffix (it wrote a PNG under ``curves.pdf``)."""
     from pathlib import Path
 
-    from matplotlib.figure import Figure
+    from matplotlib.backend_bases import FigureCanvasBase
 
     suffix = Path(path).suffix.lower().lstrip(".")
     if not suffix:
         return "png"
-    formats = Figure().canvas.get_supported_filetypes()
+    formats = FigureCanvasBase.get_supported_filetypes()
     if suffix not in formats:
         raise ValueError(f"--out {path}: .{suffix} is not a figure format matplotlib writes; "
                          f"expected one of {', '.join('.' + f for f in sorted(formats))}, or no suffix (PNG)")
