@@ -155,6 +155,10 @@ def test_cnn_bench_times_both_precisions_per_width_with_the_speedup(tmp_path):
     (["memory", "--sizes", "0"], "--sizes"),
     (["memory", "--sizes", "300", "--batch", "0"], "--batch"),
     (["memory", "--sizes", "300", "--budget-gib", "nan"], "--budget-gib"),
+    # these named two options for one ("--batch and --repeats: expected positive integers")
+    (["readout", "--batch", "4", "0"], "--batch: expected positive integers, got [4, 0]"),
+    (["cnn", "--channels", "0"], "--channels: expected positive integers, got [0]"),
+    (["cnn", "--batch", "2"], "--batch: expected at least 4 (four augmentation groups), got 2"),
 ])
 def test_bad_bench_settings_are_one_line_before_any_work(argv, said, tmp_path, capsys):
     from warp_vision.bench.cli import main

@@ -26,7 +26,7 @@ def test_no_command_prints_the_list(capsys):
 def test_a_mistyped_command_is_refused_with_the_nearest(capsys):
     assert main(["trian", "--preset", "smoke"]) == 2
     err = capsys.readouterr().err
-    assert "error: 'trian' is not a command (did you mean 'train'?); expected one of train, sim" in err, err
+    assert "error: 'trian' is not a command (did you mean 'train'?): expected one of train, sim" in err, err
 
 
 @pytest.mark.parametrize("command", ["scene", "data"])

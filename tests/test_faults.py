@@ -251,6 +251,40 @@ def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys)
     assert not list(tmp_path.iterdir())  # nothing rendered, trained or written
 
 
+@pytest.mark.parametrize("command, argv, says", [
+    # each was argparse's: "the following arguments are required: cmd" (the parser's field), "argument command:
+    # invalid choice: 'experiment' (choose from ...)", "unrecognized arguments: --photoreceptor 100"
+    ("scene", [], "expected a command: one of demo (python -m warp_vision.scene COMMAND --help says more)"),
+    ("sim", [], "expected a command: one of demo, experiments, intraocular, oculomotor, intercept"),
+    ("sim", ["experiment"], "'experiment' is not a command (did you mean 'experiments'?): expected one of demo, "),
+    ("bench", ["lnet"], "'lnet' is not a command (did you mean 'linet'?)"),
+    ("data", ["fovea"], "'fovea' is not a command (did you mean 'foveation'?): expected one of foveation, faces"),
+    ("scene", ["demo", "--photoreceptor", "100"], "unrecognized arguments: --photoreceptor 100 (did you mean "
+                                                   "--photoreceptors?)"),
+    ("sim", ["demo", "--shots", "5"], "unrecognized arguments: --shots 5 (--shots is an option of intercept)"),
+    ("data", ["faces", "--samples", "10"], "(--samples is an option of foveation)"),
+    ("bench", ["linet", "--batchs=3"], "unrecognized arguments: --batchs=3 (did you mean --batch?)"),
+    ("train", ["limb", "--epoch", "3"], "unrecognized arguments: --epoch 3 (did you mean --epochs?)"),
+    ("scene", ["demo", "--bogus"], "unrecognized arguments: --bogus\n"),  # nothing near: no guess
+])
+def test_a_missing_or_mistyped_command_or_flag_is_named_with_the_nearest(command, argv, says, capsys):
+    import importlib
+
+    with pytest.raises(SystemExit) as e:
+        importlib.import_module(f"warp_vision.{command}.cli").main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and says in err, err
+
+
+def test_the_eye_demo_names_the_one_bad_count(tmp_path, capsys):
+    from warp_vision.scene.cli import main
+
+    # was "--photoreceptors and --samples: expected positive integers", whichever of the two it was
+    assert main(["demo", "--samples", "0", "--out", str(tmp_path / "demo")]) == 2
+    assert "error: --samples: expected a positive integer, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
+
+
 def test_a_failed_allocation_is_one_line_and_other_runtime_errors_still_raise(capsys):
     from warp_vision.errors import guarded
 

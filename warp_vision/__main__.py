@@ -3,9 +3,10 @@ runs ``python -m warp_vision.COMMAND ...`` (the same arguments, the same exit co
 
 from __future__ import annotations
 
-import difflib
 import importlib
 import sys
+
+from warp_vision.errors import not_a_command
 
 #: command -> what it does (each a package with a ``cli.main(argv)``)
 COMMANDS = {
@@ -47,9 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     name, rest = argv[0], argv[1:]
     if name not in COMMANDS:
-        near = difflib.get_close_matches(name, COMMANDS, n=1)
-        print(f"{usage()}\n\nerror: {name!r} is not a command{f' (did you mean {near[0]!r}?)' if near else ''}; "
-              f"expected one of {', '.join(COMMANDS)}", file=sys.stderr)
+        print(f"{usage()}\n\nerror: {not_a_command(name, COMMANDS)}", file=sys.stderr)
         return 2
     return importlib.import_module(f"warp_vision.{name}.cli").main(rest)
 

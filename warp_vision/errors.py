@@ -10,8 +10,11 @@ Ctrl-C exits with 130; SIGTERM is taken as Ctrl-C is (the same clean stop) and e
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
 import dataclasses
+import difflib
+import re
 import signal
 import sys
 import threading
@@ -33,6 +36,63 @@ class ArgumentParser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        """argparse's error, with its words for a missing or mistyped subcommand replaced by ours: "the
+        following arguments are required: cmd" named the parser's internal field, and "invalid choice:
+        'experiment' (choose from ...)" left finding the nearest command to the user."""
+        sub = next((a for a in self._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if sub is not None:
+            names = list(sub.choices)
+            if message == f"the following arguments are required: {sub.dest}":
+                message = f"expected a command: one of {', '.join(names)} ({self.prog} COMMAND --help says more)"
+            m = re.fullmatch(rf"argument {re.escape(sub.dest)}: invalid choice: (.+?) \(choose from .*\)", message)
+            if m:
+                try:
+                    word = ast.literal_eval(m.group(1))
+                except (ValueError, SyntaxError):
+                    word = None
+                if isinstance(word, str):
+                    message = not_a_command(word, names)
+        super().error(message)
+
+    def parse_args(self, args=None, namespace=None):
+        """argparse's, naming the nearest option of the command for a mistyped flag (``--photoreceptor``:
+        did you mean --photoreceptors?) and the commands an option belongs to when it is another's."""
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}{self._hint(parsed, extras)}")
+        return parsed
+
+    def _hint(self, parsed: argparse.Namespace, extras: list[str]) -> str:
+        chosen, others = self, {}
+        while (sub := next((a for a in chosen._actions if isinstance(a, argparse._SubParsersAction)), None)):
+            name = getattr(parsed, sub.dest, None)
+            for other, p in sub.choices.items():
+                if other != name:
+                    for a in p._actions:
+                        for o in a.option_strings:
+                            others.setdefault(o, []).append(other)
+            if name not in sub.choices:
+                break
+            chosen = sub.choices[name]
+        own = [o for a in chosen._actions for o in a.option_strings if o.startswith("--")]
+        hints = []
+        for flag in (e.split("=", 1)[0] for e in extras if e.startswith("--")):
+            near = difflib.get_close_matches(flag, own, n=1, cutoff=0.75)  # (0.6 took --shots for --out)
+            if flag in others:
+                hints.append(f"{flag} is an option of {' and '.join(others[flag])}")
+            elif near:
+                hints.append(f"did you mean {near[0]}?")
+        return f" ({'; '.join(hints)})" if hints else ""
+
+
+def not_a_command(word: str, names, what: str = "a command") -> str:
+    """"'evalute' is not a command (did you mean 'evaluate'?): expected one of ...": the nearest of
+    ``names`` to a mistyped ``word``, when one is near."""
+    names = list(names)
+    near = difflib.get_close_matches(word, names, n=1)
+    return f"{word!r} is not {what}{f' (did you mean {near[0]!r}?)' if near else ''}: expected one of {', '.join(names)}"
 
 
 def add_debug_flag(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -67,6 +127,17 @@ def require_seeds(cfg) -> None:
     for f in dataclasses.fields(cfg):
         if f.name.endswith("seed") and getattr(cfg, f.name) < 0:
             raise ValueError(f"{f.name}: expected a seed >= 0, got {getattr(cfg, f.name)}")
+
+
+def require_positive(args: argparse.Namespace, names) -> None:
+    """Each option of ``names`` (an int, or a list of them) is positive, or a ValueError naming the option
+    and its value, before any work."""
+    for name in names:
+        value = getattr(args, name)
+        if min(value if isinstance(value, (list, tuple)) else [value]) < 1:
+            raise ValueError(f"--{name.replace('_', '-')}: expected positive integers, got {value}"
+                             if isinstance(value, (list, tuple)) else
+                             f"--{name.replace('_', '-')}: expected a positive integer, got {value}")
 
 
 class Terminated(KeyboardInterrupt):

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from warp_vision.bench.common import machine_info
-from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, require_positive
 from warp_vision.fileio import require_output, write_json
 
 
@@ -115,13 +115,6 @@ def _device(name: str) -> str:
     return dev
 
 
-def _require_positive(args, names) -> None:
-    """Each option of ``names`` is a positive integer, or a ValueError naming it (before any work)."""
-    for name in names:
-        if getattr(args, name) < 1:
-            raise ValueError(f"--{name.replace('_', '-')}: expected a positive integer, got {getattr(args, name)}")
-
-
 def _bench(args) -> int:
     if args.bench == "memory" and args.worker:
         from warp_vision.bench.memory import worker
@@ -136,15 +129,13 @@ def _bench(args) -> int:
     if args.bench == "linet":
         from warp_vision.bench import linet
 
-        if any(v < 1 for v in args.photoreceptors):
-            raise ValueError(f"--photoreceptors: expected positive integers, got {args.photoreceptors}")
-        _require_positive(args, ("batch", "reduction", "receptive_field", "repeats"))
+        require_positive(args, ("photoreceptors", "batch", "reduction", "receptive_field", "repeats"))
         result = linet.run(args.photoreceptors, args.batch, args.reduction, args.receptive_field, args.repeats,
                            device=device)
     elif args.bench == "raytrace":
         from warp_vision.bench import raytrace
 
-        _require_positive(args, ("photoreceptors", "samples", "batch", "repeats"))
+        require_positive(args, ("photoreceptors", "samples", "batch", "repeats"))
         result = raytrace.run(args.repeats, args.photoreceptors, args.samples, args.batch, device=device)
     elif args.bench == "readout":
         from warp_vision.bench import readout
@@ -152,14 +143,14 @@ def _bench(args) -> int:
 
         for n in args.views:
             consensus_transforms(n)  # (validates: 1 to 48)
-        if min(args.batch) < 1 or args.repeats < 1:
-            raise ValueError("--batch and --repeats: expected positive integers")
+        require_positive(args, ("batch", "repeats"))
         result = readout.run(args.views, args.batch, args.repeats, device=device)
     elif args.bench == "cnn":
         from warp_vision.bench import cnn
 
-        if min(args.channels) < 1 or args.batch < 4 or args.repeats < 1:
-            raise ValueError("--channels and --repeats: expected positive integers; --batch: at least 4 (four augmentation groups)")
+        require_positive(args, ("channels", "repeats"))
+        if args.batch < 4:
+            raise ValueError(f"--batch: expected at least 4 (four augmentation groups), got {args.batch}")
         result = cnn.run(args.channels, args.batch, args.repeats, device=device)
     elif args.bench == "loop":
         from warp_vision.bench import loop
@@ -169,9 +160,7 @@ def _bench(args) -> int:
         from warp_vision.bench import memory
 
         sizes = args.sizes or memory.DEFAULT_SIZES
-        if min(sizes) < 1:
-            raise ValueError(f"--sizes: expected positive integers, got {sizes}")
-        _require_positive(args, ("batch",))
+        require_positive(args, ("sizes", "batch") if args.sizes else ("batch",))
         if not (math.isfinite(args.budget_gib) and args.budget_gib > 0):
             raise ValueError(f"--budget-gib: expected a positive number, got {args.budget_gib}")
         result = memory.run(sizes, args.batch, args.budget_gib)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, require_positive
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -47,8 +47,7 @@ def _eye_demo(args) -> int:
     from warp_vision.kernels.render import render_camera, render_onv
     from warp_vision.scene.room import make_room
 
-    if args.photoreceptors < 1 or args.samples < 1:
-        raise ValueError("--photoreceptors and --samples: expected positive integers")
+    require_positive(args, ("photoreceptors", "samples"))
     device = require_device(args.device)
     require_output(args.out, "--out")
     out = Path(args.out)

@@ -18,12 +18,11 @@
 from __future__ import annotations
 
 import argparse
-import difflib
 import sys
 from dataclasses import fields
 
 from warp_vision.errors import add_debug_flag as _debug_flag
-from warp_vision.errors import ArgumentParser, guarded
+from warp_vision.errors import ArgumentParser, guarded, not_a_command
 from warp_vision.train import config as C
 from warp_vision.train import config_body as body
 from warp_vision.train import config_intraocular as intraocular
@@ -326,10 +325,8 @@ def parse_training(argv: list[str]):
         return name, cls, a, lambda: C.from_args(a, cls, presets)
     p = _train_parser()
     if argv and not argv[0].startswith("-"):  # a mistyped task or command: argparse called it an unknown argument
-        words = [*TASKS, "evaluate", "compare"]
-        near = difflib.get_close_matches(argv[0], words, n=1)
-        p.error(f"{argv[0]!r} is not a task or command{f' (did you mean {near[0]!r}?)' if near else ''}: "
-                f"expected one of {', '.join(words)}, or the foveation task's flags alone")
+        p.error(f"{not_a_command(argv[0], [*TASKS, 'evaluate', 'compare'], 'a task or command')}, "
+                f"or the foveation task's flags alone")
     a = p.parse_args(argv)
     return "foveation", C.TrainConfig, a, lambda: C.from_args(a)
 
