@@ -110,6 +110,19 @@ def test_a_flipped_bit_in_latest_pt_falls_back_on_resume(finished, tmp_path, cap
     assert [r["epoch"] for r in rows] == [1, 2, 3, 4]  # the damaged epoch 3 was trained again, no row twice
 
 
+def test_a_resumed_run_takes_no_epoch_cap_under_what_it_has_trained(finished, tmp_path, capsys):
+    # --epochs 2 after 3 epochs became the run's saved cap (config.json: 2 epochs, its summary 3)
+    run = copy_run(finished, tmp_path)
+    config = (run / "config.json").read_bytes()
+    code, err = cli(["--resume", str(run), "--epochs", "2"], capsys)
+    assert code == 2 and "--epochs 2: " in err and "has trained 3 epochs; expected 3 (end it now) or more" in err, err
+    assert (run / "config.json").read_bytes() == config
+    # a finished run resumed as it stands says why nothing is trained (it said only "max epochs")
+    assert train_main(["--resume", str(run), "--no-progress"]) == 0
+    assert "no epochs left to train (its cap is 3): its best checkpoint is evaluated again; --epochs N with N > 3" \
+        in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("damage", ["half", "empty", "clip100"])
 def test_a_damaged_latest_pt_gives_one_line_before_any_work(damage, finished, tmp_path, capsys, monkeypatch):
     def load(*a, **k):

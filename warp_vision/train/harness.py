@@ -388,6 +388,9 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
         if dd.rank == 0:
             sync_metrics(out, state.history)
         task.log(f"resuming {out} after epoch {ck['epoch'] + 1}")
+        if state.start_epoch >= cfg.epochs:  # (it said "max epochs" and evaluated again, without a word why)
+            task.log(f"no epochs left to train (its cap is {cfg.epochs}): its best checkpoint is evaluated again; "
+                     f"--epochs N with N > {state.start_epoch} trains it further")
     return (tr, va, te), norm, model, opt, state
 
 

@@ -106,6 +106,9 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         hold_run_dir(out)  # (before a checkpoint is read: another process may be writing them)
         with _released_on_error(out):
             ck = _usable_checkpoint(out, log)
+            if epochs is not None and ck is not None and epochs < ck["epoch"] + 1:  # (it became the saved cap)
+                raise ValueError(f"--epochs {epochs}: {resume} has trained {ck['epoch'] + 1} epochs; expected "
+                                 f"{ck['epoch'] + 1} (end it now) or more (train it further)")
     elif epochs is not None:
         raise ValueError("epochs: only a resumed run takes a new epoch cap; set it in the config otherwise")
     elif cfg is None:
