@@ -298,6 +298,25 @@ def test_the_eye_demo_names_the_one_bad_count(tmp_path, capsys):
     assert not (tmp_path / "demo").exists()
 
 
+def test_a_generator_is_given_as_the_docs_name_it_and_a_bad_count_by_its_name(capsys):
+    from warp_vision.data.cli import config_of, parser
+    from warp_vision.data.foveation import FoveationDataConfig
+    from warp_vision.sim.limb import LimbDataConfig
+    from warp_vision.train.cli import parse_training
+
+    for text in ("v8", "V8", "8"):  # "v8" was "argument --generator: invalid int value: 'v8'"
+        assert parse_training(["--generator", text])[3]().generator == 8
+        assert config_of("foveation", parser().parse_args(["foveation", "--generator", text])).generator == 8
+    with pytest.raises(SystemExit):
+        parse_training(["--generator", "eight"])
+    assert "expected a generator version, one of 7, 8, 9 (or v7 ...), got 'eight'" in capsys.readouterr().err
+    # each named all four counts whichever it was: "samples, photoreceptors, samples_per_receptor and chunk_size
+    # must be positive"
+    for cls in (FoveationDataConfig, LimbDataConfig):
+        with pytest.raises(ValueError, match=r"^chunk_size: expected a positive integer, got 0$"):
+            cls(chunk_size=0).validate()
+
+
 def test_a_failed_allocation_is_one_line_and_other_runtime_errors_still_raise(capsys):
     from warp_vision.errors import guarded
 

@@ -129,15 +129,16 @@ def require_seeds(cfg) -> None:
             raise ValueError(f"{f.name}: expected a seed >= 0, got {getattr(cfg, f.name)}")
 
 
-def require_positive(args: argparse.Namespace, names) -> None:
-    """Each option of ``names`` (an int, or a list of them) is positive, or a ValueError naming the option
-    and its value, before any work."""
+def require_positive(args, names, flags: bool = True) -> None:
+    """Each attribute of ``args`` in ``names`` (an int, or a list of them) is positive, or a ValueError naming
+    it and its value, before any work: as the command line's option (``--chunk-size``), or with ``flags``
+    False as a config's field (``chunk_size``)."""
     for name in names:
         value = getattr(args, name)
+        label = f"--{name.replace('_', '-')}" if flags else name
         if min(value if isinstance(value, (list, tuple)) else [value]) < 1:
-            raise ValueError(f"--{name.replace('_', '-')}: expected positive integers, got {value}"
-                             if isinstance(value, (list, tuple)) else
-                             f"--{name.replace('_', '-')}: expected a positive integer, got {value}")
+            raise ValueError(f"{label}: expected positive integers, got {value}" if isinstance(value, (list, tuple))
+                             else f"{label}: expected a positive integer, got {value}")
 
 
 class Terminated(KeyboardInterrupt):

@@ -17,7 +17,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from warp_vision.data.foveation import FoveationDataConfig, synthesize
+from warp_vision.data.foveation import FoveationDataConfig, generator_flag, synthesize
 from warp_vision.errors import ArgumentParser, add_debug_flag, field_help, guarded, preset_defaults, told
 
 
@@ -27,7 +27,8 @@ def _add_config_flags(parser: argparse.ArgumentParser, cls, presets: dict) -> No
     defaults = cls()
     for fld in dataclasses.fields(cls):
         value = getattr(defaults, fld.name)
-        parser.add_argument(f"--{fld.name.replace('_', '-')}", type=type(value), default=None,
+        parser.add_argument(f"--{fld.name.replace('_', '-')}", default=None,
+                            type=generator_flag if fld.name == "generator" else type(value),
                             help=f"{field_help(cls, fld.name)} ({preset_defaults(presets, fld.name, value)})")
     parser.add_argument("--out", default=None,
                         help="dataset directory (default: runs/datasets/<kind>-<config hash>, where the training run "

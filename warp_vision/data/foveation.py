@@ -35,7 +35,7 @@ import numpy as np
 
 from warp_vision.data.foveation_scenes import field_direction, occluder_pose
 from warp_vision.data.store import ChunkedStore
-from warp_vision.errors import require_seeds
+from warp_vision.errors import require_positive, require_seeds
 from warp_vision.frames import gaze_angles, gaze_directions, look_rotation
 
 #: The scene generators (bump the newest when a generator changes what a config renders: datasets are
@@ -47,6 +47,20 @@ GENERATORS = (7, 8, 9)
 #: The generator a config uses unless it says otherwise: v7, so configs saved before the field existed
 #: read as v7's; the training presets choose v9 (warp_vision.train.config.PRESETS).
 GENERATOR_VERSION = 7
+
+
+def generator_flag(text: str) -> int:
+    """``--generator``'s value: a version as the docs name it, ``9`` or ``v9`` (``v9`` was "invalid int value")."""
+    import argparse
+
+    t = text.strip()
+    t = t[1:] if t[:1] in ("v", "V") else t
+    if not t.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a generator version, one of {', '.join(map(str, GENERATORS))} "
+                                          f"(or v{GENERATORS[0]} ...), got {text!r}")
+    return int(t)
+
+
 #: The dataset each training preset trains on (``python -m warp_vision.train --preset NAME``), as the settings
 #: it changes from :class:`FoveationDataConfig`'s defaults: ``warp_vision.train.config.PRESETS`` is built on
 #: these, and ``python -m warp_vision.data foveation --preset NAME`` builds the same dataset.
@@ -95,8 +109,7 @@ class FoveationDataConfig:
         from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
 
         require_seeds(self)
-        if self.samples < 1 or self.photoreceptors < 1 or self.samples_per_receptor < 1 or self.chunk_size < 1:
-            raise ValueError("samples, photoreceptors, samples_per_receptor and chunk_size must be positive")
+        require_positive(self, ("samples", "photoreceptors", "samples_per_receptor", "chunk_size"), flags=False)
         if self.eye not in RETINA_SEEDS:
             raise ValueError(f"eye: expected one of {sorted(RETINA_SEEDS)}, got {self.eye!r}")
         if not 0 < self.max_field_deg <= 80:

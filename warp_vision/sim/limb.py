@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from warp_vision.data.store import ChunkedStore
-from warp_vision.errors import require_seeds
+from warp_vision.errors import require_positive, require_seeds
 from warp_vision.frames import gaze_direction, line_crossing, look_rotation
 
 #: The generator's version: bump it when the samples change.
@@ -85,8 +85,7 @@ class LimbDataConfig:
         require_seeds(self)
         if self.eye not in SIDES:
             raise ValueError(f"eye: expected one of {SIDES}, got {self.eye!r}")
-        if self.samples < 1 or self.photoreceptors < 1 or self.samples_per_receptor < 1 or self.chunk_size < 1:
-            raise ValueError("samples, photoreceptors, samples_per_receptor and chunk_size must be positive")
+        require_positive(self, ("samples", "photoreceptors", "samples_per_receptor", "chunk_size"), flags=False)
         if self.rooms not in ROOM_FAMILIES:
             raise ValueError(f"rooms: expected one of {sorted(ROOM_FAMILIES)}, got {self.rooms!r}")
         if self.shots not in SHOT_SPLITS:

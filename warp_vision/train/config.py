@@ -13,7 +13,7 @@ from typing import ClassVar
 
 from warp_vision.data.faces import PRESET_DATA as FACE_DATA
 from warp_vision.data.foveation import PRESET_DATA as FOVEATION_DATA
-from warp_vision.data.foveation import FoveationDataConfig
+from warp_vision.data.foveation import FoveationDataConfig, generator_flag
 from warp_vision.errors import field_help, preset_defaults, require_seeds
 
 
@@ -326,7 +326,7 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
             continue
         p.add_argument(
             f"--{f.name.replace('_', '-')}",
-            type=type(value),
+            type=generator_flag if f.name == "generator" else type(value),
             default=None,
             help=f"{field_help(cls, f.name)} ({preset_defaults(presets, f.name, value)})",
             **extra,
