@@ -282,6 +282,25 @@ def _task_configs():
             (config_intraocular.LensTrainConfig, config_intraocular.LENS_PRESETS)]
 
 
+@pytest.mark.parametrize("task", ["foveation", "faces", "oculomotor", "arm", "limb", "pupil", "lens"])
+def test_each_training_command_groups_its_flags_by_what_they_set(task):
+    """--help listed some 40 flags in one block; now under the config's sections, every flag in one of them."""
+    from warp_vision.train.cli import _task_parser, _train_parser
+
+    p = _train_parser() if task == "foveation" else _task_parser(task)
+    titles = [g.title for g in p._action_groups]
+    assert titles[-4:] == ["the run", "the dataset", "the model", "optimisation"] or (
+        task in ("limb", "pupil", "lens") and titles[-4] == "the run" and titles[-3].startswith("the dataset (")), titles
+    placed = {g.title: {o for a in g._group_actions for o in a.option_strings} for g in p._action_groups}
+    assert {"--preset", "--out", "--device", "--resume", "--overwrite", "--workers", "--debug"} <= placed["the run"]
+    assert "--batch" in placed["optimisation"] and "--lr" in placed["optimisation"]
+    assert any("--photoreceptors" in v or "--gazes" in v or "--postures" in v for k, v in placed.items()
+               if k.startswith("the dataset"))
+    assert placed[p._optionals.title] == {"-h", "--help"}  # every other flag sits in a section
+    help_text = p.format_help()
+    assert "\nthe run:\n" in help_text and "\noptimisation:\n" in help_text
+
+
 @pytest.mark.parametrize("cls, presets", _task_configs(), ids=lambda x: getattr(x, "__name__", ""))
 def test_every_task_config_shares_the_checks_and_the_default_out(cls, presets):
     """Each task's config refuses another task's name, fractions that leave no training data (a test

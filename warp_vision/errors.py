@@ -113,6 +113,22 @@ def field_help(cls, name: str) -> str:
     return ""
 
 
+def field_sections(cls) -> dict[str, str]:
+    """Field -> the section of dataclass ``cls`` it stands in: the comment line heading it in the source
+    (``# the dataset``, ``# optimisation``); "the run" for the fields before the first. A config's --help
+    groups its flags by these."""
+    import inspect
+
+    names = {f.name for f in dataclasses.fields(cls)}
+    section, sections = "the run", {}
+    for line in inspect.getsource(cls).splitlines():
+        if line.startswith("    # "):
+            section = line[6:].strip()
+        elif line.startswith("    ") and not line.startswith("     ") and line[4:].split(":", 1)[0] in names:
+            sections[line[4:].split(":", 1)[0]] = section
+    return sections
+
+
 def preset_defaults(presets: dict, name: str, value) -> str:
     """The default preset's value of field ``name`` and the other presets' where they differ, for --help:
     "default: 8; --preset smoke: 7" (``value``: the field's own default, kept by a preset that does not set it)."""

@@ -28,8 +28,10 @@ from warp_vision.train import config_body as body
 from warp_vision.train import config_intraocular as intraocular
 
 
-def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The flags every training command has besides its config's."""
+def _run_flags(p: argparse.ArgumentParser, groups: dict) -> argparse.ArgumentParser:
+    """The flags every training command has besides its config's, in its "the run" group (``groups``:
+    :func:`config.add_arguments`'s)."""
+    p, parser = groups.get("the run", p), p
     p.add_argument("--resume", metavar="RUN_DIR", default=None,
                    help="continue the stopped run in RUN_DIR exactly, with the settings of its config.json (other "
                         "settings are refused; one stopped before its first epoch ended starts "
@@ -41,7 +43,8 @@ def _run_flags(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="processes that synthesise a missing dataset (foveation and limb runs; the dataset is the same "
                         "for any N); default auto: one per CPU core, at most 8, for a dataset of 1,000 samples or more (else 1; "
                         "1 on a GPU; under torchrun each rank renders its own shard)")
-    return _debug_flag(p)
+    _debug_flag(p)
+    return parser
 
 
 def _workers(text: str):
@@ -72,8 +75,7 @@ def _train_parser() -> argparse.ArgumentParser:
             "'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )
-    C.add_arguments(p)
-    return _run_flags(p)
+    return _run_flags(p, C.add_arguments(p))
 
 
 #: the commands that train a task besides the default (foveation): name -> (module, config class, its presets, description)
@@ -118,8 +120,7 @@ TASKS = {
 def _task_parser(name: str) -> argparse.ArgumentParser:
     _, cls, presets, description = TASKS[name]
     p = ArgumentParser(prog=f"python -m warp_vision.train {name}", description=description)
-    C.add_arguments(p, cls, presets)
-    return _run_flags(p)
+    return _run_flags(p, C.add_arguments(p, cls, presets))
 
 
 def _eval_parser() -> argparse.ArgumentParser:

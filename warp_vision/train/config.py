@@ -14,7 +14,7 @@ from typing import ClassVar
 from warp_vision.data.faces import PRESET_DATA as FACE_DATA
 from warp_vision.data.foveation import PRESET_DATA as FOVEATION_DATA
 from warp_vision.data.foveation import FoveationDataConfig, generator_flag
-from warp_vision.errors import field_help, preset_defaults, require_seeds
+from warp_vision.errors import field_help, field_sections, preset_defaults, require_seeds
 
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
@@ -142,6 +142,7 @@ class TrainConfig:
     val_fraction: float = 0.1
     test_fraction: float = 0.1
     seed: int = 0  # initialisation and shuffling
+    # the run
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.
@@ -260,6 +261,7 @@ class FaceTrainConfig:
     test_fraction: float = 0.2
     shuffle_labels: bool = False  # sanity check: train on identities and poses shuffled across the training ONVs
     seed: int = 0  # initialisation and shuffling
+    # the run
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
 
     def data_config(self):
@@ -306,31 +308,42 @@ def resolve(preset: str, overrides: dict, cls=None, presets: dict | None = None)
     return cfg
 
 
-def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = None) -> None:
-    """One ``--flag`` per field of ``cls`` (TrainConfig by default; default None: the preset decides)."""
+def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = None) -> dict:
+    """One ``--flag`` per field of ``cls`` (TrainConfig by default; default None: the preset decides), in
+    groups by the config's sections (:func:`warp_vision.errors.field_sections`: "the run", "the dataset", "the
+    model", "optimisation"). Returns {section title: its argument group}."""
     cls = cls or TrainConfig
     presets = PRESETS if presets is None else presets
     defaults = cls()
+    sections, groups = field_sections(cls), {}
+
+    def group(name: str):
+        title, _, about = sections.get(name, "the run").partition(": ")
+        if title not in groups:
+            groups[title] = p.add_argument_group(title, about or None)
+        return groups[title]
+
     for f in fields(cls):
         if f.name == "task":  # fixed per config class, not a choice
             continue
         if f.name == "preset":
-            p.add_argument("--preset", choices=sorted(presets), default="default", help=field_help(cls, f.name))
+            group(f.name).add_argument("--preset", choices=sorted(presets), default="default", help=field_help(cls, f.name))
             continue
         value = getattr(defaults, f.name)
         choices = getattr(cls, "CHOICES", CHOICES)
         extra = {"choices": choices[f.name]} if f.name in choices else {}
         if isinstance(value, bool):
-            p.add_argument(f"--{f.name.replace('_', '-')}", action="store_const", const=True, default=None,
-                           help=f"{field_help(cls, f.name)} (default: off)")
+            group(f.name).add_argument(f"--{f.name.replace('_', '-')}", action="store_const", const=True,
+                                       default=None, help=f"{field_help(cls, f.name)} (default: off)")
             continue
-        p.add_argument(
+        group(f.name).add_argument(
             f"--{f.name.replace('_', '-')}",
             type=generator_flag if f.name == "generator" else type(value),
             default=None,
             help=f"{field_help(cls, f.name)} ({preset_defaults(presets, f.name, value)})",
             **extra,
         )
+    return groups
 
 
 def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):

@@ -35,6 +35,7 @@ class OculomotorTrainConfig:
     test_fraction: float = 0.15  # of the gazes: transitions among them, and the body check, measure the net
     seed: int = 0  # gaze sampling, initialisation and shuffling
     body_checks: int = 100  # held-out saccades settled on the body to measure the net (and a quarter as many pursuit chains)
+    # the run
     device: str = "cpu"  # cpu, cuda, or auto (a small MLP: the CPU is as fast)
 
     def data_config(self):
@@ -90,6 +91,7 @@ class ArmTrainConfig:
     seed: int = 0  # posture sampling, initialisation and shuffling
     body_checks: int = 60  # held-out reaches (and posture holds) simulated on the body to measure the nets
     skip_teacher_feedback: bool = False  # do not measure the exact static optimisation in closed loop (the nets' teacher; the slowest check)
+    # the run
     device: str = "cpu"  # cpu, cuda, or auto (small MLPs: the CPU is as fast)
 
     def data_config(self):
@@ -160,6 +162,7 @@ class LimbTrainConfig:
     val_fraction: float = 0.1
     test_fraction: float = 0.1
     seed: int = 0  # initialisation and shuffling
+    # the run
     device: str = "auto"  # cpu, cuda, or auto
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.

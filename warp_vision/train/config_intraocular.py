@@ -37,6 +37,7 @@ class PupilTrainConfig:
     val_fraction: float = 0.1
     test_fraction: float = 0.1
     seed: int = 0  # data, initialisation and shuffling
+    # the run
     device: str = "cpu"  # cpu, cuda, or auto (a small net: the CPU is as fast)
 
     def data_config(self):
@@ -91,6 +92,7 @@ class LensTrainConfig:
     val_fraction: float = 0.1
     test_fraction: float = 0.1
     seed: int = 0  # data, initialisation and shuffling
+    # the run
     device: str = "cpu"  # cpu, cuda, or auto (a small net: the CPU is as fast)
 
     def data_config(self):
