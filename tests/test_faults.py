@@ -9,6 +9,7 @@ everywhere); a missing device; a non-finite option; a run moved to another worki
 
 from __future__ import annotations
 
+import argparse
 import errno
 import hashlib
 import json
@@ -163,6 +164,23 @@ def test_load_net_verifies_the_checkpoint(finished, tmp_path):
     flip_bit_in_tensor(run / "best.pt", ["model", "head.weight"])
     with pytest.raises(ValueError, match="best.pt.*checksum"):
         load_net(run)
+
+
+def test_a_file_that_is_no_checkpoint_is_named_as_such(finished, tmp_path):
+    # torch's words for either advised "re-running torch.load with weights_only set to False"
+    from warp_vision.nn.trained import read_checkpoint
+
+    text, foreign, cut = tmp_path / "notes.pt", tmp_path / "foreign.pt", tmp_path / "cut.pt"
+    text.write_text("not a checkpoint\n")
+    torch.save({"model": argparse.Namespace(lr=0.1)}, foreign)  # an object a weights-only load refuses
+    cut.write_bytes((finished / "best.pt").read_bytes()[:-100])
+    for path in (text, cut):
+        with pytest.raises(ValueError, match=r"not a readable checkpoint: not a whole zip archive as torch.save writes"):
+            read_checkpoint(path)
+    with pytest.raises(ValueError, match=r"foreign.pt: not a checkpoint of this package: it holds objects that a "
+                                         r"weights-only load refuses") as e:
+        read_checkpoint(foreign)
+    assert "weights_only" not in str(e.value)
 
 
 def test_identical_runs_give_identical_checkpoints(data, tmp_path):

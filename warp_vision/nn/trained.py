@@ -17,6 +17,8 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import pickle
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -194,9 +196,15 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such checkpoint")
+    if path.is_file() and not zipfile.is_zipfile(path):  # (torch's own words for a text file advised weights_only=False)
+        raise ValueError(f"{path}: not a readable checkpoint: not a whole zip archive as torch.save writes "
+                         f"(truncated, or another kind of file)")
     try:
         ck = torch.load(path, weights_only=True, map_location=map_location)
-    except Exception as e:  # a truncated or foreign file: torch raises many kinds
+    except pickle.UnpicklingError:  # a zip archive whose pickle holds more than tensors and plain values
+        raise ValueError(f"{path}: not a checkpoint of this package: it holds objects that a weights-only load "
+                         f"refuses (torch.save of other code)") from None
+    except Exception as e:  # a damaged archive: torch raises many kinds
         what = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise ValueError(f"{path}: not a readable checkpoint ({what})") from None
     seal_ = ck.get("integrity") if isinstance(ck, dict) else None
