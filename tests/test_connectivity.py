@@ -52,6 +52,20 @@ def test_onv_positions_repeat_each_photoreceptor_three_times():
         onv_positions(np.zeros((4, 3)))
 
 
+def test_a_retina_given_for_positions_is_told_which_to_pass():
+    # it was "in_positions: expected shape [N, 2] with N >= 1, got shape ()"
+    from warp_vision.eye.retina import Retina
+    from warp_vision.nn import LiNet
+
+    retina = Retina.log_polar(100)
+    with pytest.raises(ValueError, match=r"in_positions: expected positions \[N, 2\], got a Retina: pass "
+                                         r"retina.domain_xy .* or onv_positions\(retina.domain_xy\)"):
+        LiNet(retina, layers=2)
+    with pytest.raises(ValueError, match="photoreceptor_xy: expected positions"):
+        onv_positions(retina)
+    assert LiNet(onv_positions(retina.domain_xy), layers=2, receptive_field=4).in_features == 300
+
+
 def test_layer_sizes_are_floor_of_previous_over_f(onv_pos):
     conns = build_connectivity(onv_pos, layers=4, receptive_field=[7, 6, 5, 4], reduction=3.5, seed=2)
     sizes = [len(onv_pos)]
