@@ -68,8 +68,11 @@ def test_locally_connected_buffers_init_and_forward():
     torch.testing.assert_close(layer(x), torch.tensor([[24.5, 1.0, -4.0, 14.0]], dtype=torch.float64))
     layer.relu = True
     torch.testing.assert_close(layer(x), torch.tensor([[24.5, 1.0, 0.0, 14.0]], dtype=torch.float64))
-    with pytest.raises(ValueError, match="x"):
+    with pytest.raises(ValueError, match=r"x: expected shape \[B, 5\], got \(1, 6\)"):
         layer(torch.ones(1, 6, dtype=torch.float64))
+    # a numpy batch was "expected shape [B, 5], got ndarray"
+    with pytest.raises(ValueError, match=r"x: expected a torch tensor \[B, 5\], got a ndarray \(torch.from_numpy\(x\)\)"):
+        layer(np.ones((1, 5)))
 
 
 def test_locally_connected_he_init_and_seeded_reset():

@@ -114,9 +114,11 @@ class LocallyConnected(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """x [B, in_features] (the parameters' dtype, or float16/bfloat16 with float32 parameters) -> y
         [B, out_features] in the parameters' dtype, on their device."""
-        if not isinstance(x, Tensor) or x.dim() != 2 or x.shape[1] != self.in_features:
-            got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-            raise ValueError(f"x: expected shape [B, {self.in_features}], got {got}")
+        if not isinstance(x, Tensor):  # (a numpy batch was "expected shape [B, N], got ndarray")
+            hint = " (torch.from_numpy(x))" if isinstance(x, np.ndarray) else ""
+            raise ValueError(f"x: expected a torch tensor [B, {self.in_features}], got a {type(x).__name__}{hint}")
+        if x.dim() != 2 or x.shape[1] != self.in_features:
+            raise ValueError(f"x: expected shape [B, {self.in_features}], got {tuple(x.shape)}")
         w, b = self.weight, self.bias
         if self.folds_input:
             w = self.weight / self.input_std
