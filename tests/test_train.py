@@ -530,6 +530,17 @@ def test_the_misses_are_broken_down_by_the_balls_signal_and_where_the_estimates_
     assert "photoreceptors on the ball" not in without and "estimate lands on" not in without
 
 
+@pytest.mark.parametrize("argv, says", [
+    (["--samples", "10"], "--samples: the ONVs of each held-out set of --conditions"),  # was ignored without a word
+    (["--conditions", "--split", "val"], "--split val: of a run's own split; --conditions measures held-out sets"),
+    (["--signal"], "--signal: a part of --misses"),
+])
+def test_evaluate_refuses_a_flag_its_evaluation_would_not_read(argv, says, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        train_main(["evaluate", str(tmp_path / "run"), *argv])
+    assert e.value.code == 2 and says in capsys.readouterr().err
+
+
 def test_evaluate_signal_renders_the_split_again_for_v8_and_v9_runs(tmp_path, smoke_data, capsys):
     """--signal: a v9 run's misses by the balls' signal; refused without --misses and for a v7 run."""
     cfg = smoke(tmp_path, tmp_path / "data9", generator=9, samples=48, epochs=1)

@@ -153,7 +153,7 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "pair: both more than 5 degrees off, against what independent nets would give; the share of "
                         "one's misses the other shares; both on the same wrong thing), and the share off if the best "
                         "net were taken for every ball")
-    p.add_argument("--samples", type=int, default=400, help="ONVs per held-out condition (default 400)")
+    p.add_argument("--samples", type=int, default=None, help="with --conditions: ONVs per held-out condition (default 400)")
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="foveation CNN runs: read the net out by the consensus of N turned and mirrored views instead "
                         "of its own (default: its spec's, 8; 1: the plain image alone)")
@@ -266,6 +266,10 @@ def _evaluate(argv: list[str]) -> int:
         p.error("--signal: a part of --misses")
     if a.agreement and (a.misses or a.conditions or len(a.run_dirs) < 2):
         p.error("--agreement: of two or more runs' own split, not with --misses or --conditions")
+    if a.samples is not None and not a.conditions:  # (it was ignored without a word)
+        p.error("--samples: the ONVs of each held-out set of --conditions; a run's own split has its own")
+    if a.split != "test" and a.conditions:
+        p.error(f"--split {a.split}: of a run's own split; --conditions measures held-out sets of its own")
 
     def job():
         if a.conditions or a.misses:  # (their table and figure go into each run: refused now, not after the renders)
@@ -273,7 +277,8 @@ def _evaluate(argv: list[str]) -> int:
         if a.conditions:
             from warp_vision.train.conditions import evaluate_conditions
 
-            evaluate_conditions(a.run_dirs, a.samples, progress=not a.no_progress, views=a.views, checkpoint=a.checkpoint)
+            evaluate_conditions(a.run_dirs, **({} if a.samples is None else {"samples": a.samples}),
+                                progress=not a.no_progress, views=a.views, checkpoint=a.checkpoint)
             return
         if a.agreement:
             from warp_vision.train.foveation import evaluate_agreement
