@@ -314,6 +314,10 @@ def test_the_eye_demo_names_the_one_bad_count(tmp_path, capsys):
     assert main(["demo", "--samples", "0", "--out", str(tmp_path / "demo")]) == 2
     assert "error: --samples: expected a positive integer, got 0" in capsys.readouterr().err
     assert not (tmp_path / "demo").exists()
+    # was "pupil_diameter_mm: expected 1 to 9 mm", the eye's parameter, and the --out directory made, empty
+    assert main(["demo", "--pupil", "0.5", "--out", str(tmp_path / "demo")]) == 2
+    assert "error: --pupil: expected 1 to 9 mm, got 0.5" in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
 
 
 def test_a_generator_is_given_as_the_docs_name_it_and_a_bad_count_by_its_name(capsys):
@@ -464,6 +468,14 @@ def test_an_output_where_nothing_can_be_made_is_refused_whatever_the_mode_says(t
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+def test_a_dataset_directory_where_nothing_can_be_made_is_refused_before_the_run_is_claimed(data, tmp_path, capsys):
+    # it was "No space left for the dataset: about 378 KiB needed, 0 KiB free", after --out was claimed
+    code, err = cli(["--preset", "smoke", "--data-dir", "/proc/warp_vision_data", "--out", str(tmp_path / "run")], capsys)
+    assert code == 2 and "--data-dir: /proc: nothing can be made there" in err, err
+    assert not (tmp_path / "run").exists()
+
+
 def _enospc_after(monkeypatch, name: str):
     """Make writes of files called ``name`` (their temporaries) fail with ENOSPC."""
     import warp_vision.fileio as fio
@@ -598,6 +610,24 @@ def test_a_read_only_output(data, tmp_path, capsys):
         subprocess.run(["mount", "-o", "remount,ro", str(d)], check=True)
         code, err = cli(["--preset", "smoke", "--out", str(d / "run"), "--data-dir", str(data)], capsys)
         assert code != 0 and one_line_naming(err, str(d / "run")) and "Read-only" in err, err
+    finally:
+        subprocess.run(["umount", str(d)])
+
+
+@pytest.mark.skipif(not REAL_FS, reason="this machine does not let the tests mount a tmpfs")
+def test_a_whole_dataset_on_a_read_only_disk_trains(data, tmp_path, capsys):
+    """Only a dataset still to be rendered needs a directory it can be written to: a whole one is read where it lies."""
+    d = tmp_path / "ro"
+    assert _mount_tmpfs(d, "4m")
+    try:
+        shutil.copytree(data, d / "data")
+        subprocess.run(["mount", "-o", "remount,ro", str(d)], check=True)
+        code, err = cli(["--preset", "smoke", "--data-dir", str(d / "data"), "--epochs", "1", "--out", str(tmp_path / "run")],
+                        capsys)
+        assert code == 0, err
+        code, err = cli(["--preset", "smoke", "--samples", "200", "--data-dir", str(d / "other"), "--out",
+                         str(tmp_path / "run2")], capsys)
+        assert code == 2 and "--data-dir" in err and "Read-only" in err and not (tmp_path / "run2").exists(), err
     finally:
         subprocess.run(["umount", str(d)])
 

@@ -50,11 +50,16 @@ def _eye_demo(args) -> int:
     require_positive(args, ("photoreceptors", "samples"))
     device = require_device(args.device)
     require_output(args.out, "--out")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    eye = NavarroEye(args.accommodation, args.pupil)
+    try:
+        eye = NavarroEye(args.accommodation, args.pupil)
+    except ValueError as e:  # named by the eye's parameters: said as this command's flags
+        flag = {"accommodation_D": "--accommodation", "pupil_diameter_mm": "--pupil"}
+        name, _, rest = str(e).partition(": ")
+        raise ValueError(f"{flag[name]}: {rest}" if name in flag else str(e)) from None
     make = Retina.log_polar if args.layout == "log-polar" else Retina.cone_density
     retina = make(args.photoreceptors, seed=args.seed, eye=eye)
+    out = Path(args.out)  # (made once the settings are known good: a bad --pupil left it behind, empty)
+    out.mkdir(parents=True, exist_ok=True)
     room = make_room(seed=args.seed)
     eye_centre, ball = np.array([0.0, -1.5, 1.2]), np.array([0.0, 1.5, 1.2])
     pose = eye_look_at(eye_centre, ball)

@@ -122,8 +122,10 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         ChunkedStore.check_settings(cfg.data_dir, cfg.data_config().manifest())
         out = Path(cfg.out)
         require_output(out, "--out")
-        # a complete dataset may sit in a read-only directory: synthesis probes its own writes
-        require_output(getattr(cfg, "data_dir", "") or ".", "--data-dir", writable=False)
+        # a complete dataset may sit in a read-only directory; one still to be rendered needs a directory that
+        # can be made and written (/proc/x was refused only after the run directory was claimed)
+        data_dir = getattr(cfg, "data_dir", "") or "."
+        require_output(data_dir, "--data-dir", writable=not ChunkedStore.whole_at(data_dir))
         hold_run_dir(out)  # (before --overwrite deletes a run another process may be training)
         with _released_on_error(out):
             claim_out_dir(out, overwrite)
