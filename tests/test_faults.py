@@ -474,6 +474,11 @@ def test_a_dataset_directory_where_nothing_can_be_made_is_refused_before_the_run
     code, err = cli(["--preset", "smoke", "--data-dir", "/proc/warp_vision_data", "--out", str(tmp_path / "run")], capsys)
     assert code == 2 and "--data-dir: /proc: nothing can be made there" in err, err
     assert not (tmp_path / "run").exists()
+    # the data command's was "/proc/warp_vision_data: No such file or directory", from its first mkdir
+    from warp_vision.data.cli import main as data_main
+
+    assert data_main(["foveation", "--preset", "smoke", "--out", "/proc/warp_vision_data"]) == 2
+    assert "--out: /proc: nothing can be made there" in capsys.readouterr().err
 
 
 def _enospc_after(monkeypatch, name: str):

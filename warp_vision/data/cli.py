@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     from warp_vision.data.store import parse_shard
 
     def job():
+        from warp_vision.data.store import ChunkedStore
         from warp_vision.fileio import require_output
         from warp_vision.kernels.launch import require_device
 
@@ -74,7 +75,9 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config_of(a.kind, a)
         cfg.validate()
         out = a.out or str(Path("runs/datasets") / f"{a.kind}-{cfg.key()}")
-        require_output(out, "--out", writable=False)  # (a complete dataset may be read-only; synthesis probes)
+        # a whole dataset may lie on a read-only disk; one still to be rendered needs a directory that can be
+        # written (/proc/x was "No such file or directory" from the first mkdir)
+        require_output(out, "--out", writable=not ChunkedStore.whole_at(out))
         if a.kind == "foveation":
             return out, synthesize(out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
         from warp_vision.data import faces as FA
