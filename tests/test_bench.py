@@ -159,6 +159,7 @@ def test_cnn_bench_times_both_precisions_per_width_with_the_speedup(tmp_path):
     (["readout", "--batch", "4", "0"], "--batch: expected positive integers, got [4, 0]"),
     (["cnn", "--channels", "0"], "--channels: expected positive integers, got [0]"),
     (["cnn", "--batch", "2"], "--batch: expected at least 4 (four augmentation groups), got 2"),
+    (["loop", "--frame-every", "4", "0"], "--frame-every: expected positive integers, got [4, 0]"),  # was frame_every
 ])
 def test_bad_bench_settings_are_one_line_before_any_work(argv, said, tmp_path, capsys):
     from warp_vision.bench.cli import main

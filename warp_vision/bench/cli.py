@@ -155,6 +155,8 @@ def _bench(args) -> int:
     elif args.bench == "loop":
         from warp_vision.bench import loop
 
+        if args.frame_every:
+            require_positive(args, ("frame_every",))
         result = loop.run(args.frame_every or (1, None), quick=args.quick, progress=not args.no_progress)
     else:
         from warp_vision.bench import memory
