@@ -371,7 +371,7 @@ def test_experiments_measure_and_draw_every_scenario(bare_body, tmp_path):
     from PIL import Image
 
     from warp_vision.sim.loop import VisuomotorLoop
-    from warp_vision.sim.scenarios import _scenarios, experiments, plot_experiments
+    from warp_vision.sim.scenarios import _scenarios, experiments, goal_lines, plot_experiments
 
     body = bare_body
     body.reset()
@@ -392,6 +392,33 @@ def test_experiments_measure_and_draw_every_scenario(bare_body, tmp_path):
         assert im.size == (1760, 506)
     with pytest.raises(ValueError, match="saccade_90"):
         plot_experiments({k: v for k, v in traces.items() if k != "saccade_90"}, str(tmp_path / "x.png"))
+    # what the command prints: a line per experiment against its goal (it printed the JSON)
+    lines = goal_lines(result)
+    assert len(lines) == 5 and all(line.endswith(": met") for line in lines[:4]), lines
+    assert lines[0].startswith("saccades to 20 deg, 8 directions: both eyes within 1 deg after ")
+    assert lines[3].startswith("tracking at 30 deg/s: median error ") and lines[4].startswith("the loop: ")
+    worse = json.loads(json.dumps(result))
+    worse["vergence_1m"]["gaze_line_distance_cm_max"] = 2.5
+    worse["tracking_30deg_s"]["median_error_deg"]["right"] = 1.2
+    worse["saccade_20deg"].update({"all_within_1deg_by_0.3s": False, "time_both_within_1deg_s_max": float("inf")})
+    lines = goal_lines(worse)
+    assert lines[0].endswith("not in every direction within the run (goal: by 0.3 s): MISSED"), lines[0]
+    assert "2.50 cm apart at the most (goal: < 2 cm): MISSED" in lines[1] and lines[2].endswith(": met")
+    assert " / 1.20 deg (left / right; " in lines[3] and lines[3].endswith("MISSED")
+
+
+def test_the_demo_prints_the_gaze_error_and_what_it_wrote():
+    from warp_vision.sim.cli import demo_lines
+
+    eye = {"median": 2.5, "share_over_5deg": 0.25, "at_0.1_s": 7.0, "at_0.5_s": 1.25}
+    result = {"gaze_error_deg": {"left": eye, "right": {**eye, "median": 3.0}},
+              "final_error_deg": {"left": 0.5, "right": 0.75},
+              "video": {"paths": ["out/demo.mp4", "out/demo.gif"], "frames": 80, "fps": 25.0, "size": [880, 480]}}
+    assert demo_lines(result, "out") == [
+        "gaze error over the flight (left / right eye): median 2.50 / 3.00 deg, over 5 deg 25 / 25% of the time; "
+        "at 0.1 s 7.00 / 7.00, at 0.5 s 1.25 / 1.25; at the end 0.50 / 0.75 deg",
+        f"wrote out/demo.mp4, out/demo.gif (80 frames, 25 fps, 880x480), {os.path.join('out', 'left_retina.png')}, "
+        f"{os.path.join('out', 'gaze_error.png')} and {os.path.join('out', 'demo.json')}"]
 
 
 def test_ctrl_c_lets_a_net_s_training_stop_its_helpers_and_say_where_it_stands(tmp_path):

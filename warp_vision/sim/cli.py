@@ -44,7 +44,7 @@ from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
 from warp_vision.fileio import require_output, write_json
 from warp_vision.provenance import software
 from warp_vision.body import SIDES, Body, BodyConfig
-from warp_vision.sim.scenarios import SETTLE_S, experiments, plot_experiments, run_scenario
+from warp_vision.sim.scenarios import SETTLE_S, experiments, goal_lines, plot_experiments, run_scenario
 from warp_vision.sim.build import net_specs, refuse_missing_given, refuse_unused_given, setup_loop
 from warp_vision.sim.strike import intercept, pick_shots
 
@@ -440,6 +440,28 @@ def _run(args) -> None:
                                   title=f"the {loop.ball} ball, gaze perception: {loop.perception}; "
                                         f"foveation nets {loop.fov['left'].run_dir} and {loop.fov['right'].run_dir}")
     write_json(os.path.join(args.out, f"{args.command}.json"), {**result, "software": software()})
-    print(json.dumps(result, indent=2))
+    # (each printed its JSON, 50-60 lines, leaving the reading to the user)
     if args.command == "experiments":
+        print("\n".join(goal_lines(result)))
         print(f"wrote {os.path.join(args.out, 'experiments.json')} and {figure}")
+    else:
+        print("\n".join(demo_lines(result, args.out)))
+
+
+def demo_lines(result: dict, out: str) -> list[str]:
+    """What ``sim demo`` prints: both eyes' gaze error over the flight, and the files it wrote."""
+    g = {s: result["gaze_error_deg"][s] for s in SIDES}
+
+    def both(key: str, scale: float = 1.0, fmt: str = ".2f") -> str:
+        return " / ".join(f"{scale * g[s][key]:{fmt}}" for s in SIDES)
+
+    at = [k for k in g[SIDES[0]] if k.startswith("at_")]
+    end = " / ".join(f"{result['final_error_deg'][s]:.2f}" for s in SIDES)
+    video = result["video"]
+    return [f"gaze error over the flight ({' / '.join(SIDES)} eye): median {both('median')} deg, over 5 deg "
+            f"{both('share_over_5deg', 100, '.0f')}% of the time; "
+            + ", ".join(f"at {k[3:-2]} s {both(k)}" for k in at)
+            + f"; at the end {end} deg",
+            f"wrote {', '.join(video['paths'])} ({video['frames']} frames, {video['fps']:g} fps, "
+            f"{video['size'][0]}x{video['size'][1]}), {os.path.join(out, 'left_retina.png')}, "
+            f"{os.path.join(out, 'gaze_error.png')} and {os.path.join(out, 'demo.json')}"]

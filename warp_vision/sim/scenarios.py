@@ -129,6 +129,33 @@ def experiments(loops, progress: bool = True, return_traces: bool = False):
     return (out, traces) if return_traces else out
 
 
+def goal_lines(result: dict) -> list[str]:
+    """:func:`experiments`'s result as a line per experiment against its goal ("met" or "missed"), and one of
+    the loop's speed: what ``python -m warp_vision.sim experiments`` prints (the JSON holds the rest)."""
+    def verdict(ok: bool) -> str:
+        return "met" if ok else "MISSED"
+
+    sac, verg = result["saccade_20deg"], result["vergence_1m"]
+    slowest = sac["time_both_within_1deg_s_max"]
+    when = (f"after {slowest:.2f} s at the slowest" if np.isfinite(slowest) else
+            "not in every direction within the run")
+    lines = [f"saccades to {SACCADE_DEG:g} deg, {len(sac['trials'])} directions: both eyes within "
+             f"{SACCADE_WITHIN_DEG:g} deg {when} (goal: by {SACCADE_BY_S:g} s): {verdict(sac['all_within_1deg_by_0.3s'])}",
+             f"vergence at 1 m: the gaze lines {verg['gaze_line_distance_cm_max']:.2f} cm apart at the most (goal: "
+             f"< {VERGENCE_WITHIN_CM:g} cm): {verdict(verg['gaze_line_distance_cm_max'] < VERGENCE_WITHIN_CM)}"]
+    for omega in TRACKING_SPEEDS:
+        tr = result[f"tracking_{omega:g}deg_s"]
+        med, p90 = tr["median_error_deg"], tr["p90_error_deg"]
+        lines.append(f"tracking at {omega:g} deg/s: median error {' / '.join(f'{med[s]:.2f}' for s in SIDES)} deg "
+                     f"({' / '.join(SIDES)}; p90 {' / '.join(f'{p90[s]:.2f}' for s in SIDES)}; goal: median < "
+                     f"{TRACKING_WITHIN_DEG:g} deg): {verdict(max(med.values()) < TRACKING_WITHIN_DEG)}")
+    t = result["timing"]
+    shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in sorted(t["share"].items(), key=lambda kv: -kv[1]))
+    lines.append(f"the loop: {t['sim_s']:.1f} s simulated in {t['wall_s']:.1f} s ({t['sim_to_wall']:.2f}x real time, "
+                 f"{t['frames_per_s']:g} visual frames/s); {shares}")
+    return lines
+
+
 def _summary(loop, st: dict, control_dt: float) -> dict:
     trials = []
     for d in SACCADE_DIRECTIONS_DEG:
