@@ -461,3 +461,14 @@ def test_sigterm_stops_the_command_as_ctrl_c_does_and_reaches_a_net_s_training(t
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler is the command's alone
     threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM)).start()
     assert guarded(lambda: time.sleep(10)) == 143
+
+
+def test_sim_oculomotor_prints_each_eye_s_check_on_the_body():
+    from warp_vision.sim.cli import oculomotor_line
+
+    summary = {"transitions": 100, "gaze_error_deg_median": 0.318, "gaze_error_deg_p90": 0.975,
+               "pursuit_chain_error_deg_median": 0.232, "pursuit_chain_error_deg_p90": 0.702}
+    assert oculomotor_line("left", "runs/oculomotor/left", summary) == (
+        "left eye, runs/oculomotor/left: on the body, 100 held-out saccades land 0.32 deg from their gazes (median; "
+        "p90 0.97), pursuits of 30 of its steps end 0.23 deg off (p90 0.70); the rest in "
+        f"{os.path.join('runs/oculomotor/left', 'summary.json')}")

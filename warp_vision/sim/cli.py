@@ -400,7 +400,8 @@ def _run(args) -> None:
         specs = net_specs(args)[2:]
         refuse_missing_given(args, specs)
         provide(specs, progress=not args.no_progress)
-        print(json.dumps({s.eye: json.loads(open(os.path.join(s.run, "summary.json")).read()) for s in specs}, indent=2))
+        for spec in specs:  # (it printed both summaries whole, some 60 lines of JSON)
+            print(oculomotor_line(spec.eye, spec.run, json.loads(open(os.path.join(spec.run, "summary.json")).read())))
         return
     if args.command == "intercept":
         pick_shots(args)  # bad settings are refused before any net is trained
@@ -446,6 +447,16 @@ def _run(args) -> None:
         print(f"wrote {os.path.join(args.out, 'experiments.json')} and {figure}")
     else:
         print("\n".join(demo_lines(result, args.out)))
+
+
+def oculomotor_line(eye: str, run: str, summary: dict) -> str:
+    """What ``sim oculomotor`` prints of an eye's net: its check on the body (held-out gazes), and where the
+    rest lies."""
+    s = summary
+    return (f"{eye} eye, {run}: on the body, {s['transitions']} held-out saccades land {s['gaze_error_deg_median']:.2f} "
+            f"deg from their gazes (median; p90 {s['gaze_error_deg_p90']:.2f}), pursuits of 30 of its steps end "
+            f"{s['pursuit_chain_error_deg_median']:.2f} deg off (p90 {s['pursuit_chain_error_deg_p90']:.2f}); the rest in "
+            f"{os.path.join(run, 'summary.json')}")
 
 
 def demo_lines(result: dict, out: str) -> list[str]:
