@@ -310,7 +310,7 @@ def test_bad_settings_are_refused_before_any_training(tmp_path, monkeypatch, cap
 
     monkeypatch.chdir(tmp_path)
     assert bench_main(["loop", "--frame-every", "0", "--out", str(tmp_path / "loop.json")]) == 2
-    assert "frame_every" in capsys.readouterr().err
+    assert "--frame-every: expected positive integers, got [0]" in capsys.readouterr().err
     for bad in (["--width", "0"], ["--slow-motion", "0"], ["--frame-every", "0"], ["--seed", "-1"], ["--slow-motion", "inf"],
                 ["--duration", "nan"], ["--duration", "-1"], ["--flight", "0"], ["--stop", "inf"]):
         assert sim_main(["demo", *bad, "--out", str(tmp_path / "demo")]) == 2
