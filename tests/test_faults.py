@@ -1012,7 +1012,8 @@ def test_render_onv_refuses_rays_that_cannot_fit_before_allocating():
 def test_a_retina_that_cannot_fit_is_refused_at_once():
     from warp_vision.eye.retina import Retina
 
-    with pytest.raises(ValueError, match=r"P=1,000,000,000 photoreceptors needs about .* GiB.*lower P"):
+    with pytest.raises(ValueError, match=r"P=1,000,000,000 photoreceptors needs about .* GiB.*lower P, the "
+                                         r"photoreceptors \(--photoreceptors\)"):
         Retina.log_polar(10**9)
 
 

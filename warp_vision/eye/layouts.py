@@ -116,7 +116,8 @@ def _check_count(P) -> int:
 
     if isinstance(P, bool) or not isinstance(P, (int, np.integer)) or P < 1:
         raise ValueError(f"P: expected a positive int (the number of photoreceptors), got {P!r}")
-    require_memory(LAYOUT_BYTES_PER_RECEPTOR * int(P), f"a retina of P={int(P):,} photoreceptors", "P")
+    require_memory(LAYOUT_BYTES_PER_RECEPTOR * int(P), f"a retina of P={int(P):,} photoreceptors",
+                   "P, the photoreceptors (--photoreceptors)")
     return int(P)
 
 
