@@ -41,7 +41,7 @@ class ArgumentParser(argparse.ArgumentParser):
         """argparse's error, with its words for a missing or mistyped subcommand replaced by ours: "the
         following arguments are required: cmd" named the parser's internal field, and "invalid choice:
         'experiment' (choose from ...)" left finding the nearest command to the user."""
-        sub = next((a for a in self._actions if isinstance(a, argparse._SubParsersAction)), None)
+        sub = _subcommands(self)
         if sub is not None:
             names = list(sub.choices)
             if message == f"the following arguments are required: {sub.dest}":
@@ -66,7 +66,7 @@ class ArgumentParser(argparse.ArgumentParser):
 
     def _hint(self, parsed: argparse.Namespace, extras: list[str]) -> str:
         chosen, others = self, {}
-        while (sub := next((a for a in chosen._actions if isinstance(a, argparse._SubParsersAction)), None)):
+        while (sub := _subcommands(chosen)) is not None:
             name = getattr(parsed, sub.dest, None)
             for other, p in sub.choices.items():
                 if other != name:
@@ -85,6 +85,11 @@ class ArgumentParser(argparse.ArgumentParser):
             elif near:
                 hints.append(f"did you mean {near[0]}?")
         return f" ({'; '.join(hints)})" if hints else ""
+
+
+def _subcommands(parser: argparse.ArgumentParser):
+    """``parser``'s subcommands (its ``add_subparsers`` action), or None."""
+    return next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
 
 
 def not_a_command(word: str, names, what: str = "a command") -> str:
@@ -122,10 +127,11 @@ def field_sections(cls) -> dict[str, str]:
     names = {f.name for f in dataclasses.fields(cls)}
     section, sections = "the run", {}
     for line in inspect.getsource(cls).splitlines():
+        name = line[4:].split(":", 1)[0]
         if line.startswith("    # "):
             section = line[6:].strip()
-        elif line.startswith("    ") and not line.startswith("     ") and line[4:].split(":", 1)[0] in names:
-            sections[line[4:].split(":", 1)[0]] = section
+        elif line.startswith("    ") and not line.startswith("     ") and name in names:
+            sections[name] = section
     return sections
 
 
@@ -151,10 +157,10 @@ def require_positive(args, names, flags: bool = True) -> None:
     False as a config's field (``chunk_size``)."""
     for name in names:
         value = getattr(args, name)
-        label = f"--{name.replace('_', '-')}" if flags else name
-        if min(value if isinstance(value, (list, tuple)) else [value]) < 1:
-            raise ValueError(f"{label}: expected positive integers, got {value}" if isinstance(value, (list, tuple))
-                             else f"{label}: expected a positive integer, got {value}")
+        many = isinstance(value, (list, tuple))
+        if min(value if many else [value]) < 1:
+            label = f"--{name.replace('_', '-')}" if flags else name
+            raise ValueError(f"{label}: expected {'positive integers' if many else 'a positive integer'}, got {value}")
 
 
 class Terminated(KeyboardInterrupt):

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from warp_vision.data.store import ChunkedStore
-from warp_vision.errors import require_seeds
+from warp_vision.errors import require_positive, require_seeds
 from warp_vision.fileio import atomic_write
 from warp_vision.frames import look_rotation
 
@@ -90,9 +90,7 @@ class FaceDataConfig:
 
     def validate(self) -> None:
         require_seeds(self)
-        for name in ("identities", "photoreceptors", "samples_per_receptor", "chunk_size"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+        require_positive(self, ("identities", "photoreceptors", "samples_per_receptor", "chunk_size"), flags=False)
         if self.eye not in RETINA_SEEDS:
             raise ValueError(f"eye: expected one of {sorted(RETINA_SEEDS)}, got {self.eye!r}")
         if not 0 < self.pose_step_deg <= 2 * self.max_pose_deg <= 120:

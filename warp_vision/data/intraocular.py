@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from warp_vision.body import SIDES
-from warp_vision.errors import require_seeds
+from warp_vision.errors import require_positive, require_seeds
 
 #: Bump when what a config renders changes (datasets are cached by config + version).
 PUPIL_DATA_VERSION = 1
@@ -71,9 +71,7 @@ class PupilDataConfig:
             raise ValueError(f"eye: expected one of {SIDES}, got {self.eye!r}")
         if self.rooms not in ROOM_FAMILIES:
             raise ValueError(f"rooms: expected one of {sorted(ROOM_FAMILIES)}, got {self.rooms!r}")
-        for name in ("samples", "photoreceptors", "samples_per_receptor", "chunk_size"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+        require_positive(self, ("samples", "photoreceptors", "samples_per_receptor", "chunk_size"), flags=False)
         if not 0 < self.luminance_decades <= 8:
             raise ValueError(f"luminance_decades: expected decades in (0, 8], got {self.luminance_decades}")
         if not 0 <= self.accommodation_D <= 10:
@@ -223,9 +221,7 @@ class LensDataConfig:
             raise ValueError(f"card_vertices: expected at least 8, got {self.card_vertices}")
         if self.eye not in SIDES:
             raise ValueError(f"eye: expected one of {SIDES}, got {self.eye!r}")
-        for name in ("samples", "photoreceptors", "samples_per_receptor", "chunk_size"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+        require_positive(self, ("samples", "photoreceptors", "samples_per_receptor", "chunk_size"), flags=False)
         if not 0.5 <= self.central_deg <= 10:
             raise ValueError(f"central_deg: expected 0.5 to 10 degrees, got {self.central_deg}")
         if not 0 < self.defocus_range_D <= 5:

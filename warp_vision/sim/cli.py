@@ -37,6 +37,7 @@ import argparse
 import contextlib
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -401,7 +402,7 @@ def _run(args) -> None:
         refuse_missing_given(args, specs)
         provide(specs, progress=not args.no_progress)
         for spec in specs:  # (it printed both summaries whole, some 60 lines of JSON)
-            print(oculomotor_line(spec.eye, spec.run, json.loads(open(os.path.join(spec.run, "summary.json")).read())))
+            print(oculomotor_line(spec.eye, spec.run, json.loads(Path(spec.run, "summary.json").read_text())))
         return
     if args.command == "intercept":
         pick_shots(args)  # bad settings are refused before any net is trained

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import fields
+from pathlib import Path
 
 from warp_vision.errors import add_debug_flag as _debug_flag
 from warp_vision.errors import ArgumentParser, guarded, not_a_command
@@ -31,20 +32,20 @@ from warp_vision.train import config_intraocular as intraocular
 def _run_flags(p: argparse.ArgumentParser, groups: dict) -> argparse.ArgumentParser:
     """The flags every training command has besides its config's, in its "the run" group (``groups``:
     :func:`config.add_arguments`'s)."""
-    p, parser = groups.get("the run", p), p
-    p.add_argument("--resume", metavar="RUN_DIR", default=None,
-                   help="continue the stopped run in RUN_DIR exactly, with the settings of its config.json (other "
-                        "settings are refused; one stopped before its first epoch ended starts "
-                        "again); with --epochs N, under a new epoch cap (N = the epochs done ends it now: the best "
-                        "checkpoint is evaluated, figures written)")
-    p.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.add_argument("--workers", type=_workers, default="auto", metavar="N",
-                   help="processes that synthesise a missing dataset (foveation and limb runs; the dataset is the same "
-                        "for any N); default auto: one per CPU core, at most 8, for a dataset of 1,000 samples or more (else 1; "
-                        "1 on a GPU; under torchrun each rank renders its own shard)")
-    _debug_flag(p)
-    return parser
+    run = groups.get("the run", p)
+    run.add_argument("--resume", metavar="RUN_DIR", default=None,
+                     help="continue the stopped run in RUN_DIR exactly, with the settings of its config.json (other "
+                          "settings are refused; one stopped before its first epoch ended starts "
+                          "again); with --epochs N, under a new epoch cap (N = the epochs done ends it now: the best "
+                          "checkpoint is evaluated, figures written; fewer is refused)")
+    run.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
+    run.add_argument("--no-progress", action="store_true", help="no progress bars")
+    run.add_argument("--workers", type=_workers, default="auto", metavar="N",
+                     help="processes that synthesise a missing dataset (foveation and limb runs; the dataset is the same "
+                          "for any N); default auto: one per CPU core, at most 8, for a dataset of 1,000 samples or more (else 1; "
+                          "1 on a GPU; under torchrun each rank renders its own shard)")
+    _debug_flag(run)
+    return p
 
 
 def _workers(text: str):
@@ -183,7 +184,6 @@ def _compare(argv: list[str]) -> int:
 
     def job():
         import errno
-        from pathlib import Path
 
         from warp_vision.fileio import atomic_write, require_output
         from warp_vision.nn.trained import read_run_config, saved_task
@@ -218,8 +218,6 @@ def _compare(argv: list[str]) -> int:
 def figure_format(path) -> str:
     """The figure format a path's suffix names (png where it has none); a ValueError naming the formats
     matplotlib writes for any other suffix (it wrote a PNG under ``curves.pdf``)."""
-    from pathlib import Path
-
     from matplotlib.backend_bases import FigureCanvasBase
 
     suffix = Path(path).suffix.lower().lstrip(".")
@@ -235,8 +233,6 @@ def figure_format(path) -> str:
 def _refuse_unwritable_runs(run_dirs, flag: str) -> None:
     """An OSError naming the first run directory (or its figures/) where nothing can be written: evaluate
     ``flag`` writes its results there (it rendered the held-out sets, evaluated, and then failed to write)."""
-    from pathlib import Path
-
     from warp_vision.fileio import probe_writable
 
     for run in run_dirs:

@@ -14,7 +14,7 @@ from typing import ClassVar
 from warp_vision.data.faces import PRESET_DATA as FACE_DATA
 from warp_vision.data.foveation import PRESET_DATA as FOVEATION_DATA
 from warp_vision.data.foveation import FoveationDataConfig, generator_flag
-from warp_vision.errors import field_help, field_sections, preset_defaults, require_seeds
+from warp_vision.errors import field_help, field_sections, preset_defaults, require_positive, require_seeds
 
 
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
@@ -55,9 +55,8 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
     for name, allowed in getattr(cfg, "CHOICES", CHOICES).items():
         if hasattr(cfg, name) and getattr(cfg, name) not in allowed:
             raise ValueError(f"{name}: expected one of {allowed}, got {getattr(cfg, name)!r}")
-    for name in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience"):
-        if hasattr(cfg, name) and getattr(cfg, name) < 1:
-            raise ValueError(f"{name}: expected a positive integer, got {getattr(cfg, name)}")
+    require_positive(cfg, [n for n in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience")
+                           if hasattr(cfg, n)], flags=False)
     require_seeds(cfg)
     if not cfg.lr > 0:
         raise ValueError(f"lr: expected > 0, got {cfg.lr}")
