@@ -126,6 +126,8 @@ def test_readout_bench_writes_a_row_per_setting_with_its_ratio(tmp_path):
     assert main(["readout", "--views", "1", "2", "--batch", "2", "--repeats", "1", "--out", str(out)]) == 0
     res = json.loads(out.read_text())
     assert res["software"]["warp_vision"] and res["software"]["warp-lang"]
+    # each fact once: the libraries' versions are the software's, the machine is the hardware's
+    assert res["machine"]["cores"] >= 1 and not {"python", "torch", "warp", "numpy"} & set(res["machine"])
     assert [(r["batch"], r["views"], r["precision"]) for r in res["results"]] == [
         (2, 1, "float32"), (2, 1, "bfloat16"), (2, 2, "float32"), (2, 2, "bfloat16")]
     assert res["results"][0]["ratio_to_1_views"] == 1.0 and res["results"][0]["speedup_over_float32"] == 1.0

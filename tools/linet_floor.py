@@ -32,6 +32,7 @@ import torch  # noqa: E402
 
 from warp_vision.bench import torch_baselines as tb
 from warp_vision.bench.common import interleaved_ms, machine_info
+from warp_vision.provenance import software
 from warp_vision.bench.linet import kernel_calls, layer_inputs
 from warp_vision.fileio import write_json
 from warp_vision.kernels.launch import cpu_threads
@@ -132,7 +133,7 @@ def main() -> None:
         print(f"x {lay.replace('_', '-')}: torch CSR over the Warp op {achieved[lay]:.2f}x; the bound (CSR over the C"
               f" kernels{' + the transpose' if lay == 'batch_major' else ''}) {bound[lay]:.2f}x")
     write_json(args.out, {
-        "benchmark": "linet_floor", "machine": machine_info(), "B": B, "N_in": inp["n_in"], "N": inp["N"], "R": R,
+        "benchmark": "linet_floor", "machine": machine_info(), "software": software(), "B": B, "N_in": inp["n_in"], "N": inp["N"], "R": R,
         "rounds": rows, "median_ms": med, "csr_over_warp_op": achieved, "csr_over_c_kernels_bound": bound,
     })
     print(f"results: {args.out}")

@@ -15,6 +15,7 @@ from pathlib import Path
 from warp_vision.bench.common import machine_info
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, require_positive
 from warp_vision.fileio import require_output, write_json
+from warp_vision.provenance import software
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -124,8 +125,9 @@ def _bench(args) -> int:
     device = _device(args.device) if hasattr(args, "device") else "cpu"  # before any work
     require_output(args.out, "--out", kind="file")  # (and the memory figure beside it) before minutes of timing
     t0 = time.time()
-    info = machine_info()
-    print(f"machine: {info['cpu']}, {info['cores']} cores, torch {info['torch']} ({info['torch_threads']} threads), warp {info['warp']}")
+    info, code = machine_info(), software()
+    print(f"machine: {info['cpu']}, {info['cores']} cores; torch {code['torch']} ({info['torch_threads']} threads), "
+          f"warp {code['warp-lang']}")
     if args.bench == "linet":
         from warp_vision.bench import linet
 
@@ -170,9 +172,7 @@ def _bench(args) -> int:
         memory.plot(result, png)
         result["figure"] = png
         print(f"figure: {png}")
-    from warp_vision.provenance import software
-
-    result = {"benchmark": args.bench, "machine": info, "software": software(), "seconds": time.time() - t0, **result}
+    result = {"benchmark": args.bench, "machine": info, "software": code, "seconds": time.time() - t0, **result}
     write_json(args.out, result)
     print(f"results: {args.out}")
     return 0

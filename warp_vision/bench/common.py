@@ -72,9 +72,8 @@ def sync(device: str | None = None) -> None:
 
 
 def machine_info() -> dict:
-    """What ran the benchmark: CPU model, cores, memory, library versions, GPU if any."""
-    import warp as wp
-
+    """What ran the benchmark: CPU model, cores, memory, torch's threads, GPU if any. The versions of the code
+    are :func:`warp_vision.provenance.software`'s (a benchmark's JSON carries both, each fact once)."""
     cpu = platform.processor() or ""
     try:
         with open("/proc/cpuinfo") as f:
@@ -93,12 +92,8 @@ def machine_info() -> dict:
         "cpu": cpu,
         "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "memory_gib": mem_gib,
-        "python": platform.python_version(),
         "platform": platform.platform(),
-        "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
-        "warp": wp.config.version,
-        "numpy": np.__version__,
         "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     if torch.cuda.is_available():
