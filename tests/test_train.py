@@ -735,6 +735,27 @@ def test_the_data_command_builds_the_dataset_a_training_preset_reads(kind):
     assert built == parse_training([*task, *flags, "--data-seed", "3"])[3]().data_config()
 
 
+@pytest.mark.parametrize("kind", ["foveation", "faces"])
+def test_the_data_commands_help_reads_by_section_and_names_each_fields_values(kind, capsys):
+    """``data foveation --help`` was one block of 20 flags, and --eye, --rooms and --condition named no values
+    (--condition pointed at a module's constant); a value outside them was refused only by the config."""
+    from warp_vision.data.cli import parser
+
+    with pytest.raises(SystemExit):
+        parser().parse_args([kind, "--help"])
+    shown = capsys.readouterr().out
+    shown = shown[shown.index("\noptions:"):]  # (past the usage lines, which name every flag)
+    dataset, built = shown.index("the dataset:"), shown.index("where and how it is built:")
+    assert dataset < shown.index("--eye {left,right}") < shown.index("--chunk-size") < built < shown.index("--shard SHARD")
+    if kind == "foveation":
+        assert "--condition {mixed,glow_dim,white,matte,distractor,arm,decoy}" in shown and "--generator {7,8,9}" in shown
+    else:
+        assert built < shown.index("--identities-cache")
+    with pytest.raises(SystemExit):
+        parser().parse_args([kind, "--eye", "middle"])
+    assert "argument --eye: invalid choice: 'middle' (choose from 'left', 'right')" in capsys.readouterr().err
+
+
 def test_the_data_command_writes_where_the_training_run_looks(tmp_path, monkeypatch, capsys):
     """Its default --out is the run's dataset cache, so the run finds the dataset without --data-dir."""
     from warp_vision.data.cli import main as data_main

@@ -21,22 +21,40 @@ from warp_vision.data.foveation import FoveationDataConfig, generator_flag, synt
 from warp_vision.errors import ArgumentParser, add_debug_flag, field_help, guarded, preset_defaults, told
 
 
-def _add_config_flags(parser: argparse.ArgumentParser, cls, presets: dict) -> None:
-    parser.add_argument("--preset", choices=list(presets), default="default",
-                        help="the dataset of this training preset (default: default), under the flags given")
+def _choices(module) -> dict:
+    """The allowed values of a data config's fields that have a fixed set (argparse choices; the config's
+    validate checks the same)."""
+    choices = {"eye": sorted(module.RETINA_SEEDS)}
+    if module.__name__.endswith("foveation"):
+        from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
+
+        choices.update(generator=list(module.GENERATORS), rooms=sorted(ROOM_FAMILIES), condition=list(CONDITIONS))
+    return choices
+
+
+def _add_config_flags(parser: argparse.ArgumentParser, cls, module) -> argparse._ArgumentGroup:
+    """The dataset's flags (its config's fields, by the preset's values) in one section of --help, and where and
+    how it is built in another, which it returns."""
+    presets, choices = module.PRESET_DATA, _choices(module)
+    data = parser.add_argument_group("the dataset", "the settings of the training run's data (--seed: its --data-seed)")
+    data.add_argument("--preset", choices=list(presets), default="default",
+                      help="the dataset of this training preset (default: default), under the flags given")
     defaults = cls()
     for fld in dataclasses.fields(cls):
         value = getattr(defaults, fld.name)
-        parser.add_argument(f"--{fld.name.replace('_', '-')}", default=None,
-                            type=generator_flag if fld.name == "generator" else type(value),
-                            help=f"{field_help(cls, fld.name)} ({preset_defaults(presets, fld.name, value)})")
-    parser.add_argument("--out", default=None,
-                        help="dataset directory (default: runs/datasets/<kind>-<config hash>, where the training run "
-                             "of these settings looks for it)")
-    parser.add_argument("--shard", default="0/1", help="I/N: build only shard I of N (default 0/1, everything)")
-    parser.add_argument("--batch", type=int, default=16, help="ONVs rendered per launch (default 16)")
-    parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+        data.add_argument(f"--{fld.name.replace('_', '-')}", default=None,
+                          type=generator_flag if fld.name == "generator" else type(value),
+                          help=f"{field_help(cls, fld.name)} ({preset_defaults(presets, fld.name, value)})",
+                          **({"choices": choices[fld.name]} if fld.name in choices else {}))
+    built = parser.add_argument_group("where and how it is built")
+    built.add_argument("--out", default=None,
+                       help="dataset directory (default: runs/datasets/<kind>-<config hash>, where the training run "
+                            "of these settings looks for it)")
+    built.add_argument("--shard", default="0/1", help="I/N: build only shard I of N (default 0/1, everything)")
+    built.add_argument("--batch", type=int, default=16, help="ONVs rendered per launch (default 16)")
+    built.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     add_debug_flag(parser)
+    return built
 
 
 def config_of(kind: str, args: argparse.Namespace):
@@ -55,10 +73,9 @@ def parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="kind", required=True)
     fov = sub.add_parser("foveation", help="ONVs of a ball in a room (--generator 7: a glowing white ball; 8: ordinary "
                                            "balls among distractors; 9: and decoys), with the eye rotation that foveates it")
-    _add_config_flags(fov, FoveationDataConfig, foveation.PRESET_DATA)
+    _add_config_flags(fov, FoveationDataConfig, foveation)
     fc = sub.add_parser("faces", help="ONVs of anny-built faces across yaw and pitch poses, with identity and pose")
-    _add_config_flags(fc, faces.FaceDataConfig, faces.PRESET_DATA)
-    fc.add_argument("--identities-cache", default=None, help="identity meshes' cache file (default runs/faces/...)")
+    _add_config_flags(fc, faces.FaceDataConfig, faces).add_argument("--identities-cache", default=None, help="identity meshes' cache file (default runs/faces/...)")
     return p
 
 

@@ -103,7 +103,7 @@ class FoveationDataConfig:
     chunk_size: int = 256  # ONVs per stored chunk (a shard's unit)
     generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room), 8 (ordinary balls: foveation_scenes) or 9 (v8 + decoys)
     rooms: str = "train"  # v8: the room family, "train" or "heldout" (disjoint seeds)
-    condition: str = "mixed"  # v8: "mixed" (training) or a test condition of foveation_scenes.CONDITIONS
+    condition: str = "mixed"  # v8: "mixed" (training) or one held-out test condition
 
     def validate(self) -> None:
         from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
