@@ -1,4 +1,11 @@
-"""warp_vision: biomimetic active vision in a simulated human (ray-traced foveated eyes, liNets, MuJoCo body)."""
+"""warp_vision: biomimetic active vision in a simulated human (ray-traced foveated eyes, liNets, MuJoCo body).
+
+The subpackages, each importing only those before it: ``eye`` (optics, retinas, pupil), ``kernels`` (the
+Warp ray tracer and the liNet op, each beside a plain reference), ``scene`` (what is rendered), ``nn``
+(liNets and the other nets), ``body`` (the MuJoCo body), ``data`` (self-synthesised datasets), ``sim``
+(the closed loop), ``train`` (every net's training) and ``bench``. docs/ARCHITECTURE.md maps them
+module by module; ``python -m warp_vision`` lists the commands.
+"""
 
 import os as _os
 
