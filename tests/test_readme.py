@@ -1,6 +1,7 @@
 """The README's snippets run: every ```python block executes as written, and every command line of a
 ```bash block, in the README and in docs/RESULTS.md (the commands behind the measurements), names a
-command and flags that exist (its --help parses them)."""
+command and flags that exist (its --help parses them); every relative link of the docs reaches a file and a
+heading."""
 
 from __future__ import annotations
 
@@ -88,3 +89,26 @@ def test_training_command_passes_its_checks(rest):
 
     _, cls, _, make = parse_training(rest)
     assert isinstance(make(), cls)
+
+
+def anchors(path: Path) -> set[str]:
+    """The ``#fragment`` of each heading of a Markdown file, as GitHub makes it: lower case, punctuation
+    other than "-" and "_" dropped, spaces as "-"."""
+    heads = re.findall(r"^#{1,6} (.+?)\s*$", path.read_text(), flags=re.M)
+    return {re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in heads}
+
+
+@pytest.mark.parametrize("doc", ["README.md", "docs/RESULTS.md", "docs/ARCHITECTURE.md"])
+def test_the_docs_links_reach_a_file_and_a_heading(doc):
+    """Every relative link of the docs names a file of the repository, and its #fragment a heading there
+    (the README pointed to sections of the results by their titles in quotes, which no reader could follow)."""
+    page = ROOT / doc
+    links = re.findall(r"\]\(([^)\s]+)\)", page.read_text())
+    local = [link for link in links if not link.startswith(("http://", "https://", "mailto:"))]
+    assert local or doc != "README.md"
+    for link in local:
+        target, _, fragment = link.partition("#")
+        path = (page.parent / target).resolve() if target else page
+        assert path.exists(), f"{doc}: {link} names no file"
+        if fragment:
+            assert fragment in anchors(path), f"{doc}: {link}: no heading of {path.name} makes #{fragment}"
