@@ -319,6 +319,42 @@ def test_bad_settings_are_refused_before_any_training(tmp_path, monkeypatch, cap
     assert not (tmp_path / "runs").exists()  # nothing was trained
 
 
+@pytest.mark.parametrize("command", ["demo", "experiments", "intraocular", "oculomotor", "intercept"])
+def test_the_simulations_help_reads_by_section_and_states_each_default(command, capsys):
+    """``sim demo --help`` listed its 24 flags in the order they were written (--no-progress between two
+    nets' directories, --seed among the video's), and --seed, --duration, --flight, --stop, --width, --height
+    and --video-every did not say their defaults."""
+    from warp_vision.sim.cli import parser
+
+    with pytest.raises(SystemExit):
+        parser().parse_args([command, "--help"])
+    shown = capsys.readouterr().out
+    shown = shown[shown.index("\noptions:"):]  # (past the usage lines, which name every flag)
+    sections = {"the nets": ["--quick", "--oculomotor"], "the output": ["--no-progress"]}
+    if command != "oculomotor":
+        sections["the nets"] += ["--left", "--right", "--pupil", "--lens"]
+        sections["the scene"] = ["--seed", "--ball", "--frame-every"]
+        sections["the output"].append("--out")
+    if command == "demo":
+        sections["the scene"] += ["--no-arms", "--duration", "--flight", "--stop"]
+        sections["the output"] += ["--width", "--height", "--video-every", "--slow-motion", "--gif", "--viewer"]
+    if command == "intercept":
+        sections["the nets"] += ["--perception", "--arm", "--limb"]
+        sections["the scene"] += ["--side", "--shots", "--shot-seed", "--perception-error-cm"]
+        sections["the output"] += ["--width", "--height", "--slow-motion", "--video-format"]
+    heads = {title: shown.index(f"\n{title}:\n") for title in ("the nets", "the scene", "the output") if title in sections}
+    assert list(heads) == sorted(heads, key=heads.get)  # the nets, the scene, the output
+    ends = dict(zip(heads, [*sorted(heads.values())[1:], len(shown)]))
+    for title, flags in sections.items():
+        part = shown[heads[title]:ends[title]]
+        for flag in flags:
+            assert f"  {flag} " in part or f"  {flag}\n" in part, (title, flag)
+    for flag in ("--seed", "--duration", "--flight", "--stop", "--width", "--height", "--video-every"):
+        if f"  {flag} " in shown:
+            said = shown[shown.index(f"  {flag} "):].split("\n  --", 1)[0]
+            assert "default" in said, flag
+
+
 def test_a_run_directory_given_that_holds_no_run_is_refused_before_any_training(tmp_path, monkeypatch, capsys):
     """Only the default directories are trained into when missing: a mistyped --left must not start a
     quarter of an hour of training into the typo."""

@@ -266,116 +266,149 @@ def _focus_retinas(shots: list, retina, path: str) -> None:
     plt.close(fig)
 
 
-def main(argv=None) -> int:
-    from warp_vision.sim.intercept import INTERCEPT_FRAME_EVERY
-    from warp_vision.sim.loop import BALLS, FRAME_EVERY, INTRAOCULAR, PERCEPTION
+COMMANDS = ("demo", "experiments", "intraocular", "oculomotor", "intercept")
 
+
+def _net_flags(g, name: str) -> None:
+    """The nets the loop runs, and where it finds them (``--help``'s "the nets")."""
+    g.add_argument("--quick", action="store_true",
+                   help="smaller nets (runs/quick/..., trained in a few minutes when missing) for a first look")
+    if name != "oculomotor":
+        g.add_argument("--left", default=None, help="the left eye's foveation run (default runs/foveation_left, or "
+                                                    "runs/quick/foveation_left, trained there if missing; a directory "
+                                                    "given must hold a run)")
+        g.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
+    g.add_argument("--oculomotor", default=None,
+                   help="the oculomotor runs' directory: <dir>/left, <dir>/right (default runs/oculomotor, or "
+                        "runs/quick/oculomotor with --quick, trained there if missing; a directory given must "
+                        "hold the runs)")
+    if name == "oculomotor":
+        return
+    if name != "intraocular":  # that command runs both, nets and teachers
+        from warp_vision.sim.loop import INTRAOCULAR
+
+        default = "analytic" if name == "intercept" else "nets"
+        g.add_argument("--intraocular", choices=INTRAOCULAR, default=default,
+                       help=f"nets{' (default)' if default == 'nets' else ''}: each eye's pupil and lens nets command "
+                            "its iris and lens from the ONV (trained into runs/pupil/<eye> and runs/lens/<eye> if "
+                            f"missing); analytic{' (default)' if default == 'analytic' else ''}: their teachers, "
+                            "Watson & Yellott's pupil for the adapting luminance and accommodation to where the gaze "
+                            "lines converge")
+    g.add_argument("--pupil", default=None, help="the pupil runs' directory: <dir>/left, <dir>/right (default "
+                                                 "runs/pupil, or runs/quick/pupil with --quick)")
+    g.add_argument("--lens", default=None, help="the lens runs' directory (likewise: runs/lens, runs/quick/lens)")
+    if name in ("demo", "experiments"):
+        from warp_vision.sim.loop import PERCEPTION
+
+        g.add_argument("--gaze-perception", choices=PERCEPTION, default="nets",
+                       help="where the gaze controller learns the ball's direction: nets (default), each eye's "
+                            "foveation net from its ONV; oracle: the ball's true direction in each eye frame (the "
+                            "eyes still render), which separates perception's errors from the controller's and "
+                            "oculomotor nets'")
+    if name == "intercept":
+        g.add_argument("--perception", choices=("vision", "fixation", "oracle"), default="vision",
+                       help="how the arm knows the ball: vision (default), both eyes' limb vision nets (trained into "
+                            "runs/limb/<eye> if missing; with --shots the loop then also runs with fixation); "
+                            "fixation: where the two eyes' foveation nets see the ball (the gaze lines' crossing; no "
+                            "limb nets); oracle: the simulation's true ball state (no limb nets; with --shots the "
+                            "closed-loop mode then runs on it too, as 'loop_oracle')")
+        g.add_argument("--arm", default=None, help="the arm runs' directory: <dir>/<side> (default runs/arm, or "
+                                                   "runs/quick/arm with --quick, trained there if missing)")
+        g.add_argument("--limb", default=None, help="the limb vision runs' directory: <dir>/left, <dir>/right "
+                                                    "(default runs/limb, or runs/quick/limb with --quick)")
+
+
+def _scene_flags(g, name: str) -> None:
+    """The body, the room, the ball and the loop's pace (``--help``'s "the scene")."""
+    from warp_vision.sim.intercept import INTERCEPT_FRAME_EVERY
+    from warp_vision.sim.loop import BALLS, FRAME_EVERY
+
+    if name == "intercept":  # the arms strike
+        g.set_defaults(no_arms=False)
+        g.add_argument("--seed", type=int, default=0,
+                       help="the room's seed, and the first held-out shot: seed 1,000,000 + --seed (default 0)")
+    else:
+        g.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
+        g.add_argument("--seed", type=int, default=0, help="the room's seed (default 0)")
+    g.add_argument("--ball", choices=BALLS, default="ordinary",
+                   help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
+                        "albedos (generators v8 and v9's kind of scene, what the default foveation nets learn); glowing: "
+                        "a white ball that glows, in the room dimmed (generator v7's scene: use it with v7 nets, "
+                        "python -m warp_vision.train --generator 7 --model linet ...)"
+                        + ("; the limb vision nets must have learnt the same ball (train limb --ball)" if name == "intercept" else ""))
+    every = INTERCEPT_FRAME_EVERY if name == "intercept" else FRAME_EVERY
+    g.add_argument("--frame-every", type=int, default=every,
+                   help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
+                        f"(default {every}: {100 // every} frames a second"
+                        + ("; a ball at 12 m/s moves 0.24 m between two" if name == "intercept" else "")
+                        + "; 1 renders every period)")
+    if name == "intraocular":
+        g.add_argument("--cards", type=_positive_int, default=1,
+                       help="the focus steps with the lens nets on N cards of different textures (default 1; the "
+                            "vergence law, blind to the texture, runs on the first): how often each step comes into "
+                            "focus within 1.2 s")
+    if name == "demo":
+        g.add_argument("--duration", type=float, default=0.8, help="simulated seconds (default 0.8)")
+        g.add_argument("--flight", type=float, default=0.9,
+                       help="s of flight to the point --stop m before the face (default 0.9)")
+        g.add_argument("--stop", type=float, default=1.0, help="m from the head where the ball's flight is aimed (default 1)")
+    if name == "intercept":
+        g.add_argument("--side", choices=SIDES, default="left", help="the striking arm: left (default) or right (the other hangs)")
+        g.add_argument("--shots", type=int, default=None,
+                       help="N held-out shots (seeds 1,000,000 + --seed ...), each run several ways: the closed loop "
+                            "with the chosen --perception (with vision also with the eyes' fixation), the true ball "
+                            "state (no rendering; also off by each --perception-error-cm), passive arms; writes "
+                            "intercept_stats.json and figures. Default: one shot with its video")
+        g.add_argument("--shot-seed", type=int, default=None,
+                       help="one shot: the shot of this seed (training seeds 0-999,999, held-out 1,000,000-1,999,999; "
+                            "default the first held-out one, 1,000,000 + --seed)")
+        g.add_argument("--perception-error-cm", type=float, nargs="*", default=[],
+                       help="with --shots, also run the shots with the true ball state off by each of these errors "
+                            "(cm; a fixed offset per shot in a random direction, no rendering): how accurate the limb "
+                            "vision nets must be for the interception")
+
+
+def _output_flags(g, name: str) -> None:
+    """What is written where, and shown (``--help``'s "the output")."""
+    g.add_argument("--no-progress", action="store_true", help="no progress bars")
+    if name == "oculomotor":  # (it writes the nets' runs alone)
+        return
+    g.add_argument("--out", default=None, help=f"output directory (default runs/sim_{name}, or runs/quick/sim_{name} with --quick)")
+    if name not in ("demo", "intercept"):
+        return
+    retina = "the left retina beside it is" if name == "intercept" else "the retina images beside it are"
+    g.add_argument("--width", type=int, default=640, help="third-person view width (pixels; default 640)")
+    g.add_argument("--height", type=int, default=480, help=f"third-person view height (pixels; default 480); {retina} half as high")
+    if name == "demo":
+        g.add_argument("--video-every", type=int, default=1, help="a video frame every N control periods (10 ms; default 1)")
+    g.add_argument("--slow-motion", type=float, default=4.0,
+                   help="the video plays this many times slower than simulated time (default 4)")
+    if name == "intercept":
+        g.add_argument("--video-format", choices=("gif", "mp4"), default="gif",
+                       help="intercept.gif (default) or intercept.mp4 (H.264)")
+    else:
+        g.add_argument("--gif", action="store_true", help="also write demo.gif (same frames)")
+        g.add_argument("--viewer", action="store_true",
+                       help="open MuJoCo's passive viewer on the running loop (skipped, with a note, without a display)")
+
+
+def parser() -> argparse.ArgumentParser:
+    """The simulation's command line: a subcommand each, its --help in sections (the nets, the scene, the output)."""
     ap = ArgumentParser(prog="python -m warp_vision.sim", description=__doc__,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True)
-    for name in ("demo", "experiments", "intraocular", "oculomotor", "intercept"):
+    for name in COMMANDS:
         p = sub.add_parser(name)
-        p.add_argument("--quick", action="store_true",
-                       help="smaller nets (runs/quick/..., trained in a few minutes when missing) for a first look")
-        p.add_argument("--oculomotor", default=None,
-                       help="the oculomotor runs' directory: <dir>/left, <dir>/right (default runs/oculomotor, or "
-                            "runs/quick/oculomotor with --quick, trained there if missing; a directory given must "
-                            "hold the runs)")
-        p.add_argument("--no-progress", action="store_true", help="no progress bars")
+        _net_flags(p.add_argument_group("the nets"), name)
+        if name != "oculomotor":
+            _scene_flags(p.add_argument_group("the scene"), name)
+        _output_flags(p.add_argument_group("the output"), name)
         add_debug_flag(p)
-        if name == "oculomotor":
-            continue
-        p.add_argument("--left", default=None, help="the left eye's foveation run (default runs/foveation_left, or "
-                                                    "runs/quick/foveation_left, trained there if missing; a directory "
-                                                    "given must hold a run)")
-        p.add_argument("--right", default=None, help="the right eye's foveation run (likewise)")
-        if name == "intercept":  # the arms strike
-            p.set_defaults(no_arms=False)
-            p.add_argument("--seed", type=int, default=0,
-                           help="the room's seed, and the first held-out shot: seed 1,000,000 + --seed (default 0)")
-        else:
-            p.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
-            p.add_argument("--seed", type=int, default=0, help="the room's seed")
-        if name != "intraocular":  # that command runs both, nets and teachers
-            default = "analytic" if name == "intercept" else "nets"
-            p.add_argument("--intraocular", choices=INTRAOCULAR, default=default,
-                           help=f"nets{' (default)' if default == 'nets' else ''}: each eye's pupil and lens nets command "
-                                "its iris and lens from the ONV (trained into runs/pupil/<eye> and runs/lens/<eye> if "
-                                f"missing); analytic{' (default)' if default == 'analytic' else ''}: their teachers, "
-                                "Watson & Yellott's pupil for the adapting luminance and accommodation to where the gaze "
-                                "lines converge")
-        p.add_argument("--pupil", default=None, help="the pupil runs' directory: <dir>/left, <dir>/right (default "
-                                                     "runs/pupil, or runs/quick/pupil with --quick)")
-        p.add_argument("--lens", default=None, help="the lens runs' directory (likewise: runs/lens, runs/quick/lens)")
-        p.add_argument("--ball", choices=BALLS, default="ordinary",
-                       help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
-                            "albedos (generators v8 and v9's kind of scene, what the default foveation nets learn); glowing: "
-                            "a white ball that glows, in the room dimmed (generator v7's scene: use it with v7 nets, "
-                            "python -m warp_vision.train --generator 7 --model linet ...)"
-                            + ("; the limb vision nets must have learnt the same ball (train limb --ball)" if name == "intercept" else ""))
-        if name in ("demo", "experiments"):
-            p.add_argument("--gaze-perception", choices=PERCEPTION, default="nets",
-                           help="where the gaze controller learns the ball's direction: nets (default), each eye's "
-                                "foveation net from its ONV; oracle: the ball's true direction in each eye frame (the "
-                                "eyes still render), which separates perception's errors from the controller's and "
-                                "oculomotor nets'")
-        every = INTERCEPT_FRAME_EVERY if name == "intercept" else FRAME_EVERY
-        p.add_argument("--frame-every", type=int, default=every,
-                       help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
-                            f"(default {every}: {100 // every} frames a second"
-                            + ("; a ball at 12 m/s moves 0.24 m between two" if name == "intercept" else "")
-                            + "; 1 renders every period)")
-        p.add_argument("--out", default=None, help=f"output directory (default runs/sim_{name}, or runs/quick/sim_{name} with --quick)")
-        if name == "intraocular":
-            p.add_argument("--cards", type=_positive_int, default=1,
-                           help="the focus steps with the lens nets on N cards of different textures (default 1; the "
-                                "vergence law, blind to the texture, runs on the first): how often each step comes into "
-                                "focus within 1.2 s")
-        if name == "intercept":
-            p.add_argument("--side", default="left", help="the striking arm: left (default) or right (the other hangs)")
-            p.add_argument("--shots", type=int, default=None,
-                           help="N held-out shots (seeds 1,000,000 + --seed ...), each run several ways: the closed loop "
-                                "with the chosen --perception (with vision also with the eyes' fixation), the true ball "
-                                "state (no rendering; also off by each --perception-error-cm), passive arms; writes "
-                                "intercept_stats.json and figures. Default: one shot with its video")
-            p.add_argument("--shot-seed", type=int, default=None,
-                           help="one shot: the shot of this seed (training seeds 0-999,999, held-out 1,000,000-1,999,999; "
-                                "default the first held-out one, 1,000,000 + --seed)")
-            p.add_argument("--perception", choices=("vision", "fixation", "oracle"), default="vision",
-                           help="how the arm knows the ball: vision (default), both eyes' limb vision nets (trained into "
-                                "runs/limb/<eye> if missing; with --shots the loop then also runs with fixation); "
-                                "fixation: where the two eyes' foveation nets see the ball (the gaze lines' crossing; no "
-                                "limb nets); oracle: the simulation's true ball state (no limb nets; with --shots the "
-                                "closed-loop mode then runs on it too, as 'loop_oracle')")
-            p.add_argument("--perception-error-cm", type=float, nargs="*", default=[],
-                           help="with --shots, also run the shots with the true ball state off by each of these errors "
-                                "(cm; a fixed offset per shot in a random direction, no rendering): how accurate the limb "
-                                "vision nets must be for the interception")
-            p.add_argument("--arm", default=None, help="the arm runs' directory: <dir>/<side> (default runs/arm, or "
-                                                       "runs/quick/arm with --quick, trained there if missing)")
-            p.add_argument("--limb", default=None, help="the limb vision runs' directory: <dir>/left, <dir>/right "
-                                                        "(default runs/limb, or runs/quick/limb with --quick)")
-            p.add_argument("--width", type=int, default=640, help="third-person view width (pixels)")
-            p.add_argument("--height", type=int, default=480, help="third-person view height (pixels); the left "
-                                                                   "retina beside it is half as high")
-            p.add_argument("--slow-motion", type=float, default=4.0,
-                           help="the video plays this many times slower than simulated time (default 4)")
-            p.add_argument("--video-format", choices=("gif", "mp4"), default="gif",
-                           help="intercept.gif (default) or intercept.mp4 (H.264)")
-        if name == "demo":
-            p.add_argument("--duration", type=float, default=0.8, help="simulated seconds")
-            p.add_argument("--flight", type=float, default=0.9, help="s of flight to the point --stop m before the face")
-            p.add_argument("--stop", type=float, default=1.0, help="m from the head where the ball's flight is aimed")
-            p.add_argument("--width", type=int, default=640, help="third-person view width (pixels)")
-            p.add_argument("--height", type=int, default=480, help="third-person view height (pixels); the "
-                                                                   "retina images beside it are half as high")
-            p.add_argument("--video-every", type=int, default=1, help="a video frame every N control periods (10 ms)")
-            p.add_argument("--slow-motion", type=float, default=4.0,
-                           help="the video plays this many times slower than simulated time (default 4)")
-            p.add_argument("--gif", action="store_true", help="also write demo.gif (same frames)")
-            p.add_argument("--viewer", action="store_true",
-                           help="open MuJoCo's passive viewer on the running loop (skipped, with a note, without a display)")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
     return guarded(lambda: _run(args), args.debug)
 
 
