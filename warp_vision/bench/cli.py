@@ -31,54 +31,50 @@ def _parser() -> argparse.ArgumentParser:
     lin.add_argument("--batch", type=int, default=64, help="batch size B (default 64)")
     lin.add_argument("--reduction", type=int, default=5, help="N = N_in // reduction (default 5)")
     lin.add_argument("--receptive-field", type=int, default=20, help="R (default 20)")
-    lin.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
     lin.add_argument("--device", default="cpu",
                      help="cpu (default), cuda or cuda:N. On cuda the layer's tensors (drawn as on the CPU) move to "
                           "the GPU and the Warp op and the torch baselines are timed there; the CPU-only parts (the "
                           "1-thread Warp variant, the Warp kernels timed alone) are skipped and named under "
                           "\"skipped\" in the JSON")
-    lin.add_argument("--out", default="bench_results/linet.json", help="JSON output path")
 
     mem = sub.add_parser("memory", help="Fig. 4: parameters and peak training-step memory vs ONV size")
     mem.add_argument("--sizes", type=int, nargs="+", default=None, help="ONV sizes 3P (default 1e3 .. 1.28e7)")
     mem.add_argument("--batch", type=int, default=64, help="batch size (default 64)")
     mem.add_argument("--budget-gib", type=float, default=14.0,
-                     help="run only configurations whose memory floor fits this (GiB); estimate the rest")
-    mem.add_argument("--out", default="bench_results/memory.json", help="JSON output path (the PNG goes beside it)")
+                     help="run only configurations whose memory floor fits this (GiB; default 14); estimate the rest")
     mem.add_argument("--worker", nargs=3, metavar=("MODEL", "ONV", "DTYPE"), help=argparse.SUPPRESS)
 
     rtp = sub.add_parser("raytrace", help="closest-hit rays/s (Warp packets vs wp.Mesh vs Embree) and ONVs/s")
     rtp.add_argument("--photoreceptors", type=int, default=14_400, help="P per retina (default 14,400)")
     rtp.add_argument("--samples", type=int, default=16, help="S rays per photoreceptor and channel (default 16)")
     rtp.add_argument("--batch", type=int, default=4, help="ONVs rendered per launch (default 4)")
-    rtp.add_argument("--repeats", type=int, default=5, help="timed repeats per measurement (median reported)")
     rtp.add_argument("--device", default="cpu",
                      help="cpu (default), cuda or cuda:N. On cuda the eye rays, the Warp packet and wp.Mesh "
                           "closest-hit kernels (one launch each: no thread variants) and the ONV render run on the "
                           "GPU; Embree (CPU) is not timed, its hits only checking agreement when embreex is "
                           "installed; the JSON names what was skipped under \"skipped\"")
-    rtp.add_argument("--out", default="bench_results/raytrace.json", help="JSON output path")
     lop = sub.add_parser("loop", help="the closed loop: simulated/wall, time shares and accuracy per visual frame rate")
     lop.add_argument("--frame-every", type=int, nargs="+", default=None,
                      help="settings: the eyes render every N control periods of 10 ms (default: 1, a render every "
                           "period as the loop used to, and the loop's default)")
     lop.add_argument("--quick", action="store_true", help="the --quick nets of python -m warp_vision.sim")
     lop.add_argument("--no-progress", action="store_true", help="no progress bars")
-    lop.add_argument("--out", default="bench_results/loop.json", help="JSON output path")
     rdo = sub.add_parser("readout", help="the foveation CNN's inference: the consensus of N views vs the plain image, "
                                          "float32 vs bfloat16, and the views' binning: CSR product vs index_add_")
     rdo.add_argument("--views", type=int, nargs="+", default=[1, 4, 8], help="settings (default 1 4 8; the first is the ratios' base)")
     rdo.add_argument("--batch", type=int, nargs="+", default=[1, 64], help="ONVs per call (default 1, as the loop's eyes, and 64)")
-    rdo.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
     rdo.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
-    rdo.add_argument("--out", default="bench_results/readout.json", help="JSON output path")
     cnn = sub.add_parser("cnn", help="the retina CNN's training step: float32 vs bfloat16 autocast (--precision)")
     cnn.add_argument("--channels", type=int, nargs="+", default=[16, 24, 32], help="widths (default 16, the default preset's, 24 and 32)")
     cnn.add_argument("--batch", type=int, default=64, help="ONVs per step (default 64)")
-    cnn.add_argument("--repeats", type=int, default=10, help="timed repeats per measurement (median reported)")
     cnn.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
-    cnn.add_argument("--out", default="bench_results/cnn.json", help="JSON output path")
-    for q in (lin, mem, rtp, lop, rdo, cnn):
+    for q, repeats in ((lin, 10), (mem, None), (rtp, 5), (lop, None), (rdo, 10), (cnn, 10)):
+        name = q.prog.split()[-1]
+        if repeats:
+            q.add_argument("--repeats", type=int, default=repeats,
+                           help=f"timed repeats per measurement, the median reported (default {repeats})")
+        q.add_argument("--out", default=f"bench_results/{name}.json",
+                       help=f"JSON output path (default bench_results/{name}.json{'; the PNG goes beside it' if q is mem else ''})")
         add_debug_flag(q)
     return p
 
