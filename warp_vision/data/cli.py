@@ -21,21 +21,10 @@ from warp_vision.data.foveation import FoveationDataConfig, generator_flag, synt
 from warp_vision.errors import ArgumentParser, add_debug_flag, field_help, guarded, preset_defaults, told
 
 
-def _choices(module) -> dict:
-    """The allowed values of a data config's fields that have a fixed set (argparse choices; the config's
-    validate checks the same)."""
-    choices = {"eye": sorted(module.RETINA_SEEDS)}
-    if module.__name__.endswith("foveation"):
-        from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
-
-        choices.update(generator=list(module.GENERATORS), rooms=sorted(ROOM_FAMILIES), condition=list(CONDITIONS))
-    return choices
-
-
-def _add_config_flags(parser: argparse.ArgumentParser, cls, module) -> argparse._ArgumentGroup:
-    """The dataset's flags (its config's fields, by the preset's values) in one section of --help, and where and
-    how it is built in another, which it returns."""
-    presets, choices = module.PRESET_DATA, _choices(module)
+def _add_config_flags(parser: argparse.ArgumentParser, cls, presets: dict, choices: dict) -> argparse._ArgumentGroup:
+    """The dataset's flags (its config's fields, by the preset's values; ``choices``: the allowed values of those
+    that have a fixed set, which the config's validate checks too) in one section of --help, and where and how
+    it is built in another, which it returns."""
     data = parser.add_argument_group("the dataset", "the settings of the training run's data (--seed: its --data-seed)")
     data.add_argument("--preset", choices=list(presets), default="default",
                       help="the dataset of this training preset (default: default), under the flags given")
@@ -73,9 +62,14 @@ def parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="kind", required=True)
     fov = sub.add_parser("foveation", help="ONVs of a ball in a room (--generator 7: a glowing white ball; 8: ordinary "
                                            "balls among distractors; 9: and decoys), with the eye rotation that foveates it")
-    _add_config_flags(fov, FoveationDataConfig, foveation)
+    from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
+
+    _add_config_flags(fov, FoveationDataConfig, foveation.PRESET_DATA,
+                      {"eye": sorted(foveation.RETINA_SEEDS), "generator": list(foveation.GENERATORS),
+                       "rooms": sorted(ROOM_FAMILIES), "condition": list(CONDITIONS)})
     fc = sub.add_parser("faces", help="ONVs of anny-built faces across yaw and pitch poses, with identity and pose")
-    _add_config_flags(fc, faces.FaceDataConfig, faces).add_argument("--identities-cache", default=None, help="identity meshes' cache file (default runs/faces/...)")
+    built = _add_config_flags(fc, faces.FaceDataConfig, faces.PRESET_DATA, {"eye": sorted(faces.RETINA_SEEDS)})
+    built.add_argument("--identities-cache", default=None, help="identity meshes' cache file (default runs/faces/...)")
     return p
 
 
