@@ -58,8 +58,6 @@ def test_defaults_and_the_shots_they_pick(parsed):
 @pytest.mark.parametrize("argv, words", [
     (["--shots", "0"], "--shots"),
     (["--shots", "-2"], "--shots"),
-    (["--side", "up"], "--side"),
-    (["--side", "up", "--shots", "2"], "--side"),
     (["--shot-seed", "-1"], "--shot-seed"),
     (["--shot-seed", "7", "--shots", "2"], "--shot-seed"),
     (["--seed", "-1"], "--seed"),
@@ -89,10 +87,12 @@ def test_unknown_choices_are_refused_by_the_parser(tmp_path, monkeypatch, capsys
     from warp_vision.sim.cli import main
 
     monkeypatch.chdir(tmp_path)
-    for argv in (["--perception", "telepathy"], ["--video-format", "avi"], ["--ball", "neon"]):
+    for argv in (["--perception", "telepathy"], ["--video-format", "avi"], ["--ball", "neon"], ["--side", "up"],
+                 ["--side", "up", "--shots", "2"]):
         with pytest.raises(SystemExit) as e:
             main(["intercept", *argv])
         assert e.value.code == 2
+        assert f"argument {argv[0]}: invalid choice: '{argv[1]}'" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()
 
 
