@@ -32,13 +32,13 @@ import torch  # noqa: E402
 
 from warp_vision.bench import torch_baselines as tb
 from warp_vision.bench.common import interleaved_ms, machine_info
-from warp_vision.provenance import software
 from warp_vision.bench.linet import kernel_calls, layer_inputs
 from warp_vision.fileio import write_json
 from warp_vision.kernels.launch import cpu_threads
 from warp_vision.kernels.linet import locally_connected
 from warp_vision.kernels.linet.layout import as_feature_major
 from warp_vision.kernels.linet.op import plan_for
+from warp_vision.provenance import software
 
 
 def _parse_args() -> argparse.Namespace:

@@ -68,11 +68,11 @@ def _parser() -> argparse.ArgumentParser:
     cnn.add_argument("--channels", type=int, nargs="+", default=[16, 24, 32], help="widths (default 16, the default preset's, 24 and 32)")
     cnn.add_argument("--batch", type=int, default=64, help="ONVs per step (default 64)")
     cnn.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
-    for q, repeats in ((lin, 10), (mem, None), (rtp, 5), (lop, None), (rdo, 10), (cnn, 10)):
-        name = q.prog.split()[-1]
-        if repeats:
-            q.add_argument("--repeats", type=int, default=repeats,
-                           help=f"timed repeats per measurement, the median reported (default {repeats})")
+    repeats = {"linet": 10, "raytrace": 5, "readout": 10, "cnn": 10}  # (memory and loop time no repeats)
+    for name, q in sub.choices.items():
+        if name in repeats:
+            q.add_argument("--repeats", type=int, default=repeats[name],
+                           help=f"timed repeats per measurement, the median reported (default {repeats[name]})")
         q.add_argument("--out", default=f"bench_results/{name}.json",
                        help=f"JSON output path (default bench_results/{name}.json{'; the PNG goes beside it' if q is mem else ''})")
         add_debug_flag(q)
