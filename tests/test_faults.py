@@ -124,6 +124,28 @@ def test_a_resumed_run_takes_no_epoch_cap_under_what_it_has_trained(finished, tm
         in capsys.readouterr().out
 
 
+def test_a_run_that_early_stopping_ended_trains_further_only_under_a_higher_cap(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    first = foveation.run(resolve("smoke", {"out": str(run), "data_dir": str(data), "patience": 1, "epochs": 8}), **QUIET)
+    done = first["epochs"]
+    assert first["stopped"].startswith("early stop") and done < 8, first  # (the drill needs a run that ended early)
+    rows = (run / "metrics.jsonl").read_text()
+    # resumed as it stands: nothing trained (it trained on to the cap of 8, without a word), its summary the same
+    assert train_main(["--resume", str(run), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert f"early stopping ended it after epoch {done} (no better validation loss for 1 epochs)" in out, out
+    assert f"--epochs N with N > {done} trains it further, its patience counted afresh" in out, out
+    assert (run / "metrics.jsonl").read_text() == rows
+    again = json.loads((run / "summary.json").read_text())
+    assert again["stopped"] == first["stopped"] and again["epochs"] == done and again["test_mse"] == first["test_mse"]
+    # under a higher cap: trained on, its patience counted afresh
+    assert train_main(["--resume", str(run), "--epochs", str(done + 2), "--no-progress"]) == 0
+    assert f"early stopping ended it; training on to epoch {done + 2}, its patience (1 epochs) counted afresh" \
+        in capsys.readouterr().out
+    epochs = [json.loads(x)["epoch"] for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert epochs[: done + 1] == list(range(1, done + 2))
+
+
 @pytest.mark.parametrize("damage", ["half", "empty", "clip100"])
 def test_a_damaged_latest_pt_gives_one_line_before_any_work(damage, finished, tmp_path, capsys, monkeypatch):
     def load(*a, **k):

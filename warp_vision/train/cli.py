@@ -37,7 +37,8 @@ def _run_flags(p: argparse.ArgumentParser, groups: dict) -> argparse.ArgumentPar
                      help="continue the stopped run in RUN_DIR exactly, with the settings of its config.json (other "
                           "settings are refused; one stopped before its first epoch ended starts "
                           "again); with --epochs N, under a new epoch cap (N = the epochs done ends it now: the best "
-                          "checkpoint is evaluated, figures written; fewer is refused)")
+                          "checkpoint is evaluated, figures written; fewer is refused). A run that early stopping ended "
+                          "trains further only under a higher cap, its patience counted afresh")
     run.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     run.add_argument("--no-progress", action="store_true", help="no progress bars")
     run.add_argument("--workers", type=_workers, default="auto", metavar="N",

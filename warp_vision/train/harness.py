@@ -5,7 +5,8 @@ builds), its loss, its evaluation, how it picks the best epoch, its summary and 
 owns the rest, the same for every task:
 
 - the run directory: a new run claims ``--out`` (refusing one that holds a run unless ``overwrite``);
-  ``--resume`` continues one exactly, optionally under a new epoch cap;
+  ``--resume`` continues one exactly, optionally under a new epoch cap (one that early stopping ended
+  trains further only under a higher cap, its patience counted afresh);
 - the device and DistributedDataParallel (``torchrun``: gloo on the CPU, nccl on CUDA; each rank builds a
   disjoint shard of the dataset, takes 1/N of every batch and 1/N of the CPU threads; rank 0 writes);
 - the epoch loop: the shuffle of epoch e is seeded by (seed, e), the learning-rate schedule is a function
@@ -283,6 +284,12 @@ class _State:
 
     def __init__(self, selection: dict):
         self.start_epoch, self.history, self.best, self.bad = 0, [], initial_best(selection), 0
+        self.ended = None  # why a resumed run that early stopping ended trains no further (None: it trains on)
+
+
+def _patience_spent(task: Task) -> str:
+    """Why early stopping ends a run: its patience in epochs without a better validation score."""
+    return f"no better validation {'/'.join(task.selection)} for {task.cfg.patience} epochs"
 
 
 def _nonfinite(what: str, value: float, epoch: int, step: int, out: Path) -> NonFiniteLoss:
@@ -358,10 +365,12 @@ def set_train_precision(task: Task, model: torch.nn.Module, device: str) -> None
                  f"(--precision {task.cfg.precision}; evaluation float32)")
 
 
-def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, progress: bool, workers: int = 1):
+def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, progress: bool, workers: int = 1,
+           new_cap: bool = False):
     """Load the data (synthesising a missing dataset in ``workers`` processes unless under torchrun, whose
     ranks render their own shards), fit the normalisation, build the net and optimiser, restore a resumed
-    run from checkpoint ``ck``."""
+    run from checkpoint ``ck``. A resumed run that early stopping ended trains no further unless given
+    ``new_cap`` (``--epochs``) beyond its epochs; then its patience counts afresh."""
     with rendering_lock(task, task.log, take=dd.rank == 0):  # (another run rendering this dataset: wait for it)
         if dd.world == 1:
             render_in_processes(task, workers, progress)
@@ -388,9 +397,18 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
         if dd.rank == 0:
             sync_metrics(out, state.history)
         task.log(f"resuming {out} after epoch {ck['epoch'] + 1}")
-        if state.start_epoch >= cfg.epochs:  # (it said "max epochs" and evaluated again, without a word why)
+        further = f"--epochs N with N > {state.start_epoch} trains it further"
+        if state.bad >= cfg.patience and new_cap and cfg.epochs > state.start_epoch:
+            state.bad = 0  # (kept, the first epoch without a better score would end it again)
+            task.log(f"early stopping ended it; training on to epoch {cfg.epochs}, its patience "
+                     f"({cfg.patience} epochs) counted afresh")
+        elif state.bad >= cfg.patience:  # (it trained on, up to its cap, without a word)
+            state.ended = f"early stop: {_patience_spent(task)}"
+            task.log(f"early stopping ended it after epoch {state.start_epoch} ({_patience_spent(task)}): its best "
+                     f"checkpoint is evaluated again; {further}, its patience counted afresh")
+        elif state.start_epoch >= cfg.epochs:  # (it said "max epochs" and evaluated again, without a word why)
             task.log(f"no epochs left to train (its cap is {cfg.epochs}): its best checkpoint is evaluated again; "
-                     f"--epochs N with N > {state.start_epoch} trains it further")
+                     f"{further}")
     return (tr, va, te), norm, model, opt, state
 
 
@@ -405,6 +423,8 @@ def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: D
                 "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": reproducible_config(cfg), "task": task.name,
                 "net": spec, "data": task.data_config()}
 
+    if state.ended:
+        return state.ended
     for epoch in range(state.start_epoch, cfg.epochs):
         t0 = time.perf_counter()
         if getattr(cfg, "lr_schedule", "constant") != "plateau":  # plateau: the optimiser's own (restored) rate
@@ -428,7 +448,7 @@ def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: D
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch:
             raise _Interrupt()
         if state.bad >= cfg.patience:
-            return f"early stop: no better validation {'/'.join(task.selection)} for {cfg.patience} epochs"
+            return f"early stop: {_patience_spent(task)}"
     return "max epochs"
 
 
@@ -488,13 +508,13 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     say = log if rank0 else (lambda *a, **k: None)
     cfg, out, ck = open_run(task_cls, cfg, resume, overwrite, epochs, say)
     try:
-        return _train(task_cls, cfg, out, ck, progress, say, rank0, stop_after_epoch, workers)
+        return _train(task_cls, cfg, out, ck, progress, say, rank0, stop_after_epoch, workers, epochs is not None)
     finally:
         release_run_dir(out)  # (the lock open_run took on --out)
 
 
 def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0: bool,
-           stop_after_epoch: int | None, workers: int | str) -> dict:
+           stop_after_epoch: int | None, workers: int | str, new_cap: bool = False) -> dict:
     """:func:`run`'s work once the run directory is open (and locked): data, training, evaluation."""
     device = pick_device(cfg.device)
     task = task_cls(cfg, say)
@@ -506,7 +526,7 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
     if workers == "auto":
         workers = auto_workers(device, int(getattr(cfg, "samples", 0)))
     try:
-        ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress, workers)
+        ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress, workers, new_cap)
     except KeyboardInterrupt as e:
         say(_interrupted(out))
         raise told(e)
