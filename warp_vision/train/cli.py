@@ -155,7 +155,8 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "pair: both more than 5 degrees off, against what independent nets would give; the share of "
                         "one's misses the other shares; both on the same wrong thing), and the share off if the best "
                         "net were taken for every ball")
-    p.add_argument("--samples", type=int, default=None, help="with --conditions: ONVs per held-out condition (default 400)")
+    p.add_argument("--samples", type=int, default=None,
+                   help=f"with --conditions: ONVs per held-out condition (default {C.CONDITION_SAMPLES})")
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="foveation CNN runs: read the net out by the consensus of N turned and mirrored views instead "
                         "of its own (default: its spec's, 8; 1: the plain image alone)")
@@ -274,7 +275,7 @@ def _evaluate(argv: list[str]) -> int:
         if a.conditions:
             from warp_vision.train.conditions import evaluate_conditions
 
-            evaluate_conditions(a.run_dirs, **({} if a.samples is None else {"samples": a.samples}),
+            evaluate_conditions(a.run_dirs, samples=C.CONDITION_SAMPLES if a.samples is None else a.samples,
                                 progress=not a.no_progress, views=a.views, checkpoint=a.checkpoint)
             return
         if a.agreement:

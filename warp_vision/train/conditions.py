@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from warp_vision.train.config import CONDITION_SAMPLES
 from warp_vision.train.foveation import OFF_DEG  # the table's third figure: the share of samples this far off
 
 #: Held-out sets use sample seeds this far from the training set's (their rooms are from the held-out family).
@@ -39,7 +40,7 @@ def condition_config(data, condition: str, samples: int):
                                seed=data.seed + HELD_OUT_SEED, chunk_size=min(data.chunk_size, 128))
 
 
-def evaluate_conditions(run_dirs, samples: int = 400, conditions=None, progress: bool = True, log=print,
+def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=None, progress: bool = True, log=print,
                         views: int | None = None, checkpoint: str = "best") -> dict:
     """Every run's best net on every held-out condition: {run_dir: {condition: {"median_deg", "p90_deg",
     "n"}}}, printed as one table; writes each run's ``conditions.json`` and ``figures/conditions.png``.

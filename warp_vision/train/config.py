@@ -203,6 +203,9 @@ class TrainConfig:
         self.data_config().validate()
 
 
+#: ONVs per held-out condition of ``evaluate --conditions`` (:func:`warp_vision.train.conditions.evaluate_conditions`).
+CONDITION_SAMPLES = 400
+
 #: Each preset: its dataset (``data.foveation.PRESET_DATA``, which ``python -m warp_vision.data foveation
 #: --preset`` builds too) and the net and training settings over it.
 PRESETS: dict[str, dict] = {
