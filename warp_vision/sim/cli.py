@@ -413,9 +413,16 @@ def main(argv=None) -> int:
 
 
 def _run(args) -> None:
+    """Refuse bad settings (before any net is trained), then run the command."""
     if getattr(args, "out", "") is None:
         args.out = os.path.join("runs", "quick", f"sim_{args.command}") if args.quick else f"runs/sim_{args.command}"
-    # bad settings are refused before any net is trained
+    _refuse_bad_settings(args)
+    {"oculomotor": _oculomotor, "intercept": _intercept, "demo": _demo, "intraocular": _intraocular,
+     "experiments": _experiments}[args.command](args)
+
+
+def _refuse_bad_settings(args) -> None:
+    """A ValueError naming the first flag out of range, or given where the command does not use it."""
     for flag in ("width", "height", "video_every", "frame_every"):
         if getattr(args, flag, 1) < 1:
             raise ValueError(f"--{flag.replace('_', '-')}: expected >= 1, got {getattr(args, flag)}")
@@ -428,59 +435,69 @@ def _run(args) -> None:
     if getattr(args, "out", None) is not None:
         require_output(args.out, "--out")
     refuse_unused_given(args)
-    if args.command == "oculomotor":
-        from warp_vision.sim.provision import provide
 
-        specs = net_specs(args)[2:]
-        refuse_missing_given(args, specs)
-        provide(specs, progress=not args.no_progress)
-        for spec in specs:  # (it printed both summaries whole, some 60 lines of JSON)
-            print(oculomotor_line(spec.eye, spec.run, json.loads(Path(spec.run, "summary.json").read_text())))
-        return
-    if args.command == "intercept":
-        pick_shots(args)  # bad settings are refused before any net is trained
-        bad = [e for e in args.perception_error_cm if not (np.isfinite(e) and 0 <= e <= 500)]
-        if bad or (args.perception_error_cm and args.shots is None):
-            raise ValueError(f"--perception-error-cm: expected distances of 0-500 cm with --shots, got {args.perception_error_cm}")
-        if args.height < 8:
-            raise ValueError(f"--height: expected >= 8, got {args.height}")
-        intercept(args)
-        return
-    if args.command == "demo":
-        result = demo(args)
-    elif args.command == "intraocular":
-        result = intraocular(args)
-        for mode in ("nets", "analytic"):
-            for st in result[mode]["light_steps"]:
-                print(f"{mode:8s} {st['eye']:5s} eye, {st['log_units']:+.0f} log units at {st['at_s']:.1f} s ({st['direction']}): "
-                      f"{st['from_mm']:.2f} -> {st['end_mm']:.2f} mm (steady state {st['steady_state_mm']:.2f}, off by "
-                      f"{100 * st['end_relative_error']:.1f}%), latency {_secs(st['latency_s'])}, 10-90% {_secs(st['rise_10_90_s'])}, "
-                      f"settled within 5% after {_secs(st['settle_s'])}")
-            for st in result[mode]["focus_steps"]:
-                print(f"{mode:8s} {st['eye']:5s} eye, card {st['from_m']:.2f} -> {st['to_m']:.2f} m at {st['at_s']:.1f} s: "
-                      f"{st['from_D']:.2f} -> {st['to_D']:.2f} D, latency {_secs(st['latency_s'])}, in focus (0.25 D) after "
-                      f"{_secs(st['in_focus_s'])}, defocus at the end {st['end_defocus_D']:+.3f} D")
-            for direction, f in result[mode]["focus_summary"].items():
-                print(f"{mode:8s} {direction} steps ({f['steps']} eye-steps): in focus within {f['goal_s']} s: "
-                      f"{f['in_focus_within_goal']}/{f['steps']}, median time to focus {_secs(f['median_in_focus_s'])}, "
-                      f"median |defocus| at the end {f['median_abs_end_defocus_D']:.3f} D")
-        write_json(os.path.join(args.out, "intraocular.json"), {**result, "software": software()})
-        print(f"wrote {os.path.join(args.out, 'intraocular.json')} and figures in {os.path.join(args.out, 'figures')}")
-        return
-    else:
-        _body, loop = setup_loop(args)
-        result, traces = experiments(loop, progress=not args.no_progress, return_traces=True)
-        os.makedirs(os.path.join(args.out, "figures"), exist_ok=True)
-        figure = plot_experiments(traces, os.path.join(args.out, "figures", "experiments.png"),
-                                  title=f"the {loop.ball} ball, gaze perception: {loop.perception}; "
-                                        f"foveation nets {loop.fov['left'].run_dir} and {loop.fov['right'].run_dir}")
-    write_json(os.path.join(args.out, f"{args.command}.json"), {**result, "software": software()})
-    # (each printed its JSON, 50-60 lines, leaving the reading to the user)
-    if args.command == "experiments":
-        print("\n".join(goal_lines(result)))
-        print(f"wrote {os.path.join(args.out, 'experiments.json')} and {figure}")
-    else:
-        print("\n".join(demo_lines(result, args.out)))
+
+def _oculomotor(args) -> None:
+    """``sim oculomotor``: train (or find) both eyes' oculomotor nets; one line each."""
+    from warp_vision.sim.provision import provide
+
+    specs = net_specs(args)[2:]
+    refuse_missing_given(args, specs)
+    provide(specs, progress=not args.no_progress)
+    for spec in specs:  # (it printed both summaries whole, some 60 lines of JSON)
+        print(oculomotor_line(spec.eye, spec.run, json.loads(Path(spec.run, "summary.json").read_text())))
+
+
+def _intercept(args) -> None:
+    """``sim intercept``, its own settings refused before any net is trained."""
+    pick_shots(args)
+    bad = [e for e in args.perception_error_cm if not (np.isfinite(e) and 0 <= e <= 500)]
+    if bad or (args.perception_error_cm and args.shots is None):
+        raise ValueError(f"--perception-error-cm: expected distances of 0-500 cm with --shots, got {args.perception_error_cm}")
+    if args.height < 8:
+        raise ValueError(f"--height: expected >= 8, got {args.height}")
+    intercept(args)
+
+
+def _demo(args) -> None:
+    """``sim demo``: the video and figures; the gaze error in a line (it printed its JSON, 50-60 lines)."""
+    result = demo(args)
+    write_json(os.path.join(args.out, "demo.json"), {**result, "software": software()})
+    print("\n".join(demo_lines(result, args.out)))
+
+
+def _intraocular(args) -> None:
+    """``sim intraocular``: each light and focus step of the nets and of the analytic controllers, a line each."""
+    result = intraocular(args)
+    for mode in ("nets", "analytic"):
+        for st in result[mode]["light_steps"]:
+            print(f"{mode:8s} {st['eye']:5s} eye, {st['log_units']:+.0f} log units at {st['at_s']:.1f} s ({st['direction']}): "
+                  f"{st['from_mm']:.2f} -> {st['end_mm']:.2f} mm (steady state {st['steady_state_mm']:.2f}, off by "
+                  f"{100 * st['end_relative_error']:.1f}%), latency {_secs(st['latency_s'])}, 10-90% {_secs(st['rise_10_90_s'])}, "
+                  f"settled within 5% after {_secs(st['settle_s'])}")
+        for st in result[mode]["focus_steps"]:
+            print(f"{mode:8s} {st['eye']:5s} eye, card {st['from_m']:.2f} -> {st['to_m']:.2f} m at {st['at_s']:.1f} s: "
+                  f"{st['from_D']:.2f} -> {st['to_D']:.2f} D, latency {_secs(st['latency_s'])}, in focus (0.25 D) after "
+                  f"{_secs(st['in_focus_s'])}, defocus at the end {st['end_defocus_D']:+.3f} D")
+        for direction, f in result[mode]["focus_summary"].items():
+            print(f"{mode:8s} {direction} steps ({f['steps']} eye-steps): in focus within {f['goal_s']} s: "
+                  f"{f['in_focus_within_goal']}/{f['steps']}, median time to focus {_secs(f['median_in_focus_s'])}, "
+                  f"median |defocus| at the end {f['median_abs_end_defocus_D']:.3f} D")
+    write_json(os.path.join(args.out, "intraocular.json"), {**result, "software": software()})
+    print(f"wrote {os.path.join(args.out, 'intraocular.json')} and figures in {os.path.join(args.out, 'figures')}")
+
+
+def _experiments(args) -> None:
+    """``sim experiments``: saccades, vergence and tracking on the closed loop; each goal in a line, a figure."""
+    _body, loop = setup_loop(args)
+    result, traces = experiments(loop, progress=not args.no_progress, return_traces=True)
+    os.makedirs(os.path.join(args.out, "figures"), exist_ok=True)
+    figure = plot_experiments(traces, os.path.join(args.out, "figures", "experiments.png"),
+                              title=f"the {loop.ball} ball, gaze perception: {loop.perception}; "
+                                    f"foveation nets {loop.fov['left'].run_dir} and {loop.fov['right'].run_dir}")
+    write_json(os.path.join(args.out, "experiments.json"), {**result, "software": software()})
+    print("\n".join(goal_lines(result)))
+    print(f"wrote {os.path.join(args.out, 'experiments.json')} and {figure}")
 
 
 def oculomotor_line(eye: str, run: str, summary: dict) -> str:
