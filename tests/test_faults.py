@@ -263,8 +263,37 @@ def test_the_data_command_checks_the_device_first(tmp_path, capsys):
                                         ("--max-field-deg", "inf")])
 def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
     code, err = cli(["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "d"), flag, value], capsys)
-    assert code == 2 and one_line_naming(err, flag.lstrip("-").replace("-", "_")), err
+    assert code == 2 and one_line_naming(err, flag + ":"), err
     assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize("command, argv, says", [
+    ("train", ["--preset", "smoke", "--out", "OUT", "--batch", "0"], "--batch: expected a positive integer, got 0"),
+    ("train", ["faces", "--preset", "smoke", "--out", "OUT", "--lr", "-1"], "--lr: expected > 0, got -1.0"),
+    ("train", ["limb", "--out", "OUT", "--epochs", "0"], "--epochs: expected a positive integer, got 0"),
+    ("train", ["evaluate", "RUN", "--conditions", "--samples", "3"], "--samples: expected at least 10 per condition, got 3"),
+    ("data", ["foveation", "--out", "OUT", "--samples", "0"], "--samples: expected a positive integer, got 0"),
+])
+def test_a_refused_setting_is_named_as_the_option_typed(command, argv, says, finished, tmp_path, capsys):
+    # the configs' checks name their fields ("batch: expected ..."): the command line names the option
+    import importlib
+
+    main = importlib.import_module(f"warp_vision.{command}.cli").main
+    argv = [{"OUT": str(tmp_path / "out"), "RUN": str(finished)}.get(a, a) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {says}\n", err
+
+
+def test_a_resumed_runs_bad_setting_is_named_in_its_config_json(finished, tmp_path, capsys):
+    # "--resume RUN" named "lr" as if typed (and after the change, as "--lr"); the value is the file's
+    run = copy_run(finished, tmp_path)
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "lr": -1.0}))
+    code, err = cli(["--resume", str(run)], capsys)
+    assert code == 2 and err == f"error: {run / 'config.json'}: lr: expected > 0, got -1.0\n", err
+    code, err = cli(["--resume", str(finished), "--epochs", "0"], capsys)  # what was typed: the option
+    assert code == 2 and err == "error: --epochs: expected a positive integer, got 0\n", err
 
 
 @pytest.mark.parametrize("command, argv", [

@@ -87,7 +87,7 @@ def test_training_command_passes_its_checks(rest):
     together (a flag the chosen model does not read, say, is refused before any work)."""
     from warp_vision.train.cli import parse_training
 
-    _, cls, _, make = parse_training(rest)
+    _, cls, _, make, _ = parse_training(rest)
     assert isinstance(make(), cls)
 
 

@@ -193,12 +193,33 @@ def sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, old)
 
 
-def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, int] | None = None) -> int:
+def long_options(parser: argparse.ArgumentParser) -> frozenset[str]:
+    """Every ``--option`` of ``parser`` and of its subcommands' parsers."""
+    names = {o for a in parser._actions for o in a.option_strings if o.startswith("--")}
+    sub = _subcommands(parser)
+    for p in (sub.choices.values() if sub is not None else ()):
+        names |= long_options(p)
+    return frozenset(names)
+
+
+def as_option(line: str, options) -> str:
+    """An error line that begins with a setting's name (``lr: expected > 0``, as a config's checks word
+    it) begun with the command-line option the user typed instead (``--lr: expected > 0``), where
+    ``options`` holds one of that name; other lines as they are."""
+    m = re.match(r"([a-z][a-z0-9_]*): ", line)
+    option = m and "--" + m.group(1).replace("_", "-")
+    return option + line[m.end(1):] if option in options else line
+
+
+def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, int] | None = None,
+            options=frozenset()) -> int:
     """Run ``job``: 0 when it returns (or its own int exit code); ValueError, OSError and the exception
     types in ``codes`` ({type: exit code}) print one ``error:`` line on stderr and return 2 (or their
     code), as does a failed allocation (:func:`out_of_memory`; other RuntimeErrors raise); Ctrl-C returns
     130, SIGTERM 143 (:class:`Terminated`), saying so in a line unless the command has said where it stopped
-    (:func:`told`). With ``debug`` the errors raise, traceback and all."""
+    (:func:`told`). A line that begins with a setting's name begins with its option where ``options``
+    (the command's, :func:`long_options`) holds one (:func:`as_option`). With ``debug`` the errors raise,
+    traceback and all."""
     codes = codes or {}
     try:
         with sigterm_as_interrupt():
@@ -214,7 +235,8 @@ def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, in
     except (ValueError, OSError, *codes) as e:
         if debug:
             raise
-        print(f"error: {error_line(e)}", file=sys.stderr)
+        line = error_line(e)  # (an OSError's begins with a file's name, which may be an option's word)
+        print(f"error: {line if isinstance(e, OSError) else as_option(line, options)}", file=sys.stderr)
         return next((c for t, c in codes.items() if isinstance(e, t)), 2)
     except (MemoryError, RuntimeError) as e:
         if debug or not out_of_memory(e):

@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 from warp_vision.data.foveation import FoveationDataConfig, generator_flag, synthesize
-from warp_vision.errors import ArgumentParser, add_debug_flag, field_help, guarded, preset_defaults, told
+from warp_vision.errors import ArgumentParser, add_debug_flag, field_help, guarded, long_options, preset_defaults, told
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, cls, presets: dict, choices: dict) -> argparse._ArgumentGroup:
@@ -74,7 +74,8 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    a = parser().parse_args(argv)
+    p = parser()
+    a = p.parse_args(argv)
     from warp_vision.data.store import parse_shard
 
     def job():
@@ -106,4 +107,4 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
               f"{'' if not left else f' ({left} chunks of this shard missing)'}")
 
-    return guarded(report, a.debug)
+    return guarded(report, a.debug, options=long_options(p))

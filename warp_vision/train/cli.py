@@ -23,7 +23,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from warp_vision.errors import add_debug_flag as _debug_flag
-from warp_vision.errors import ArgumentParser, guarded, not_a_command
+from warp_vision.errors import ArgumentParser, guarded, long_options, not_a_command
 from warp_vision.train import config as C
 from warp_vision.train import config_body as body
 from warp_vision.train import config_intraocular as intraocular
@@ -214,7 +214,7 @@ def _compare(argv: list[str]) -> int:
         atomic_write(a.out, lambda f: fig.savefig(f, format=fmt, dpi=120, bbox_inches="tight"))
         print(f"wrote {a.out}")
 
-    return _guarded(job, a.debug)
+    return _guarded(job, a.debug, p)
 
 
 def figure_format(path) -> str:
@@ -297,7 +297,7 @@ def _evaluate(argv: list[str]) -> int:
                 kw["views"] = a.views
             _module(task).evaluate_run(run_dir, a.split, checkpoint=a.checkpoint, **kw)
 
-    return _guarded(job, a.debug)
+    return _guarded(job, a.debug, p)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -306,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
         return _compare(argv[1:])
     if argv and argv[0] == "evaluate":
         return _evaluate(argv[1:])
-    name, cls, a, make = parse_training(argv)
+    name, cls, a, make, p = parse_training(argv)
     argv = argv[1:] if argv and argv[0] in TASKS else argv
     run = _module(name).run
     if a.resume:
@@ -314,25 +314,27 @@ def main(argv: list[str] | None = None) -> int:
             _refuse_settings_on_resume(a, cls, argv)
             return run(resume=a.resume, progress=not a.no_progress, epochs=a.epochs, workers=a.workers)
 
-        return _guarded(resume, a.debug)
-    return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite, workers=a.workers), a.debug)
+        return _guarded(resume, a.debug, p)
+    return _guarded(lambda: run(make(), progress=not a.no_progress, overwrite=a.overwrite, workers=a.workers),
+                    a.debug, p)
 
 
 def parse_training(argv: list[str]):
     """A training command line (``[TASK] --flag ...``, no ``compare`` or ``evaluate``) as ``(task, config
-    class, parsed flags, make)``: ``make()`` builds its config, refusing what :func:`config.from_args`
-    refuses. Exits as argparse does on unknown flags."""
+    class, parsed flags, make, the parser)``: ``make()`` builds its config, refusing what
+    :func:`config.from_args` refuses. Exits as argparse does on unknown flags."""
     if argv and argv[0] in TASKS:
         name = argv[0]
-        a = _task_parser(name).parse_args(argv[1:])
+        p = _task_parser(name)
+        a = p.parse_args(argv[1:])
         _, cls, presets, _ = TASKS[name]
-        return name, cls, a, lambda: C.from_args(a, cls, presets)
+        return name, cls, a, lambda: C.from_args(a, cls, presets), p
     p = _train_parser()
     if argv and not argv[0].startswith("-"):  # a mistyped task or command: argparse called it an unknown argument
         p.error(f"{not_a_command(argv[0], [*TASKS, 'evaluate', 'compare'], 'a task or command')}, "
                 f"or the foveation task's flags alone")
     a = p.parse_args(argv)
-    return "foveation", C.TrainConfig, a, lambda: C.from_args(a)
+    return "foveation", C.TrainConfig, a, lambda: C.from_args(a), p
 
 
 def _refuse_settings_on_resume(a: argparse.Namespace, cls, argv: list[str]) -> None:
@@ -348,8 +350,9 @@ def _refuse_settings_on_resume(a: argparse.Namespace, cls, argv: list[str]) -> N
                          f"with other settings, start a new run in another --out")
 
 
-def _guarded(job, debug: bool = False) -> int:
-    """Run a job (:func:`warp_vision.errors.guarded`); a non-finite loss exits with code 3."""
+def _guarded(job, debug: bool, parser: argparse.ArgumentParser) -> int:
+    """Run a job (:func:`warp_vision.errors.guarded`), its errors naming ``parser``'s options; a non-finite
+    loss exits with code 3."""
     from warp_vision.train.harness import NonFiniteLoss
 
-    return guarded(job, debug, {NonFiniteLoss: 3})
+    return guarded(job, debug, {NonFiniteLoss: 3}, long_options(parser))

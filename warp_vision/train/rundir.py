@@ -97,9 +97,13 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
             raise ValueError(f"--resume {resume}: {a_run(task)}, not {a_run(task_cls.name)}; resume it with "
                              f"{task_command(task)} --resume {resume}")
         cfg = config_from_saved(task_cls.config_cls, read_run_config(out), out / "config.json")
+        try:
+            cfg.validate()
+        except ValueError as e:  # (it named the setting alone, as if given on the command line)
+            raise ValueError(f"{out / 'config.json'}: {e}") from None
         if epochs is not None:
             cfg.epochs = epochs
-        cfg.validate()
+            cfg.validate()
         cfg.out = str(out)
         task_cls.resolve_paths(cfg)  # (a run made before paths were recorded absolute: as the working directory says)
         _check_device(cfg.device)
