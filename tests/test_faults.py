@@ -424,7 +424,7 @@ def test_a_negative_seed_is_refused_by_name_before_anything_is_written(command, 
     import importlib
 
     main = importlib.import_module(f"warp_vision.{command[0]}.cli").main
-    flag = command[-2].lstrip("-").replace("-", "_")
+    flag = command[-2]  # (named as the option typed)
     assert main([*command[1:], "--out", str(tmp_path / "out")] + (["--data-dir", str(tmp_path / "d")]
                                                                     if command[0] == "train" else [])) == 2
     assert f"{flag}: expected a seed >= 0, got -1" in capsys.readouterr().err
@@ -1181,9 +1181,9 @@ def test_compare_names_a_damaged_metrics_line(line, says, finished, tmp_path, ca
 
 
 @pytest.mark.parametrize("command, says", [
-    (["oculomotor", "--max-gaze-deg", "0"], r"max_gaze_deg: expected degrees in (0, 45], got 0.0"),
-    (["--max-field-deg", "0"], r"max_field_deg: expected degrees in (0, 80], got 0.0"),
-    (["lens", "--defocus-range-D", "0"], r"defocus_range_D: expected dioptres in (0, 5], got 0.0"),
+    (["oculomotor", "--max-gaze-deg", "0"], r"--max-gaze-deg: expected degrees in (0, 45], got 0.0"),
+    (["--max-field-deg", "0"], r"--max-field-deg: expected degrees in (0, 80], got 0.0"),
+    (["lens", "--defocus-range-D", "0"], r"--defocus-range-D: expected dioptres in (0, 5], got 0.0"),
 ])
 def test_an_open_bound_is_said_to_be_open(command, says, tmp_path, capsys):
     # "expected 0 to 45 degrees, got 0.0" refused the 0 it named as allowed

@@ -175,7 +175,7 @@ def test_bad_config_is_refused():
     (["--preset", "smoke", "--model", "fc", "--layers", "4", "--receptive-field", "10"], "expected R_4 <= N_3 = 9"),
     (["--preset", "smoke", "--model", "conv", "--layers", "4"], "layers: layer 4 would have no sites"),
     (["--preset", "smoke", "--model", "conv", "--reduction", "1"], "reduction: the conv net's stride"),
-    (["faces", "--preset", "smoke", "--layers", "9"], "receptive_field: expected R_9 <= N_8 = 4"),
+    (["faces", "--preset", "smoke", "--layers", "9"], "--receptive-field: expected R_9 <= N_8 = 4"),
     (["limb", "--preset", "smoke", "--model", "linet", "--layers", "5"], "layers: expected every layer to keep N_h"),
     # v7 placed no ball at all on a retina this small: a RuntimeError after the run was claimed
     (["--preset", "smoke", "--photoreceptors", "3", "--layers", "1", "--receptive-field", "2"], "photoreceptors: 3 are too few for balls out to max_field_deg=45"),

@@ -206,7 +206,7 @@ def as_option(line: str, options) -> str:
     """An error line that begins with a setting's name (``lr: expected > 0``, as a config's checks word
     it) begun with the command-line option the user typed instead (``--lr: expected > 0``), where
     ``options`` holds one of that name; other lines as they are."""
-    m = re.match(r"([a-z][a-z0-9_]*): ", line)
+    m = re.match(r"([a-z][A-Za-z0-9_]*): ", line)
     option = m and "--" + m.group(1).replace("_", "-")
     return option + line[m.end(1):] if option in options else line
 
