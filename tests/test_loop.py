@@ -468,9 +468,15 @@ def test_ctrl_c_lets_a_net_s_training_stop_its_helpers_and_say_where_it_stands(t
 
     done = tmp_path / "stopped"
     child = [sys.executable, "-c", f"import time, pathlib; time.sleep(3.0); pathlib.Path({str(done)!r}).write_text('')"]
-    threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT)).start()  # Ctrl-C, once the child runs
-    with pytest.raises(KeyboardInterrupt):
-        _run_training(child)
+    # Python's Ctrl-C handler, as a terminal's process has it: a job a shell starts in the background (`pytest &`)
+    # begins with SIGINT ignored, and the signal below would then pass unseen
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        threading.Timer(1.0, os.kill, (os.getpid(), signal.SIGINT)).start()  # Ctrl-C, once the child runs
+        with pytest.raises(KeyboardInterrupt):
+            _run_training(child)
+    finally:
+        signal.signal(signal.SIGINT, old)
     assert done.exists()  # the child was waited for, not killed
 
 
