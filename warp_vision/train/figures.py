@@ -33,7 +33,7 @@ def plot_curves(histories: dict, title: str = "foveation training") -> Figure:
         c = f"C{i}"
         ax.plot(ep, [h["train_mse"] for h in hist], "-", color=c, label=f"{label} train")
         ax.plot(ep, [h["val_mse"] for h in hist], "--", color=c, label=f"{label} validation")
-    ax.axhline(0.01, color="0.6", lw=0.8, ls=":")
+    ax.axhline(0.01, color="0.6", lw=0.8, ls=":", label="0.01 (the paper's foveation nets' training MSE)")
     ax.set_yscale("log")
     ax.set_xlabel("epoch")
     ax.set_ylabel("MSE (standardised targets)")
