@@ -273,6 +273,7 @@ def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
     ("train", ["limb", "--out", "OUT", "--epochs", "0"], "--epochs: expected a positive integer, got 0"),
     ("train", ["evaluate", "RUN", "--conditions", "--samples", "3"], "--samples: expected at least 10 per condition, got 3"),
     ("data", ["foveation", "--out", "OUT", "--samples", "0"], "--samples: expected a positive integer, got 0"),
+    ("scene", ["demo", "--device", "gpu", "--out", "OUT"], "--device: expected cpu, cuda or cuda:N, got 'gpu'"),
 ])
 def test_a_refused_setting_is_named_as_the_option_typed(command, argv, says, finished, tmp_path, capsys):
     # the configs' checks name their fields ("batch: expected ..."): the command line names the option

@@ -51,5 +51,5 @@ def test_demo_refuses_a_device_this_machine_lacks_in_one_line(tmp_path, capsys):
     for device, says in (("cuda:99", "CUDA device(s) on this machine"), ("gpu", "expected cpu, cuda or cuda:N")):
         assert main(["demo", "--photoreceptors", "100", "--samples", "1", "--device", device, "--out", str(tmp_path / "d")]) == 2
         err = capsys.readouterr().err
-        assert err.startswith("error: device:") and says in err and err.count("\n") == 1, err
+        assert err.startswith("error: --device:") and says in err and err.count("\n") == 1, err  # (the option typed)
     assert not list(tmp_path.iterdir())

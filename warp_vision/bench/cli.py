@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from warp_vision.bench.common import machine_info
-from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, require_positive
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, long_options, require_positive
 from warp_vision.fileio import require_output, write_json
 from warp_vision.provenance import software
 
@@ -80,8 +80,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
-    return guarded(lambda: _bench(args), args.debug)
+    p = _parser()
+    args = p.parse_args(argv)
+    return guarded(lambda: _bench(args), args.debug, options=long_options(p))
 
 
 def _device(name: str) -> str:

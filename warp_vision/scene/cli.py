@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, require_positive
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, long_options, require_positive
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -33,8 +33,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
-    return guarded(lambda: _eye_demo(args), args.debug)
+    p = _parser()
+    args = p.parse_args(argv)
+    return guarded(lambda: _eye_demo(args), args.debug, options=long_options(p))
 
 
 def _eye_demo(args) -> int:

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from warp_vision.errors import ArgumentParser, add_debug_flag, guarded
+from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, long_options
 from warp_vision.fileio import require_output, write_json
 from warp_vision.provenance import software
 from warp_vision.body import SIDES, Body, BodyConfig
@@ -408,8 +408,9 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = parser().parse_args(argv)
-    return guarded(lambda: _run(args), args.debug)
+    p = parser()
+    args = p.parse_args(argv)
+    return guarded(lambda: _run(args), args.debug, options=long_options(p))
 
 
 def _run(args) -> None:
