@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from warp_vision.train import harness
+from warp_vision.train import evaluation, harness
 from warp_vision.train.config_body import ArmTrainConfig
 
 FIELDS = ["angles", "qpos", "act", "hand", "residual", "torque_A", "torque_b"]
@@ -188,4 +188,4 @@ def run(cfg: ArmTrainConfig | None = None, **kw) -> dict:
 
 def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
     """Re-evaluate an arm run's ``checkpoint`` (best or latest) on its held-out transitions."""
-    return harness.evaluate_run(ArmTask, run_dir, split, log, checkpoint=checkpoint)
+    return evaluation.evaluate_run(ArmTask, run_dir, split, log, checkpoint=checkpoint)

@@ -56,7 +56,8 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
     from warp_vision.nn.trained import (CHECKPOINTS, checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets,
                                         read_checkpoint, saved_task)
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
-    from warp_vision.train.harness import load_for_evaluation, pick_device, read_label
+    from warp_vision.train.evaluation import load_for_evaluation, read_label
+    from warp_vision.train.harness import pick_device
     from warp_vision.train.rundir import a_run, dataset_dir, run_config
     from warp_vision.train.workers import dataset_lock
 

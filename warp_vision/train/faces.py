@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
-from warp_vision.train import harness
+from warp_vision.train import evaluation, harness
 from warp_vision.train.config import FaceTrainConfig, onv_dtype_name
 
 
@@ -151,4 +151,4 @@ def run(cfg: FaceTrainConfig | None = None, **kw) -> dict:
 
 def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
     """Re-evaluate an AFR run's ``checkpoint`` (best or latest); prints accuracy and pose error."""
-    return harness.evaluate_run(FaceTask, run_dir, split, log, checkpoint=checkpoint)
+    return evaluation.evaluate_run(FaceTask, run_dir, split, log, checkpoint=checkpoint)

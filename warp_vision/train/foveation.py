@@ -20,7 +20,7 @@ import torch
 from warp_vision.frames import gaze_directions
 from warp_vision.nn.retina_cnn import IMAGE_SIZE
 from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
-from warp_vision.train import harness
+from warp_vision.train import evaluation, harness
 from warp_vision.train.config import TrainConfig, onv_dtype_name
 
 #: Weight of the conv net's heat-map cross-entropy beside its regression loss (a cross-entropy of a few
@@ -385,7 +385,7 @@ def run(cfg: TrainConfig | None = None, **kw) -> dict:
 
 def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = False, signal: bool = False,
                  progress: bool = True, checkpoint: str = "best", views: int | None = None) -> dict:
-    """Re-evaluate a foveation run's ``checkpoint`` (best or latest: :func:`harness.evaluate_run`, as ``views``);
+    """Re-evaluate a foveation run's ``checkpoint`` (best or latest: :func:`evaluation.evaluate_run`, as ``views``);
     prints the angular error. ``misses``: also where the
     balls more than :data:`OFF_DEG` off lie (:func:`miss_breakdown`), printed as a table and returned as
     ``"misses"``, and drawn in ``RUN/figures/misses_<split>.png``. ``signal`` (with ``misses``; v8 and v9
@@ -395,7 +395,7 @@ def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = Fa
     if signal and not misses:
         raise ValueError("signal: a part of the misses' breakdown; pass misses=True too")
     detail = (lambda task, idx, ev, log: _misses(task, idx, ev, log, run_dir, split, signal, progress)) if misses else None
-    return harness.evaluate_run(FoveationTask, run_dir, split, log, detail=detail, checkpoint=checkpoint, views=views,
+    return evaluation.evaluate_run(FoveationTask, run_dir, split, log, detail=detail, checkpoint=checkpoint, views=views,
                                 progress=progress)
 
 
@@ -412,7 +412,7 @@ def evaluate_agreement(run_dirs, split: str = "test", log=print) -> dict:
         return {}
 
     for run_dir in run_dirs:
-        harness.evaluate_run(FoveationTask, run_dir, split, log, detail=keep)
+        evaluation.evaluate_run(FoveationTask, run_dir, split, log, detail=keep)
     for run_dir, (ddir, idx, _, _) in zip(run_dirs[1:], got[1:]):
         if ddir != got[0][0] or not np.array_equal(idx, got[0][1]):
             raise ValueError(f"agreement: {run_dir} does not share {run_dirs[0]}'s dataset and {split} split "

@@ -41,10 +41,10 @@ from warp_vision.data.store import waiting_for_writers
 from warp_vision.errors import told
 from warp_vision.fileio import write_json
 from warp_vision.provenance import software
-from warp_vision.nn.trained import ONV_DTYPES, build_net, checkpoint_path, net_from_checkpoint, read_checkpoint
+from warp_vision.nn.trained import ONV_DTYPES, build_net, read_checkpoint
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
-                                      preflight, record_epoch, release_run_dir, run_config, save_checkpoint, sync_metrics)
+                                      preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics)
 from warp_vision.train.workers import auto_workers, render_in_processes, rendering_lock
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
@@ -555,47 +555,3 @@ def _interrupted(out: Path) -> str:
         return f"interrupted: {out / 'latest.pt'} holds the last finished epoch; continue with --resume {out}"
     return (f"interrupted before any epoch finished (the dataset's chunks written so far are kept); "
             f"--resume {out} starts it again")
-
-
-def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
-    """How ``evaluate`` names a run read other than as it stands: "RUN (latest.pt, epoch 9; views 1)";
-    the run's best checkpoint with its own views is just "RUN". ``epoch``: the checkpoint's, 0-based."""
-    how = ([f"{checkpoint}.pt, epoch {epoch + 1}"] if checkpoint != "best" else []) + ([f"views {views}"] if views is not None else [])
-    return f"{run_dir} ({'; '.join(how)})" if how else str(run_dir)
-
-
-def load_for_evaluation(task: Task, log=print, progress: bool = True) -> None:
-    """Load a finished run's dataset to evaluate it. A store gone from the cache (deleted to free the disk, or
-    a run copied from another machine: "not a ChunkedStore" was all evaluate said) is rendered again, the
-    same bytes as in training, saying so."""
-    from warp_vision.data.store import MissingStoreError
-
-    try:
-        task.load((0, 1), progress=False, synthesize=False)
-    except MissingStoreError as e:
-        log(f"the run's dataset {e.root} is gone: rendering it again (the same samples as in training)")
-        with rendering_lock(task, log):
-            task.load((0, 1), progress=progress, synthesize=True)
-
-
-def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None, checkpoint: str = "best",
-                 views: int | None = None, progress: bool = True) -> dict:
-    """Re-evaluate a run's ``checkpoint`` ("best": the best validation epoch's weights; "latest": the last
-    epoch's) on one of its splits; prints the task's metrics. ``views``: read a foveation CNN out by the
-    consensus of that many views instead of its spec's (1: the plain image). ``detail``:
-    ``detail(task, idx, ev, log) -> dict``, more analysis of the evaluation ``ev`` (its tensors included)
-    whose entries join the returned metrics. ``progress``: a bar while a dataset gone from its cache is
-    rendered again (:func:`load_for_evaluation`)."""
-    path = checkpoint_path(run_dir, checkpoint)
-    ck = read_checkpoint(path)
-    cfg = run_config(task_cls, Path(run_dir), ck)
-    task = task_cls(cfg, log)
-    load_for_evaluation(task, log, progress)
-    tr, va, te = task.splits()
-    idx = {"test": te if len(te) else va, "val": va, "train": tr}[split]
-    device = pick_device(cfg.device)
-    model = net_from_checkpoint(ck, device, views, source=path)
-    ev = task.evaluate(model, idx, ck["norm"], device)
-    log(task.eval_line(read_label(run_dir, checkpoint, ck["epoch"], views), split, len(idx), ev))
-    more = detail(task, idx, ev, log) if detail is not None else {}
-    return {**{k: v for k, v in ev.items() if not torch.is_tensor(v)}, **more}

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from warp_vision.train import harness
+from warp_vision.train import evaluation, harness
 from warp_vision.train.config_intraocular import LensTrainConfig
 from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
 from warp_vision.train.intraocular import ShallowNetTask
@@ -157,4 +157,4 @@ def run(cfg: LensTrainConfig | None = None, **kw) -> dict:
 
 def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
     """Re-evaluate a lens run's ``checkpoint`` (best or latest) on its held-out ONVs."""
-    return harness.evaluate_run(LensTask, run_dir, split, log, checkpoint=checkpoint)
+    return evaluation.evaluate_run(LensTask, run_dir, split, log, checkpoint=checkpoint)

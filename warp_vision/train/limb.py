@@ -37,7 +37,7 @@ import torch
 from warp_vision.nn.trained import fit_input_norm, net_input, set_input_standardisation
 from warp_vision.sim.limb import NEAR_M
 from warp_vision.sim.limb_errors import discrepancy_errors, range_errors
-from warp_vision.train import harness
+from warp_vision.train import evaluation, harness
 from warp_vision.train.config import onv_dtype_name
 from warp_vision.train.config_body import LimbTrainConfig
 
@@ -298,4 +298,4 @@ def run(cfg: LimbTrainConfig | None = None, **kw) -> dict:
 
 
 def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
-    return harness.evaluate_run(LimbTask, run_dir, split, log, checkpoint=checkpoint)
+    return evaluation.evaluate_run(LimbTask, run_dir, split, log, checkpoint=checkpoint)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from warp_vision.train import harness
+from warp_vision.train import evaluation, harness
 from warp_vision.train.config_body import OculomotorTrainConfig
 
 
@@ -115,4 +115,4 @@ def run(cfg: OculomotorTrainConfig | None = None, **kw) -> dict:
 
 def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
     """Re-evaluate an oculomotor run's ``checkpoint`` (best or latest) on its held-out transitions."""
-    return harness.evaluate_run(OculomotorTask, run_dir, split, log, checkpoint=checkpoint)
+    return evaluation.evaluate_run(OculomotorTask, run_dir, split, log, checkpoint=checkpoint)

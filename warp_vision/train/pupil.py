@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from warp_vision.train import harness
+from warp_vision.train import evaluation, harness
 from warp_vision.train.config_intraocular import PupilTrainConfig
 from warp_vision.train.intraocular import ShallowNetTask
 
@@ -100,4 +100,4 @@ def run(cfg: PupilTrainConfig | None = None, **kw) -> dict:
 
 def evaluate_run(run_dir: str, split: str = "test", log=print, checkpoint: str = "best") -> dict:
     """Re-evaluate a pupil run's ``checkpoint`` (best or latest) on its held-out ONVs."""
-    return harness.evaluate_run(PupilTask, run_dir, split, log, checkpoint=checkpoint)
+    return evaluation.evaluate_run(PupilTask, run_dir, split, log, checkpoint=checkpoint)
