@@ -266,9 +266,6 @@ def _focus_retinas(shots: list, retina, path: str) -> None:
     plt.close(fig)
 
 
-COMMANDS = ("demo", "experiments", "intraocular", "oculomotor", "intercept")
-
-
 def _net_flags(g, name: str) -> None:
     """The nets the loop runs, and where it finds them (``--help``'s "the nets")."""
     g.add_argument("--quick", action="store_true",
@@ -418,8 +415,7 @@ def _run(args) -> None:
     if getattr(args, "out", "") is None:
         args.out = os.path.join("runs", "quick", f"sim_{args.command}") if args.quick else f"runs/sim_{args.command}"
     _refuse_bad_settings(args)
-    {"oculomotor": _oculomotor, "intercept": _intercept, "demo": _demo, "intraocular": _intraocular,
-     "experiments": _experiments}[args.command](args)
+    COMMANDS[args.command](args)
 
 
 def _refuse_bad_settings(args) -> None:
@@ -499,6 +495,11 @@ def _experiments(args) -> None:
     write_json(os.path.join(args.out, "experiments.json"), {**result, "software": software()})
     print("\n".join(goal_lines(result)))
     print(f"wrote {os.path.join(args.out, 'experiments.json')} and {figure}")
+
+
+#: Each command and its work, in the order --help lists them.
+COMMANDS = {"demo": _demo, "experiments": _experiments, "intraocular": _intraocular, "oculomotor": _oculomotor,
+            "intercept": _intercept}
 
 
 def oculomotor_line(eye: str, run: str, summary: dict) -> str:
