@@ -273,6 +273,8 @@ def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
     ("train", ["limb", "--out", "OUT", "--epochs", "0"], "--epochs: expected a positive integer, got 0"),
     ("train", ["evaluate", "RUN", "--conditions", "--samples", "3"], "--samples: expected at least 10 per condition, got 3"),
     ("data", ["foveation", "--out", "OUT", "--samples", "0"], "--samples: expected a positive integer, got 0"),
+    ("data", ["faces", "--out", "OUT", "--shard", "3/2"], "--shard: the index I in I/N must satisfy 0 <= I < N, got 3/2"),
+    ("data", ["foveation", "--out", "OUT", "--shard=a/2"], "--shard: expected 'I/N' with integers 0 <= I < N, got 'a/2'"),
     ("scene", ["demo", "--device", "gpu", "--out", "OUT"], "--device: expected cpu, cuda or cuda:N, got 'gpu'"),
 ])
 def test_a_refused_setting_is_named_as_the_option_typed(command, argv, says, finished, tmp_path, capsys):
@@ -284,6 +286,21 @@ def test_a_refused_setting_is_named_as_the_option_typed(command, argv, says, fin
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err == f"error: {says}\n", err
+
+
+def test_a_directory_of_runs_is_refused_naming_the_runs_in_it(finished, tmp_path, capsys):
+    # `sim` writes an eye's nets as runs/quick/pupil/left and .../right: `evaluate runs/quick/pupil` said
+    # "no best.pt: is this a training run directory?", which did not say where the runs were
+    for eye in ("right", "left"):
+        shutil.copytree(finished, tmp_path / "pupil" / eye)
+    (tmp_path / "pupil" / "figures").mkdir()  # a directory that is not a run is not named
+    for argv, name in [(["evaluate", str(tmp_path / "pupil")], "best.pt"),
+                       (["compare", str(tmp_path / "pupil"), "--out", str(tmp_path / "c.png")], "metrics.jsonl")]:
+        code, err = cli(argv, capsys)
+        assert code == 2 and err == (f"error: {tmp_path / 'pupil'}: holds the runs left, right, not a run's {name}: "
+                                     f"name one, e.g. {tmp_path / 'pupil' / 'left'}\n"), err
+    code, err = cli(["evaluate", str(tmp_path / "pupil" / "figures")], capsys)  # no run below: as before
+    assert code == 2 and err == f"error: {tmp_path / 'pupil' / 'figures' / 'best.pt'}: no best.pt: is this a training run directory?\n", err
 
 
 def test_a_resumed_runs_bad_setting_is_named_in_its_config_json(finished, tmp_path, capsys):

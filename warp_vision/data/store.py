@@ -88,10 +88,10 @@ def parse_shard(spec: str) -> tuple[int, int]:
     Raises ``ValueError`` for anything else ("3", "a/b", "2/2", "-1/4", "1/0").
     """
     if not isinstance(spec, str):
-        raise ValueError(f"shard spec must be a string 'I/N', got {type(spec).__name__} {spec!r}")
+        raise ValueError(f"shard: expected a string 'I/N', got {type(spec).__name__} {spec!r}")
     m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", spec)
     if m is None:
-        raise ValueError(f"shard spec must look like 'I/N' with integers 0 <= I < N, got {spec!r}")
+        raise ValueError(f"shard: expected 'I/N' with integers 0 <= I < N, got {spec!r}")
     return _check_shard((int(m.group(1)), int(m.group(2))))
 
 
@@ -99,14 +99,14 @@ def _check_shard(shard: Any) -> tuple[int, int]:
     try:
         i, n = shard
     except (TypeError, ValueError):
-        raise ValueError(f"shard must be a pair (I, N) with 0 <= I < N, got {shard!r}") from None
+        raise ValueError(f"shard: expected a pair (I, N) with 0 <= I < N, got {shard!r}") from None
     if not (is_int(i) and is_int(n)):
-        raise ValueError(f"shard must be a pair of integers (I, N), got {shard!r}")
+        raise ValueError(f"shard: expected a pair of integers (I, N), got {shard!r}")
     i, n = int(i), int(n)
     if n < 1:
-        raise ValueError(f"shard count N must be >= 1, got shard {i}/{n}")
+        raise ValueError(f"shard: the count N in I/N must be >= 1, got {i}/{n}")
     if not 0 <= i < n:
-        raise ValueError(f"shard index I must satisfy 0 <= I < N, got shard {i}/{n}")
+        raise ValueError(f"shard: the index I in I/N must satisfy 0 <= I < N, got {i}/{n}")
     return i, n
 
 

@@ -258,8 +258,19 @@ def checkpoint_path(run_dir, checkpoint: str = "best") -> Path:
         raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
     path = Path(run_dir) / f"{checkpoint}.pt"
     if not path.exists():
-        raise FileNotFoundError(errno.ENOENT, f"no {checkpoint}.pt: is this a training run directory?", str(path))
+        raise not_a_run(run_dir, path.name)
     return path
+
+
+def not_a_run(run_dir, name: str) -> FileNotFoundError:
+    """The error for ``run_dir`` without the file ``name`` a run directory holds. Where subdirectories
+    hold it (as ``sim`` writes an eye's nets, e.g. runs/quick/pupil/left and .../right), it names them."""
+    run_dir = Path(run_dir)
+    runs = sorted(d.name for d in run_dir.iterdir() if (d / name).is_file()) if run_dir.is_dir() else []
+    if runs:
+        return FileNotFoundError(errno.ENOENT, f"holds the runs {', '.join(runs)}, not a run's {name}: name one, "
+                                 f"e.g. {run_dir / runs[0]}", str(run_dir))
+    return FileNotFoundError(errno.ENOENT, f"no {name}: is this a training run directory?", str(run_dir / name))
 
 
 def net_from_checkpoint(ck: dict, device: str = "cpu", views: int | None = None, source="checkpoint") -> torch.nn.Module:

@@ -185,10 +185,8 @@ def _compare(argv: list[str]) -> int:
     a = _debug_flag(p).parse_args(argv)
 
     def job():
-        import errno
-
         from warp_vision.fileio import atomic_write, require_output
-        from warp_vision.nn.trained import read_run_config, saved_task
+        from warp_vision.nn.trained import not_a_run, read_run_config, saved_task
         from warp_vision.train.figures import plot_curves
         from warp_vision.train.rundir import a_run, read_metrics
 
@@ -199,7 +197,7 @@ def _compare(argv: list[str]) -> int:
         for i, r in enumerate(a.runs):
             m = Path(r) / "metrics.jsonl"
             if not m.exists():
-                raise FileNotFoundError(errno.ENOENT, "not found (is this a training run directory?)", str(m))
+                raise not_a_run(r, m.name)
             cfg = read_run_config(r) or {}
             task = saved_task(r, cfg)
             if task not in ("foveation", "faces"):
