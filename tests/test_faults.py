@@ -275,6 +275,7 @@ def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
     ("data", ["foveation", "--out", "OUT", "--samples", "0"], "--samples: expected a positive integer, got 0"),
     ("data", ["faces", "--out", "OUT", "--shard", "3/2"], "--shard: the index I in I/N must satisfy 0 <= I < N, got 3/2"),
     ("data", ["foveation", "--out", "OUT", "--shard=a/2"], "--shard: expected 'I/N' with integers 0 <= I < N, got 'a/2'"),
+    ("data", ["foveation", "--out", "OUT", "--shard", "-1/2"], "--shard: expected 'I/N' with integers 0 <= I < N, got '-1/2'"),
     ("scene", ["demo", "--device", "gpu", "--out", "OUT"], "--device: expected cpu, cuda or cuda:N, got 'gpu'"),
 ])
 def test_a_refused_setting_is_named_as_the_option_typed(command, argv, says, finished, tmp_path, capsys):
