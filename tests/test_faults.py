@@ -269,6 +269,7 @@ def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
 
 @pytest.mark.parametrize("command, argv, says", [
     ("train", ["--preset", "smoke", "--out", "OUT", "--batch", "0"], "--batch: expected a positive integer, got 0"),
+    ("train", ["--preset", "smoke", "--out", "OUT", "--lr", "-1e-3"], "--lr: expected > 0, got -0.001"),
     ("train", ["faces", "--preset", "smoke", "--out", "OUT", "--lr", "-1"], "--lr: expected > 0, got -1.0"),
     ("train", ["limb", "--out", "OUT", "--epochs", "0"], "--epochs: expected a positive integer, got 0"),
     ("train", ["evaluate", "RUN", "--conditions", "--samples", "3"], "--samples: expected at least 10 per condition, got 3"),

@@ -58,7 +58,9 @@ class ArgumentParser(argparse.ArgumentParser):
 
     def parse_args(self, args=None, namespace=None):
         """argparse's, naming the nearest option of the command for a mistyped flag (``--photoreceptor``:
-        did you mean --photoreceptors?) and the commands an option belongs to when it is another's."""
+        did you mean --photoreceptors?) and the commands an option belongs to when it is another's. A value
+        that begins with '-' and a digit is its option's (:func:`_values_joined`)."""
+        args = _values_joined(self, sys.argv[1:] if args is None else list(args))
         parsed, extras = self.parse_known_args(args, namespace)
         if extras:
             self.error(f"unrecognized arguments: {' '.join(extras)}{self._hint(parsed, extras)}")
@@ -85,6 +87,32 @@ class ArgumentParser(argparse.ArgumentParser):
             elif near:
                 hints.append(f"did you mean {near[0]}?")
         return f" ({'; '.join(hints)})" if hints else ""
+
+
+def _values_joined(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
+    """``--lr -1e-3`` as ``--lr=-1e-3``, for every option of ``parser`` (and of its subcommands) that takes one
+    value: argparse takes a value that begins with '-' for an option unless it reads as a plain negative
+    number (-1, -0.5), and said only "argument --lr: expected one argument" (``--shard -1/2`` likewise).
+    Joined, the value reaches the option's own check ("--lr: expected > 0, got -0.001")."""
+    one_value = _one_value_options(parser)
+    out = []
+    for i, token in enumerate(argv):
+        if token == "--":  # the rest are positional
+            return out + argv[i:]
+        if out and out[-1] in one_value and re.match(r"-\.?\d", token):
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
+def _one_value_options(parser: argparse.ArgumentParser) -> set[str]:
+    """The options of ``parser`` and of its subcommands' parsers that take exactly one value."""
+    names = {o for a in parser._actions if a.nargs is None for o in a.option_strings}
+    sub = _subcommands(parser)
+    for p in (sub.choices.values() if sub is not None else ()):
+        names |= _one_value_options(p)
+    return names
 
 
 def _subcommands(parser: argparse.ArgumentParser):

@@ -73,22 +73,9 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def _shard_value_joined(argv: list[str]) -> list[str]:
-    """``--shard -1/2`` as ``--shard=-1/2``: argparse takes a value that begins with '-' (a plain negative
-    number aside) for an option and says only "expected one argument"; joined, the shard's own check names
-    what is wrong with it."""
-    out = []
-    for token in argv:
-        if out and out[-1] == "--shard" and token.startswith("-") and token[1:2].isdigit():
-            out[-1] = f"--shard={token}"
-        else:
-            out.append(token)
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
     p = parser()
-    a = p.parse_args(_shard_value_joined(sys.argv[1:] if argv is None else list(argv)))
+    a = p.parse_args(argv)
     from warp_vision.data.store import parse_shard
 
     def job():
