@@ -316,6 +316,24 @@ def test_a_resumed_runs_bad_setting_is_named_in_its_config_json(finished, tmp_pa
     assert code == 2 and err == "error: --epochs: expected a positive integer, got 0\n", err
 
 
+def test_a_value_that_begins_with_a_minus_goes_to_its_one_value_option_alone():
+    # argparse took "-1e-3" for an option ("argument --lr: expected one argument"); joined, it is --lr's value
+    from warp_vision.errors import ArgumentParser
+
+    p = ArgumentParser(prog="p")
+    p.add_argument("--lr", type=float)
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--sizes", type=float, nargs="+")
+    p.add_argument("rest", nargs="*")
+    assert p.parse_args(["--lr", "-1e-3"]).lr == -1e-3
+    assert p.parse_args(["--lr", "-.5e1"]).lr == -5.0
+    with pytest.raises(SystemExit):  # an option of no value, or of a list, is left to argparse as it was
+        p.parse_args(["--quiet", "-1e-3"])
+    with pytest.raises(SystemExit):
+        p.parse_args(["--sizes", "-1e-3"])
+    assert p.parse_args(["--", "--lr", "-1e-3"]).rest == ["--lr", "-1e-3"]  # after "--": positional, as typed
+
+
 @pytest.mark.parametrize("command, argv", [
     # `data faces --samples 10` was taken as --samples-per-receptor 10 and rendered all 45,000 face ONVs.
     # Each abbreviation here, were it matched, would make a value the command refuses at once (code 2
