@@ -278,6 +278,8 @@ def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
     ("data", ["foveation", "--out", "OUT", "--shard=a/2"], "--shard: expected 'I/N' with integers 0 <= I < N, got 'a/2'"),
     ("data", ["foveation", "--out", "OUT", "--shard", "-1/2"], "--shard: expected 'I/N' with integers 0 <= I < N, got '-1/2'"),
     ("scene", ["demo", "--device", "gpu", "--out", "OUT"], "--device: expected cpu, cuda or cuda:N, got 'gpu'"),
+    ("sim", ["intercept", "--perception-error-cm", "-1e1", "--out", "OUT"],
+     "--perception-error-cm: expected distances of 0-500 cm with --shots, got [-10.0]"),
 ])
 def test_a_refused_setting_is_named_as_the_option_typed(command, argv, says, finished, tmp_path, capsys):
     # the configs' checks name their fields ("batch: expected ..."): the command line names the option
@@ -316,7 +318,7 @@ def test_a_resumed_runs_bad_setting_is_named_in_its_config_json(finished, tmp_pa
     assert code == 2 and err == "error: --epochs: expected a positive integer, got 0\n", err
 
 
-def test_a_value_that_begins_with_a_minus_goes_to_its_one_value_option_alone():
+def test_a_value_that_begins_with_a_minus_and_a_digit_goes_to_its_option():
     # argparse took "-1e-3" for an option ("argument --lr: expected one argument"); joined, it is --lr's value
     from warp_vision.errors import ArgumentParser
 
@@ -327,10 +329,12 @@ def test_a_value_that_begins_with_a_minus_goes_to_its_one_value_option_alone():
     p.add_argument("rest", nargs="*")
     assert p.parse_args(["--lr", "-1e-3"]).lr == -1e-3
     assert p.parse_args(["--lr", "-.5e1"]).lr == -5.0
-    with pytest.raises(SystemExit):  # an option of no value, or of a list, is left to argparse as it was
-        p.parse_args(["--quiet", "-1e-3"])
-    with pytest.raises(SystemExit):
-        p.parse_args(["--sizes", "-1e-3"])
+    # a list option takes a number in exponent form as argparse takes '-1' ('--perception-error-cm -1e1' said
+    # "unrecognized arguments: -1e1"), and an option of no value leaves it to the positionals, as it does '-1'
+    assert p.parse_args(["--sizes", "-1e-3", "2", "-.5E+1"]).sizes == [-1e-3, 2.0, -5.0]
+    assert p.parse_args(["--quiet", "-1e-3"]).rest == ["-1e-3"]
+    with pytest.raises(SystemExit):  # what is no number stays an option, unknown here
+        p.parse_args(["--sizes", "-1x"])
     assert p.parse_args(["--", "--lr", "-1e-3"]).rest == ["--lr", "-1e-3"]  # after "--": positional, as typed
 
 

@@ -28,6 +28,9 @@ def error_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
 
 
+_NEGATIVE_NUMBER = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$")
+
+
 class ArgumentParser(argparse.ArgumentParser):
     """Every command's parser: argparse's, without its matching of abbreviated options, so that a flag a
     command lacks is an error rather than another flag it begins (``data faces --samples 10`` was taken as
@@ -36,6 +39,10 @@ class ArgumentParser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
+        # argparse reads '-1' and '-0.5' as negative numbers (a value) but '-1e-3' as an option, so a list
+        # option's '--perception-error-cm -1e1' said "unrecognized arguments: -1e1"; this reads the exponent
+        # forms as numbers too, and the value reaches the option's own check
+        self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message: str):
         """argparse's error, with its words for a missing or mistyped subcommand replaced by ours: "the
@@ -93,7 +100,9 @@ def _values_joined(parser: argparse.ArgumentParser, argv: list[str]) -> list[str
     """``--lr -1e-3`` as ``--lr=-1e-3``, for every option of ``parser`` (and of its subcommands) that takes one
     value: argparse takes a value that begins with '-' for an option unless it reads as a plain negative
     number (-1, -0.5), and said only "argument --lr: expected one argument" (``--shard -1/2`` likewise).
-    Joined, the value reaches the option's own check ("--lr: expected > 0, got -0.001")."""
+    Joined, the value reaches the option's own check ("--lr: expected > 0, got -0.001"). The parser reads
+    '-1e-3' as a number itself now (``_NEGATIVE_NUMBER``, which a list option needs); the joining stays for
+    the values that are no number (``--shard -1/2``)."""
     one_value = _one_value_options(parser)
     out = []
     for i, token in enumerate(argv):
