@@ -763,8 +763,11 @@ def test_the_data_command_writes_where_the_training_run_looks(tmp_path, monkeypa
 
     monkeypatch.chdir(tmp_path)
     assert data_main(["foveation", "--preset", "smoke", "--samples", "24", "--shard", "0/2"]) == 0
-    assert data_main(["foveation", "--preset", "smoke", "--samples", "24", "--shard", "1/2"]) == 0
+    assert "synthesis:" in capsys.readouterr().err  # its progress bar
+    assert data_main(["foveation", "--preset", "smoke", "--samples", "24", "--shard", "1/2", "--no-progress"]) == 0
     cfg = resolve("smoke", {"samples": 24})
     FoveationTask.resolve_paths(cfg)
     assert ChunkedStore.open(cfg.data_dir).complete
-    assert f"{Path(cfg.data_dir).relative_to(tmp_path)}: shard 1/2 done; dataset complete" in capsys.readouterr().out
+    said = capsys.readouterr()
+    assert f"{Path(cfg.data_dir).relative_to(tmp_path)}: shard 1/2 done; dataset complete" in said.out
+    assert "synthesis:" not in said.err  # --no-progress, as train's and sim's

@@ -42,6 +42,7 @@ def _add_config_flags(parser: argparse.ArgumentParser, cls, presets: dict, choic
     built.add_argument("--shard", default="0/1", help="I/N: build only shard I of N (default 0/1, everything)")
     built.add_argument("--batch", type=int, default=16, help="ONVs rendered per launch (default 16)")
     built.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    built.add_argument("--no-progress", action="store_true", help="no progress bar (as train's and sim's)")
     add_debug_flag(parser)
     return built
 
@@ -91,11 +92,12 @@ def main(argv: list[str] | None = None) -> int:
         # written (/proc/x was "No such file or directory" from the first mkdir)
         require_output(out, "--out", writable=not ChunkedStore.whole_at(out))
         if a.kind == "foveation":
-            return out, synthesize(out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device)
+            return out, synthesize(out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device,
+                                   progress=not a.no_progress)
         from warp_vision.data import faces as FA
 
         return out, FA.synthesize(out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device,
-                                  identities_path=a.identities_cache)
+                                  progress=not a.no_progress, identities_path=a.identities_cache)
 
     def report():
         try:
