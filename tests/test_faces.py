@@ -136,6 +136,9 @@ def test_afr_net_heads_and_gradients():
         assert logits.shape == (4, 5) and z.shape == (4, 2)
         (logits.sum() + z.sum()).backward()
         assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters())
+        net.set_pose_norm([2.0, -3.0], [10.0, 5.0])  # (yaw, pitch) mean and std in degrees
+        assert torch.allclose(net.pose_degrees(torch.tensor([[0.0, 0.0], [1.0, -2.0]])),
+                              torch.tensor([[2.0, -3.0], [12.0, -13.0]]))
     with pytest.raises(ValueError, match="identities"):
         afr_net(pos, identities=1)
 
@@ -167,6 +170,10 @@ def test_faces_smoke_end_to_end_and_resume(tmp_path, ids, smoke_data, capsys):
         assert r["saved_best"] == both
     best = torch.load(run / "best.pt", weights_only=True)
     assert best["epoch"] + 1 == max(r["epoch"] for r in rows if r["saved_best"])
+    # the saved net carries its pose scale: pose_degrees turns its standardised outputs into the labels' degrees
+    for k in ("pose_mean", "pose_std"):
+        assert torch.equal(best["model"][k], best["norm"][k].float()), k
+    assert float(best["norm"]["pose_std"].min()) > 1.0  # degrees, not the untrained net's 1s
     assert train_main(["evaluate", str(run)]) == 0
     assert "identity accuracy" in capsys.readouterr().out
     # resume after epoch 1 equals the uninterrupted run

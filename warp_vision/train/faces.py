@@ -108,7 +108,7 @@ class FaceTask(harness.OnvTask):
         logits, z = torch.cat(logits), torch.cat(z)
         ce = float(F.cross_entropy(logits, self.ident[i]))
         mse = float(F.mse_loss(z, (self.pose[i] - norm["pose_mean"]) / norm["pose_std"]))
-        pred_pose = z * norm["pose_std"] + norm["pose_mean"]
+        pred_pose = model.pose_degrees(z.to(model.pose_std.device)).cpu()  # by the pose scale the net carries
         err = (pred_pose - self.pose[i]).abs()
         pred_id = logits.argmax(1)
         return {"ce": ce, "mse": mse, "loss": ce + self.cfg.loss_lambda * mse,
