@@ -387,6 +387,13 @@ def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys)
                                                    "--photoreceptors?)"),
     ("sim", ["demo", "--shots", "5"], "unrecognized arguments: --shots 5 (--shots is an option of intercept)"),
     ("data", ["faces", "--samples", "10"], "(--samples is an option of foveation)"),
+    # train's tasks, evaluate and compare are separate parsers, not subcommands: a flag of another was unnamed
+    ("train", ["faces", "--preset", "smoke", "--samples", "5"], "unrecognized arguments: --samples 5 (--samples is "
+                                                                "an option of the foveation task, limb, pupil, lens and evaluate)"),
+    ("train", ["--preset", "smoke", "--conditions"], "unrecognized arguments: --conditions (--conditions is an option of evaluate)"),
+    ("train", ["compare", "r", "--out", "c.png", "--split", "val"], "(--split is an option of evaluate)"),
+    ("train", ["evaluate", "r", "--lr", "0.1"], "(--lr is an option of the foveation task, faces, oculomotor, arm, "
+                                                "limb, pupil and lens)"),
     ("bench", ["linet", "--batchs=3"], "unrecognized arguments: --batchs=3 (did you mean --batch?)"),
     ("train", ["limb", "--epoch", "3"], "unrecognized arguments: --epoch 3 (did you mean --epochs?)"),
     ("scene", ["demo", "--bogus"], "unrecognized arguments: --bogus\n"),  # nothing near: no guess

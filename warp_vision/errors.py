@@ -36,6 +36,11 @@ class ArgumentParser(argparse.ArgumentParser):
     command lacks is an error rather than another flag it begins (``data faces --samples 10`` was taken as
     ``--samples-per-receptor 10``). Its subcommands' parsers are of this class too."""
 
+    #: A callable giving other commands' parsers by name, for commands that are separate parsers rather than
+    #: subcommands (train's tasks, evaluate and compare): a flag this parser lacks is named as theirs
+    #: ("--samples is an option of the foveation task, limb, pupil, lens and evaluate"). Called only then.
+    siblings = None
+
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
@@ -85,15 +90,24 @@ class ArgumentParser(argparse.ArgumentParser):
             if name not in sub.choices:
                 break
             chosen = sub.choices[name]
+        if chosen.siblings is not None:
+            for other, p in chosen.siblings().items():
+                for o in (o for a in p._actions for o in a.option_strings):
+                    others.setdefault(o, []).append(other)
         own = [o for a in chosen._actions for o in a.option_strings if o.startswith("--")]
         hints = []
         for flag in (e.split("=", 1)[0] for e in extras if e.startswith("--")):
             near = difflib.get_close_matches(flag, own, n=1, cutoff=0.75)  # (0.6 took --shots for --out)
             if flag in others:
-                hints.append(f"{flag} is an option of {' and '.join(others[flag])}")
+                hints.append(f"{flag} is an option of {_listed(others[flag])}")
             elif near:
                 hints.append(f"did you mean {near[0]}?")
         return f" ({'; '.join(hints)})" if hints else ""
+
+
+def _listed(names: list[str]) -> str:
+    """"a", "a and b", "a, b and c"."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
 
 
 def _values_joined(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:

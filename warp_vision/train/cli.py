@@ -77,7 +77,20 @@ def _train_parser() -> argparse.ArgumentParser:
             "'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )
+    p.siblings = lambda: _siblings("foveation")
     return _run_flags(p, C.add_arguments(p))
+
+
+#: how the hint for a flag of another command names the foveation task, which has no word on the command line
+FOVEATION = "the foveation task"
+
+
+def _siblings(name: str) -> dict:
+    """The parsers of train's commands other than ``name`` ("foveation", a task of TASKS, "evaluate" or
+    "compare"), by name: a flag a command lacks is named as theirs (``train faces --samples 5``)."""
+    makers = {"foveation": _train_parser, **{t: (lambda t=t: _task_parser(t)) for t in TASKS},
+              "evaluate": _eval_parser, "compare": _compare_parser}
+    return {FOVEATION if other == "foveation" else other: make() for other, make in makers.items() if other != name}
 
 
 #: the commands that train a task besides the default (foveation): name -> (module, config class, its presets, description)
@@ -122,6 +135,7 @@ TASKS = {
 def _task_parser(name: str) -> argparse.ArgumentParser:
     _, cls, presets, description = TASKS[name]
     p = ArgumentParser(prog=f"python -m warp_vision.train {name}", description=description)
+    p.siblings = lambda: _siblings(name)
     return _run_flags(p, C.add_arguments(p, cls, presets))
 
 
@@ -166,6 +180,7 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "training set has learnt by its end; --conditions then writes conditions_latest.json) "
                         "(default best)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.siblings = lambda: _siblings("evaluate")
     return _debug_flag(p)
 
 
@@ -175,14 +190,20 @@ def _module(task: str):
     return importlib.import_module(f"warp_vision.train.{'foveation' if task == 'foveation' else TASKS[task][0]}")
 
 
-def _compare(argv: list[str]) -> int:
+def _compare_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.train compare",
                        description="Plot several foveation (or face) runs' training and validation MSE curves in one figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="figure path; its suffix picks the format (.png, .pdf, .svg, ...; "
                                                  "none: PNG)")
     p.add_argument("--title", default="training and validation MSE", help="the figure's title (default: %(default)r)")
-    a = _debug_flag(p).parse_args(argv)
+    p.siblings = lambda: _siblings("compare")
+    return _debug_flag(p)
+
+
+def _compare(argv: list[str]) -> int:
+    p = _compare_parser()
+    a = p.parse_args(argv)
 
     def job():
         from warp_vision.fileio import atomic_write, require_output
