@@ -583,6 +583,34 @@ def test_torchrun_two_processes(tmp_path, smoke_data):
     assert len(rows) == 3  # rank 0 alone writes
 
 
+def test_no_rank_is_dealt_an_empty_batch(tmp_path):
+    """Under torchrun an epoch's last batch of fewer samples than ranks left a rank none, and its loss was NaN
+    (`torchrun --nproc-per-node 2 -m warp_vision.train faces --preset smoke`: 33 training samples in batches of
+    8, the last of one: "epoch 1, step 4: the loss is nan")."""
+    from warp_vision.train.harness import Dist, Task, _train_epoch
+
+    dealt = []
+
+    class Recorder(Task):
+        def batch_loss(self, net, idx, norm, device):
+            dealt.append(len(idx))
+            loss = net(torch.ones(len(idx), 2)).square().mean()
+            return loss, {"loss": float(loss.detach())}
+
+    task = Recorder(resolve("smoke", {"batch": 8}), log=lambda *a: None)
+    net = torch.nn.Linear(2, 1)
+    opt = torch.optim.SGD(net.parameters(), lr=0.1)
+    for world, n, expected in [(2, 33, {0: [4, 4, 4, 4], 1: [4, 4, 4, 4]}),  # the last batch's one sample: left out
+                               (2, 35, {0: [4, 4, 4, 4, 2], 1: [4, 4, 4, 4, 1]}),
+                               (1, 33, {0: [8, 8, 8, 8, 1]})]:  # one process: every sample, as before
+        for rank in range(world):
+            dd = Dist("cpu")
+            dd.world, dd.rank = world, rank  # the dealing alone (no process group: all_mean is this rank's)
+            dealt.clear()
+            metrics = _train_epoch(task, net, net, opt, np.arange(n), 0, {}, "cpu", dd, False, tmp_path)
+            assert dealt == expected[rank] and np.isfinite(metrics["loss"]), (world, n, rank, dealt)
+
+
 def test_compare_figure(tmp_path, smoke_data):
     foveation.run(smoke(tmp_path, smoke_data, epochs=2), progress=False, log=lambda *a: None)
     fig = tmp_path / "cmp.png"

@@ -299,7 +299,10 @@ def _nonfinite(what: str, value: float, epoch: int, step: int, out: Path) -> Non
 
 def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict, device: str, dd: Dist,
                  progress: bool, out: Path) -> dict:
-    """One pass over the training samples in the epoch's seeded order; the mean of each train metric."""
+    """One pass over the training samples in the epoch's seeded order; the mean of each train metric. Under
+    torchrun each batch is dealt out over the ranks, and a last batch of fewer samples than ranks is left out
+    on every rank alike (its samples, a different few each epoch, train in the other epochs): a rank given
+    none had a loss of NaN (the mean of nothing), and the others waited on its gradients."""
     from tqdm import tqdm
 
     cfg = task.cfg
@@ -310,6 +313,8 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     bar = tqdm(range(0, len(perm), cfg.batch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch",
                disable=not progress or dd.rank != 0, dynamic_ncols=True, leave=False)
     for s in bar:
+        if len(perm) - s < dd.world:
+            break
         idx = torch.as_tensor(perm[s : s + cfg.batch])[dd.rank :: dd.world]
         loss, metrics = task.batch_loss(net, idx, norm, device)
         if not torch.isfinite(loss):
