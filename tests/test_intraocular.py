@@ -265,14 +265,35 @@ def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path, monkeypat
     monkeypatch.setattr(lens, "CALIBRATE_MIN_SAMPLES", 1)  # the smoke set is too small for the real threshold
 
     cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, LensTrainConfig, LENS_PRESETS)
-    summary = run(cfg, progress=False, log=lambda *_a, **_k: None)
+    said = []
+    summary = run(cfg, progress=False, log=lambda *a, **_k: said.append(" ".join(map(str, a))))
     assert {"median_error_D", "p90_error_D", "sign_correct_above_0.5D"} <= set(summary["heldout"])
     assert (tmp_path / "run" / "figures" / "lens.png").exists()
+    assert any(line.startswith("lens net's bias near focus (D) at accommodations 0: ") for line in said), said
     net = load_lens(str(tmp_path / "run"))
     assert net(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0, 5.0])).shape == (2,)
     # the bias table fitted after training travels in best.pt, and the summary scores the calibrated estimate
     assert summary["bias_D"] == pytest.approx(net.bias_D.tolist()) and any(b != 0 for b in summary["bias_D"])
     assert {"median_error_D", "sign_correct_above_0.5D"} <= set(summary["heldout_calibrated"])
+
+
+def test_a_bias_table_with_nothing_to_fit_says_so():
+    # a smoke-sized run logged "bias near focus (D) at accommodations 0: +0.000, 1: +0.000, ...", a table of
+    # zeros that read as a perfectly calibrated net
+    from types import SimpleNamespace
+
+    from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
+    from warp_vision.train.lens import LensTask
+
+    said = []
+    true = torch.tensor([3.0, -2.0, 0.1])  # one sample near focus: fewer than a knot needs
+    task = SimpleNamespace(_predict=lambda model, data, ids, device: (true + 0.2, true), log=said.append,
+                           data={"accommodation": torch.tensor([1.0, 2.0, 3.0])})
+    model = SimpleNamespace(bias_D=torch.ones(len(LENS_BIAS_KNOTS_D)))
+    assert LensTask.calibrate(task, model, [0, 1, 2], "cpu")
+    assert torch.all(model.bias_D == 0)
+    assert said == ["lens net's bias near focus: not fitted, no accommodation has 20 training samples within 0.6 D "
+                    "of focus; none is subtracted"]
 
 
 def test_the_lens_bias_table_is_the_median_error_near_focus():

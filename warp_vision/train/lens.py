@@ -104,8 +104,12 @@ class LensTask(ShallowNetTask):
         bias = fit_bias(pred.cpu().numpy(), true.cpu().numpy(), acc.numpy())
         with torch.no_grad():
             model.bias_D.copy_(torch.as_tensor(bias, dtype=model.bias_D.dtype))
-        self.log("lens net's bias near focus (D) at accommodations "
-                 + ", ".join(f"{k:g}: {b:+.3f}" for k, b in zip(LENS_BIAS_KNOTS_D[::2], bias[::2])))
+        if not np.any(bias):  # (no knot had its samples: a smoke-sized run)
+            self.log(f"lens net's bias near focus: not fitted, no accommodation has {CALIBRATE_MIN_SAMPLES} training "
+                     f"samples within {CALIBRATE_WITHIN_D:g} D of focus; none is subtracted")
+        else:
+            self.log("lens net's bias near focus (D) at accommodations "
+                     + ", ".join(f"{k:g}: {b:+.3f}" for k, b in zip(LENS_BIAS_KNOTS_D[::2], bias[::2])))
         return True
 
     def summary(self, test, history, model):
