@@ -611,6 +611,16 @@ def test_no_rank_is_dealt_an_empty_batch(tmp_path):
             assert dealt == expected[rank] and np.isfinite(metrics["loss"]), (world, n, rank, dealt)
 
 
+def test_a_batch_smaller_than_the_ranks_is_refused_before_any_work(tmp_path, monkeypatch):
+    # `torchrun --nproc-per-node 2 -m warp_vision.train --preset smoke --batch 1` dealt rank 1 an empty batch:
+    # "epoch 1, step 0: the loss is nan"
+    monkeypatch.setenv("WORLD_SIZE", "2")  # (refused before the process group would be made)
+    with pytest.raises(ValueError, match="batch: expected at least one sample for each of the 2 ranks under "
+                                         "torchrun, got 1"):
+        foveation.run(smoke(tmp_path, tmp_path / "data", batch=1), progress=False, log=lambda *a: None)
+    assert not (tmp_path / "data").exists() and not (tmp_path / "run" / "config.json").exists()
+
+
 def test_compare_figure(tmp_path, smoke_data):
     foveation.run(smoke(tmp_path, smoke_data, epochs=2), progress=False, log=lambda *a: None)
     fig = tmp_path / "cmp.png"

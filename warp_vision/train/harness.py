@@ -302,7 +302,8 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     """One pass over the training samples in the epoch's seeded order; the mean of each train metric. Under
     torchrun each batch is dealt out over the ranks, and a last batch of fewer samples than ranks is left out
     on every rank alike (its samples, a different few each epoch, train in the other epochs): a rank given
-    none had a loss of NaN (the mean of nothing), and the others waited on its gradients."""
+    none had a loss of NaN (the mean of nothing), and the others waited on its gradients (:func:`run` refuses
+    a batch smaller than the ranks)."""
     from tqdm import tqdm
 
     cfg = task.cfg
@@ -313,7 +314,7 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     bar = tqdm(range(0, len(perm), cfg.batch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch",
                disable=not progress or dd.rank != 0, dynamic_ncols=True, leave=False)
     for s in bar:
-        if len(perm) - s < dd.world:
+        if min(cfg.batch, len(perm) - s) < dd.world:  # (the last batch; run refuses a --batch under the ranks)
             break
         idx = torch.as_tensor(perm[s : s + cfg.batch])[dd.rank :: dd.world]
         loss, metrics = task.batch_loss(net, idx, norm, device)
@@ -521,6 +522,10 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
 def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0: bool,
            stop_after_epoch: int | None, workers: int | str, new_cap: bool = False) -> dict:
     """:func:`run`'s work once the run directory is open (and locked): data, training, evaluation."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))  # (torchrun's; Dist reads it again below)
+    if cfg.batch < world:  # (each rank was dealt an empty batch, and its loss was NaN)
+        raise ValueError(f"batch: expected at least one sample for each of the {world} ranks under torchrun, "
+                         f"got {cfg.batch}")
     device = pick_device(cfg.device)
     task = task_cls(cfg, say)
     if rank0:
