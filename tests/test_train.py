@@ -621,6 +621,17 @@ def test_a_batch_smaller_than_the_ranks_is_refused_before_any_work(tmp_path, mon
     assert not (tmp_path / "data").exists() and not (tmp_path / "run" / "config.json").exists()
 
 
+def test_a_run_too_small_for_a_test_split_names_the_split_it_evaluates(tmp_path, capsys):
+    # 3 ONVs: 2 to train, 1 to validate, none to test; the validation sample was reported as "(test, 1 ONVs)"
+    said = []
+    summary = foveation.run(smoke(tmp_path, tmp_path / "data", samples=3), progress=False, log=said.append)
+    assert summary["evaluated_split"] == "val"
+    assert f"{tmp_path / 'run'} (val, 1 ONVs): " in said[-1] and "too few samples for a test split" in said[-1], said[-1]
+    assert train_main(["evaluate", str(tmp_path / "run")]) == 0
+    out = capsys.readouterr().out
+    assert "too few samples for a test split" in out and f"{tmp_path / 'run'} (val, 1 ONVs): " in out, out
+
+
 def test_compare_figure(tmp_path, smoke_data):
     foveation.run(smoke(tmp_path, smoke_data, epochs=2), progress=False, log=lambda *a: None)
     fig = tmp_path / "cmp.png"

@@ -49,7 +49,10 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     task = task_cls(cfg, log)
     load_for_evaluation(task, log, progress)
     tr, va, te = task.splits()
-    idx = {"test": te if len(te) else va, "val": va, "train": tr}[split]
+    if split == "test" and not len(te):  # (it was named "test")
+        log(f"{run_dir}: too few samples for a test split; the validation split's, as the run's summary")
+        split = "val"
+    idx = {"test": te, "val": va, "train": tr}[split]
     device = pick_device(cfg.device)
     model = net_from_checkpoint(ck, device, views, source=path)
     ev = task.evaluate(model, idx, ck["norm"], device)

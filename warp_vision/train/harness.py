@@ -467,6 +467,7 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
         model.load_state_dict(best["model"])
         if task.calibrate(model, ids[0], device):
             save_checkpoint({**best, "model": model.state_dict()}, out / "best.pt")
+        split = "test" if len(ids[2]) else "val"  # (a dataset too small for a test split: the validation split's)
         test_ids = ids[2] if len(ids[2]) else ids[1]
         test = task.evaluate(model, test_ids, norm, device)
         n_params = sum(p.numel() for p in model.parameters())
@@ -481,10 +482,12 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
             "peak_rss_mib": peak_rss_mib(),
             "model_state_mib": 16 * n_params / 2**20,  # weights, gradients and Adam's two moments, float32
             "software": software(),
+            "evaluated_split": split,
         }
         write_json(out / "summary.json", summary)
         task.figures(out, h, test, test_ids)
-        task.log(task.eval_line(str(out), "test", len(test_ids), test) + f"; figures in {out / 'figures'}")
+        no_test = "" if split == "test" else " (too few samples for a test split: the summary's test_* are these)"
+        task.log(task.eval_line(str(out), split, len(test_ids), test) + f"; figures in {out / 'figures'}{no_test}")
     dd.barrier()
     return summary
 
