@@ -626,10 +626,23 @@ def test_a_run_too_small_for_a_test_split_names_the_split_it_evaluates(tmp_path,
     said = []
     summary = foveation.run(smoke(tmp_path, tmp_path / "data", samples=3), progress=False, log=said.append)
     assert summary["evaluated_split"] == "val"
-    assert f"{tmp_path / 'run'} (val, 1 ONVs): " in said[-1] and "too few samples for a test split" in said[-1], said[-1]
+    assert f"{tmp_path / 'run'} (val, 1 ONVs): " in said[-1] and "(no test split: the summary's test_* are" in said[-1], said[-1]
     assert train_main(["evaluate", str(tmp_path / "run")]) == 0
     out = capsys.readouterr().out
-    assert "too few samples for a test split" in out and f"{tmp_path / 'run'} (val, 1 ONVs): " in out, out
+    assert "no test split (--test-fraction 0, or too few samples)" in out and f"{tmp_path / 'run'} (val, 1 ONVs): " in out, out
+
+
+def test_fewer_than_two_to_train_is_refused():
+    # `--samples 3 --val-fraction 0.5` left one sample to train: its targets' spread was 0, the loss NaN at step 0
+    # ("try a lower --lr")
+    from warp_vision.train.harness import splits
+
+    tr, va, te = splits(3, 0, 0.1, 0.1)
+    assert (len(tr), len(va), len(te)) == (2, 1, 0) and sorted([*tr, *va, *te]) == [0, 1, 2]
+    with pytest.raises(ValueError, match="samples: 3 leave 1 to train after 2 to validate and 0 to test: expected at least 2"):
+        splits(3, 0, 0.5, 0.0)
+    with pytest.raises(ValueError, match="leave 0 to train after 1 to validate and 2 to test"):
+        splits(3, 0, 0.1, 0.1, min_test=2)
 
 
 def test_compare_figure(tmp_path, smoke_data):

@@ -50,7 +50,7 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     load_for_evaluation(task, log, progress)
     tr, va, te = task.splits()
     if split == "test" and not len(te):  # (it was named "test")
-        log(f"{run_dir}: too few samples for a test split; the validation split's, as the run's summary")
+        log(f"{run_dir}: no test split (--test-fraction 0, or too few samples); the validation split's, as the run's summary")
         split = "val"
     idx = {"test": te, "val": va, "train": tr}[split]
     device = pick_device(cfg.device)

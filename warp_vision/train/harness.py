@@ -259,10 +259,15 @@ class Dist:
 
 def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, min_test: int = 0):
     """(train, val, test) sample indices: a fixed permutation of ``n`` samples (seeded by ``data_seed``);
-    at least one validation sample and ``min_test`` test samples."""
+    at least one validation sample and ``min_test`` test samples. Fewer than 2 left to train is a ValueError
+    (one sample's targets have no spread to standardise by: the loss was NaN at the first step)."""
     perm = np.random.default_rng([data_seed, 7919]).permutation(n)
     n_test = max(min_test, int(round(n * test_fraction)))
     n_val = max(1, int(round(n * val_fraction)))
+    if n - n_val - n_test < 2:
+        raise ValueError(f"samples: {n:,} leave {max(0, n - n_val - n_test)} to train after {n_val} to validate and "
+                         f"{n_test} to test: expected at least 2 (more samples, or a smaller --val-fraction or "
+                         f"--test-fraction)")
     return perm[n_test + n_val :], perm[n_test : n_test + n_val], perm[:n_test]
 
 
@@ -467,7 +472,7 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
         model.load_state_dict(best["model"])
         if task.calibrate(model, ids[0], device):
             save_checkpoint({**best, "model": model.state_dict()}, out / "best.pt")
-        split = "test" if len(ids[2]) else "val"  # (a dataset too small for a test split: the validation split's)
+        split = "test" if len(ids[2]) else "val"  # (no test split, --test-fraction 0 or too few samples: the val split's)
         test_ids = ids[2] if len(ids[2]) else ids[1]
         test = task.evaluate(model, test_ids, norm, device)
         n_params = sum(p.numel() for p in model.parameters())
@@ -486,7 +491,7 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
         }
         write_json(out / "summary.json", summary)
         task.figures(out, h, test, test_ids)
-        no_test = "" if split == "test" else " (too few samples for a test split: the summary's test_* are these)"
+        no_test = "" if split == "test" else " (no test split: the summary's test_* are the validation split's)"
         task.log(task.eval_line(str(out), split, len(test_ids), test) + f"; figures in {out / 'figures'}{no_test}")
     dd.barrier()
     return summary
