@@ -111,12 +111,10 @@ def _listed(names: list[str]) -> str:
 
 
 def _values_joined(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
-    """``--lr -1e-3`` as ``--lr=-1e-3``, for every option of ``parser`` (and of its subcommands) that takes one
-    value: argparse takes a value that begins with '-' for an option unless it reads as a plain negative
-    number (-1, -0.5), and said only "argument --lr: expected one argument" (``--shard -1/2`` likewise).
-    Joined, the value reaches the option's own check ("--lr: expected > 0, got -0.001"). The parser reads
-    '-1e-3' as a number itself now (``_NEGATIVE_NUMBER``, which a list option needs); the joining stays for
-    the values that are no number (``--shard -1/2``)."""
+    """``--shard -1/2`` as ``--shard=-1/2``, for every option of ``parser`` (and of its subcommands) that takes
+    one value: argparse takes a value that begins with '-' for an option unless it reads as a negative number
+    (``_NEGATIVE_NUMBER``: -1, -0.5, -1e-3), and said only "argument --shard: expected one argument". Joined,
+    the value reaches the option's own check ("--shard: expected 'I/N' with integers 0 <= I < N, got '-1/2'")."""
     one_value = _one_value_options(parser)
     out = []
     for i, token in enumerate(argv):

@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from warp_vision.nn.trained import checkpoint_path, net_from_checkpoint, read_checkpoint
-from warp_vision.train.harness import Task, pick_device
+from warp_vision.train.harness import Task, held_out, pick_device
 from warp_vision.train.rundir import run_config
 from warp_vision.train.workers import rendering_lock
 
@@ -48,11 +48,14 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     cfg = run_config(task_cls, Path(run_dir), ck)
     task = task_cls(cfg, log)
     load_for_evaluation(task, log, progress)
-    tr, va, te = task.splits()
-    if split == "test" and not len(te):  # (it was named "test")
-        log(f"{run_dir}: no test split (--test-fraction 0, or too few samples); the validation split's, as the run's summary")
-        split = "val"
-    idx = {"test": te, "val": va, "train": tr}[split]
+    ids = task.splits()
+    if split == "test":
+        split, idx = held_out(ids)
+        if split != "test":  # (it was named "test")
+            log(f"{run_dir}: no test split (--test-fraction 0, or too few samples); the validation split's, as the "
+                f"run's summary")
+    else:
+        idx = ids[{"train": 0, "val": 1}[split]]
     device = pick_device(cfg.device)
     model = net_from_checkpoint(ck, device, views, source=path)
     ev = task.evaluate(model, idx, ck["norm"], device)

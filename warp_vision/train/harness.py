@@ -271,6 +271,12 @@ def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, mi
     return perm[n_test + n_val :], perm[n_test : n_test + n_val], perm[:n_test]
 
 
+def held_out(ids) -> tuple[str, np.ndarray]:
+    """The split a finished run is measured on, by name, and its samples, of ``ids`` = (train, val, test): the
+    test split, or the validation split where there is none (``--test-fraction 0``, or too few samples)."""
+    return ("test", ids[2]) if len(ids[2]) else ("val", ids[1])
+
+
 def peak_rss_mib() -> float:
     """This process's peak resident memory (MiB) so far: dataset, model, activations and all."""
     import resource
@@ -472,8 +478,7 @@ def _finish(task: Task, model, ids, norm, state: _State, device, dd: Dist, out: 
         model.load_state_dict(best["model"])
         if task.calibrate(model, ids[0], device):
             save_checkpoint({**best, "model": model.state_dict()}, out / "best.pt")
-        split = "test" if len(ids[2]) else "val"  # (no test split, --test-fraction 0 or too few samples: the val split's)
-        test_ids = ids[2] if len(ids[2]) else ids[1]
+        split, test_ids = held_out(ids)
         test = task.evaluate(model, test_ids, norm, device)
         n_params = sum(p.numel() for p in model.parameters())
         h = state.history
