@@ -394,6 +394,10 @@ def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys)
     ("train", ["compare", "r", "--out", "c.png", "--split", "val"], "(--split is an option of evaluate)"),
     ("train", ["evaluate", "r", "--lr", "0.1"], "(--lr is an option of the foveation task, faces, oculomotor, arm, "
                                                 "limb, pupil and lens)"),
+    # a flag near another task's (not its own) was unnamed
+    ("train", ["oculomotor", "--photoreceptor", "5"], "unrecognized arguments: --photoreceptor 5 (did you mean "
+                                                      "--photoreceptors, an option of the foveation task, faces, limb, pupil and lens?)"),
+    ("sim", ["demo", "--shot", "5"], "(did you mean --shots, an option of intercept?)"),
     ("bench", ["linet", "--batchs=3"], "unrecognized arguments: --batchs=3 (did you mean --batch?)"),
     ("train", ["limb", "--epoch", "3"], "unrecognized arguments: --epoch 3 (did you mean --epochs?)"),
     ("scene", ["demo", "--bogus"], "unrecognized arguments: --bogus\n"),  # nothing near: no guess

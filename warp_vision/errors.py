@@ -70,7 +70,8 @@ class ArgumentParser(argparse.ArgumentParser):
 
     def parse_args(self, args=None, namespace=None):
         """argparse's, naming the nearest option of the command for a mistyped flag (``--photoreceptor``:
-        did you mean --photoreceptors?) and the commands an option belongs to when it is another's. A value
+        did you mean --photoreceptors?) and the commands an option belongs to when it is another's (or one
+        near it is: ``train oculomotor --photoreceptor``: did you mean --photoreceptors, an option of ...?). A value
         that begins with '-' and a digit is its option's (:func:`_values_joined`)."""
         args = _values_joined(self, sys.argv[1:] if args is None else list(args))
         parsed, extras = self.parse_known_args(args, namespace)
@@ -102,6 +103,8 @@ class ArgumentParser(argparse.ArgumentParser):
                 hints.append(f"{flag} is an option of {_listed(others[flag])}")
             elif near:
                 hints.append(f"did you mean {near[0]}?")
+            elif near := difflib.get_close_matches(flag, [o for o in others if o.startswith("--")], n=1, cutoff=0.75):
+                hints.append(f"did you mean {near[0]}, an option of {_listed(others[near[0]])}?")
         return f" ({'; '.join(hints)})" if hints else ""
 
 
