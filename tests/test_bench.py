@@ -170,3 +170,31 @@ def test_bad_bench_settings_are_one_line_before_any_work(argv, said, tmp_path, c
     assert main([*argv, "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert said in err and "Traceback" not in err and not out.exists(), err
+
+
+def test_bench_with_no_command_runs_the_kernel_benchmarks_on_their_defaults(tmp_path, monkeypatch, capsys):
+    from warp_vision.bench import cli, linet, raytrace
+
+    calls = []
+    monkeypatch.setattr(linet, "run", lambda *a, **k: calls.append(("linet", a)) or {"rows": 1})
+    monkeypatch.setattr(raytrace, "run", lambda *a, **k: calls.append(("raytrace", a)) or {"rows": 2})
+    monkeypatch.chdir(tmp_path)
+    assert cli.main([]) == 0
+    assert [name for name, _ in calls] == ["linet", "raytrace"]
+    assert calls[0][1][0] == [14_400, 144_000] and calls[1][1][1:3] == (14_400, 16)  # each its own defaults
+    for name, rows in (("linet", 1), ("raytrace", 2)):
+        got = json.loads((tmp_path / "bench_results" / f"{name}.json").read_text())
+        assert got["benchmark"] == name and got["rows"] == rows
+    assert "-- python -m warp_vision.bench raytrace" in capsys.readouterr().out
+
+
+def test_bench_with_no_command_checks_every_output_before_the_first_timing(tmp_path, monkeypatch, capsys):
+    from warp_vision.bench import cli, linet
+
+    calls = []
+    monkeypatch.setattr(linet, "run", lambda *a, **k: calls.append(a) or {})
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bench_results" / "raytrace.json").mkdir(parents=True)  # the second's output is in the way
+    assert cli.main([]) == 2
+    err = capsys.readouterr().err
+    assert "raytrace.json" in err and "Traceback" not in err and calls == [], err

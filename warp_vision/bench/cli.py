@@ -18,12 +18,19 @@ from warp_vision.fileio import require_output, write_json
 from warp_vision.provenance import software
 
 
+#: what ``python -m warp_vision.bench`` with no command runs, in order, each on its defaults: the benchmarks of
+#: the two kernels everything else stands on (the liNet layer, the ray tracer)
+KERNELS = ("linet", "raytrace")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = ArgumentParser(
         prog="python -m warp_vision.bench",
-        description="Kernel microbenchmarks. Each writes JSON (with machine info) to --out.",
+        description="Kernel microbenchmarks. Each writes JSON (with machine info) to --out. With no command: "
+                    f"{' and '.join(KERNELS)}, the kernels' benchmarks, on their defaults (about 5 minutes on a "
+                    "2-core CPU).",
     )
-    sub = p.add_subparsers(dest="bench", required=True)
+    sub = p.add_subparsers(dest="bench")
 
     lin = sub.add_parser("linet", help="locally-connected layer: Warp vs plain-torch gather, index_add and CSR")
     lin.add_argument("--photoreceptors", type=int, nargs="+", default=[14_400, 144_000],
@@ -82,7 +89,22 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     p = _parser()
     args = p.parse_args(argv)
+    if args.bench is None:
+        runs = [p.parse_args([name]) for name in KERNELS]
+        return guarded(lambda: _kernels(runs), False, options=long_options(p))
     return guarded(lambda: _bench(args), args.debug, options=long_options(p))
+
+
+def _kernels(runs: list) -> int:
+    """Each of ``runs`` (parsed ``KERNELS`` commands) in turn, every output checked before the first's timing."""
+    for args in runs:
+        require_output(args.out, "--out", kind="file")
+    print(f"the kernel benchmarks, on their defaults: {', then '.join(a.bench for a in runs)} "
+          f"('python -m warp_vision.bench --help' lists the others)")
+    for args in runs:
+        print(f"-- python -m warp_vision.bench {args.bench}")
+        _bench(args)
+    return 0
 
 
 def _device(name: str) -> str:
