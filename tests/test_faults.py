@@ -398,6 +398,15 @@ def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys)
     ("train", ["oculomotor", "--photoreceptor", "5"], "unrecognized arguments: --photoreceptor 5 (did you mean "
                                                       "--photoreceptors, an option of the foveation task, faces, limb, pupil and lens?)"),
     ("sim", ["demo", "--shot", "5"], "(did you mean --shots, an option of intercept?)"),
+    # a command's option given before the command: "unrecognized arguments: --quick (--quick is an option of
+    # experiments, ...)", as if demo lacked it; "'quick' is not a command", its value taken for the command
+    ("sim", ["--quick", "demo", "--gif"], "error: --quick goes after the command: python -m warp_vision.sim demo --gif --quick\n"),
+    ("data", ["--preset", "quick", "foveation"], "error: --preset goes after the command: python -m warp_vision.data "
+                                                 "foveation --preset quick\n"),
+    ("sim", ["--shots", "3", "demo"], "error: --shots is an option of intercept, given after the command: "
+                                      "python -m warp_vision.sim COMMAND --shots 3\n"),
+    ("bench", ["--repeats", "3"], "error: --repeats is an option of linet, raytrace, readout and cnn, given after the command"),
+    ("train", ["--preset", "smoke", "faces"], "unrecognized arguments: faces (faces is a command: name it first, before the options)"),
     ("bench", ["linet", "--batchs=3"], "unrecognized arguments: --batchs=3 (did you mean --batch?)"),
     ("train", ["limb", "--epoch", "3"], "unrecognized arguments: --epoch 3 (did you mean --epochs?)"),
     ("scene", ["demo", "--bogus"], "unrecognized arguments: --bogus\n"),  # nothing near: no guess

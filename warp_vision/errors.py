@@ -71,13 +71,39 @@ class ArgumentParser(argparse.ArgumentParser):
     def parse_args(self, args=None, namespace=None):
         """argparse's, naming the nearest option of the command for a mistyped flag (``--photoreceptor``:
         did you mean --photoreceptors?) and the commands an option belongs to when it is another's (or one
-        near it is: ``train oculomotor --photoreceptor``: did you mean --photoreceptors, an option of ...?). A value
+        near it is: ``train oculomotor --photoreceptor``: did you mean --photoreceptors, an option of ...?), and a
+        command's option given before the command (:meth:`_misplaced`). A value
         that begins with '-' and a digit is its option's (:func:`_values_joined`)."""
         args = _values_joined(self, sys.argv[1:] if args is None else list(args))
+        misplaced = self._misplaced(args)
+        if misplaced:
+            self.error(misplaced)
         parsed, extras = self.parse_known_args(args, namespace)
         if extras:
             self.error(f"unrecognized arguments: {' '.join(extras)}{self._hint(parsed, extras)}")
         return parsed
+
+    def _misplaced(self, args: list[str]) -> str | None:
+        """Where a command's option was given before the command (``sim --quick demo``, ``data --preset quick
+        foveation``): "--quick goes after the command: python -m warp_vision.sim demo --quick". argparse said
+        "unrecognized arguments: --quick (--quick is an option of experiments, ...)", as if demo lacked it, or
+        took the option's value for the command ("'quick' is not a command"). None when nothing is misplaced."""
+        sub = _subcommands(self)
+        if sub is None:
+            return None
+        own = {o for a in self._actions for o in a.option_strings}
+        at = next((i for i, token in enumerate(args) if token in sub.choices), len(args))
+        before = args[:at]
+        flags = [f for f in (t.split("=", 1)[0] for t in before if t.startswith("-")) if f not in own]
+        if not flags:
+            return None
+        if at < len(args) and any(flags[0] in a.option_strings for a in sub.choices[args[at]]._actions):
+            return f"{flags[0]} goes after the command: {' '.join([self.prog, *args[at:], *before])}"
+        owners = [name for name, p in sub.choices.items() if any(flags[0] in a.option_strings for a in p._actions)]
+        if not owners:
+            return None
+        return (f"{flags[0]} is an option of {_listed(owners)}, given after the command: "
+                f"{' '.join([self.prog, 'COMMAND', *before])}")
 
     def _hint(self, parsed: argparse.Namespace, extras: list[str]) -> str:
         chosen, others = self, {}
@@ -96,7 +122,8 @@ class ArgumentParser(argparse.ArgumentParser):
                 for o in (o for a in p._actions for o in a.option_strings):
                     others.setdefault(o, []).append(other)
         own = [o for a in chosen._actions for o in a.option_strings if o.startswith("--")]
-        hints = []
+        hints = [f"{word} is a command: name it first, before the options"
+                 for word in extras if chosen.siblings is not None and word in chosen.siblings()]
         for flag in (e.split("=", 1)[0] for e in extras if e.startswith("--")):
             near = difflib.get_close_matches(flag, own, n=1, cutoff=0.75)  # (0.6 took --shots for --out)
             if flag in others:
