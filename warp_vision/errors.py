@@ -91,39 +91,35 @@ class ArgumentParser(argparse.ArgumentParser):
         sub = _subcommands(self)
         if sub is None:
             return None
-        own = {o for a in self._actions for o in a.option_strings}
+        own = _options(self)
         at = next((i for i, token in enumerate(args) if token in sub.choices), len(args))
         before = args[:at]
         flags = [f for f in (t.split("=", 1)[0] for t in before if t.startswith("-")) if f not in own]
         if not flags:
             return None
-        if at < len(args) and any(flags[0] in a.option_strings for a in sub.choices[args[at]]._actions):
+        if at < len(args) and flags[0] in _options(sub.choices[args[at]]):
             return f"{flags[0]} goes after the command: {' '.join([self.prog, *args[at:], *before])}"
-        owners = [name for name, p in sub.choices.items() if any(flags[0] in a.option_strings for a in p._actions)]
+        owners = [name for name, p in sub.choices.items() if flags[0] in _options(p)]
         if not owners:
             return None
         return (f"{flags[0]} is an option of {_listed(owners)}, given after the command: "
                 f"{' '.join([self.prog, 'COMMAND', *before])}")
 
     def _hint(self, parsed: argparse.Namespace, extras: list[str]) -> str:
-        chosen, others = self, {}
+        chosen, neighbours = self, []  # (name, parser) of the commands beside the one chosen
         while (sub := _subcommands(chosen)) is not None:
             name = getattr(parsed, sub.dest, None)
-            for other, p in sub.choices.items():
-                if other != name:
-                    for a in p._actions:
-                        for o in a.option_strings:
-                            others.setdefault(o, []).append(other)
+            neighbours += [(other, p) for other, p in sub.choices.items() if other != name]
             if name not in sub.choices:
                 break
             chosen = sub.choices[name]
-        if chosen.siblings is not None:
-            for other, p in chosen.siblings().items():
-                for o in (o for a in p._actions for o in a.option_strings):
-                    others.setdefault(o, []).append(other)
-        own = [o for a in chosen._actions for o in a.option_strings if o.startswith("--")]
-        hints = [f"{word} is a command: name it first, before the options"
-                 for word in extras if chosen.siblings is not None and word in chosen.siblings()]
+        siblings = chosen.siblings() if chosen.siblings is not None else {}
+        others = {}  # option -> the commands beside the chosen one that have it
+        for other, p in [*neighbours, *siblings.items()]:
+            for o in _options(p):
+                others.setdefault(o, []).append(other)
+        own = [o for o in _options(chosen) if o.startswith("--")]
+        hints = [f"{word} is a command: name it first, before the options" for word in extras if word in siblings]
         for flag in (e.split("=", 1)[0] for e in extras if e.startswith("--")):
             near = difflib.get_close_matches(flag, own, n=1, cutoff=0.75)  # (0.6 took --shots for --out)
             if flag in others:
@@ -133,6 +129,11 @@ class ArgumentParser(argparse.ArgumentParser):
             elif near := difflib.get_close_matches(flag, [o for o in others if o.startswith("--")], n=1, cutoff=0.75):
                 hints.append(f"did you mean {near[0]}, an option of {_listed(others[near[0]])}?")
         return f" ({'; '.join(hints)})" if hints else ""
+
+
+def _options(parser: argparse.ArgumentParser) -> list[str]:
+    """``parser``'s own option strings (not its subcommands'), in the order they were added."""
+    return [o for a in parser._actions for o in a.option_strings]
 
 
 def _listed(names: list[str]) -> str:
@@ -274,7 +275,7 @@ def sigterm_as_interrupt():
 
 def long_options(parser: argparse.ArgumentParser) -> frozenset[str]:
     """Every ``--option`` of ``parser`` and of its subcommands' parsers."""
-    names = {o for a in parser._actions for o in a.option_strings if o.startswith("--")}
+    names = {o for o in _options(parser) if o.startswith("--")}
     sub = _subcommands(parser)
     for p in (sub.choices.values() if sub is not None else ()):
         names |= long_options(p)

@@ -222,11 +222,16 @@ def pick_device(name: str) -> str:
     return require_device(name)
 
 
+def world_size() -> int:
+    """The processes of this torchrun job (torchrun's WORLD_SIZE; 1 without torchrun)."""
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
 class Dist:
     """This process's place in a torchrun job (a job of one without torchrun)."""
 
     def __init__(self, device: str):
-        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.world = world_size()
         self.rank = int(os.environ.get("RANK", "0"))
         self.on = self.world > 1
         self.owner = self.on and not dist.is_initialized()  # this run made the process group: it destroys it
@@ -535,7 +540,7 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
 def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0: bool,
            stop_after_epoch: int | None, workers: int | str, new_cap: bool = False) -> dict:
     """:func:`run`'s work once the run directory is open (and locked): data, training, evaluation."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))  # (torchrun's; Dist reads it again below)
+    world = world_size()  # (before Dist below joins the process group: a refusal costs no rendezvous)
     if cfg.batch < world:  # (each rank was dealt an empty batch, and its loss was NaN)
         raise ValueError(f"batch: expected at least one sample for each of the {world} ranks under torchrun, "
                          f"got {cfg.batch}")
