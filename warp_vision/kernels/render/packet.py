@@ -244,11 +244,16 @@ def _children_hit(bv: BvhData, c0: int, ix: vec8, iy: vec8, iz: vec8, oix: vec8,
 
 
 @wp.func
-def packet_closest(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
-    """Closest hits of a packet (world frame, unit directions) over every visible instance of batch element b.
+def _packet_traverse(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8,
+                     any_hit: bool):
+    """The one BVH traversal behind both queries: a packet (world frame, unit directions) against every
+    visible instance of batch element b, each lane's hits limited to (0, t_in).
 
-    Returns (t vec8: the hit distance, or t_in where nothing is closer; tri ivec8: global triangle
-    index or -1).
+    Closest hit (``any_hit`` False): children are visited near first along the split axis, a lane's
+    limit shrinks to each closer hit, and (t, tri) come back: the hit distance, or t_in where nothing is
+    closer, and the global triangle index, or -1. Any hit (True, shadow rays): children in stored order,
+    a lane that hits anything is set to DEAD, and the traversal stops once every lane is dead; tri is
+    left at -1.
     """
     tb = t_in
     tri = ivec8()
@@ -258,76 +263,12 @@ def packet_closest(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, 
     bt, bv_ = _batch_rows(bv, b)
     wix, wiy, wiz, woix, woiy, woiz = _slab_terms(ox, oy, oz, dx, dy, dz)  # for the instances' world boxes
     for inst in range(bv.inst_root.shape[0]):
+        if any_hit and all_negative(tb):
+            break
         if bv.inst_visible[bv_, inst] == 0:
             continue
         # the instance's world box first: most packets pass most instances by, and this costs a slab test
         # where moving the packet into the instance's frame costs 8 transforms and 24 divisions
-        if not box_hit(wix, wiy, wiz, woix, woiy, woiz, bv.inst_world_lo[bt, inst], bv.inst_world_hi[bt, inst], tb):
-            continue
-        lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz = _packet_in_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
-        node = bv.inst_root[inst]
-        if not box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[node], bv.node_hi[node], tb):
-            continue
-        sp = int(0)
-        while True:
-            c0 = bv.node_left[node]
-            if c0 < 0:
-                start = bv.node_start[node]
-                for k in range(start, start + bv.node_count[node]):
-                    tc = tri_hit(lx, ly, lz, mx, my, mz, bv.tri_v0[k], bv.tri_e1[k], bv.tri_e2[k], tb)
-                    if any_lt(tc, tb):
-                        for l in range(8):
-                            if tc[l] < tb[l]:
-                                tb[l] = tc[l]
-                                tri[l] = k
-                if sp == 0:
-                    break
-                sp -= 1
-                node = stack[sp]
-                continue
-            h0, h1 = _children_hit(bv, c0, ix, iy, iz, oix, oiy, oiz, tb)
-            if h0 and h1:
-                near = c0
-                far = c0 + 1
-                ax = bv.node_axis[node]
-                d_ax = mx[0]
-                if ax == 1:
-                    d_ax = my[0]
-                elif ax == 2:
-                    d_ax = mz[0]
-                if d_ax < 0.0:
-                    near = c0 + 1
-                    far = c0
-                stack[sp] = far
-                sp += 1
-                node = near
-            elif h0:
-                node = c0
-            elif h1:
-                node = c0 + 1
-            else:
-                if sp == 0:
-                    break
-                sp -= 1
-                node = stack[sp]
-    return tb, tri
-
-
-@wp.func
-def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
-    """Any-hit (shadow) queries: returns t where occluded lanes (anything on (0, t_in)) are set to -1.
-
-    Dead lanes (t_in < 0) stay dead; the traversal stops once every lane is dead or occluded.
-    """
-    tb = t_in
-    stack = stack64()
-    bt, bv_ = _batch_rows(bv, b)
-    wix, wiy, wiz, woix, woiy, woiz = _slab_terms(ox, oy, oz, dx, dy, dz)  # for the instances' world boxes
-    for inst in range(bv.inst_root.shape[0]):
-        if all_negative(tb):
-            break
-        if bv.inst_visible[bv_, inst] == 0:
-            continue
         if not box_hit(wix, wiy, wiz, woix, woiy, woiz, bv.inst_world_lo[bt, inst], bv.inst_world_hi[bt, inst], tb):
             continue
         lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz = _packet_in_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
@@ -345,8 +286,12 @@ def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
                     if any_lt(tc, tb):
                         for l in range(8):
                             if tc[l] < tb[l]:
-                                tb[l] = DEAD
-                        if all_negative(tb):
+                                if any_hit:
+                                    tb[l] = DEAD
+                                else:
+                                    tb[l] = tc[l]
+                                    tri[l] = k
+                        if any_hit and all_negative(tb):
                             done = True
                             break
                 if done or sp == 0:
@@ -356,9 +301,21 @@ def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
                 continue
             h0, h1 = _children_hit(bv, c0, ix, iy, iz, oix, oiy, oiz, tb)
             if h0 and h1:
-                stack[sp] = c0 + 1
+                near = c0
+                far = c0 + 1
+                if not any_hit:
+                    ax = bv.node_axis[node]
+                    d_ax = mx[0]
+                    if ax == 1:
+                        d_ax = my[0]
+                    elif ax == 2:
+                        d_ax = mz[0]
+                    if d_ax < 0.0:
+                        near = c0 + 1
+                        far = c0
+                stack[sp] = far
                 sp += 1
-                node = c0
+                node = near
             elif h0:
                 node = c0
             elif h1:
@@ -368,6 +325,26 @@ def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8,
                     break
                 sp -= 1
                 node = stack[sp]
+    return tb, tri
+
+
+@wp.func
+def packet_closest(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
+    """Closest hits of a packet (world frame, unit directions) over every visible instance of batch element b.
+
+    Returns (t vec8: the hit distance, or t_in where nothing is closer; tri ivec8: global triangle
+    index or -1).
+    """
+    return _packet_traverse(bv, b, ox, oy, oz, dx, dy, dz, t_in, False)
+
+
+@wp.func
+def packet_occluded(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, t_in: vec8):
+    """Any-hit (shadow) queries: returns t where occluded lanes (anything on (0, t_in)) are set to -1.
+
+    Dead lanes (t_in < 0) stay dead; the traversal stops once every lane is dead or occluded.
+    """
+    tb, tri = _packet_traverse(bv, b, ox, oy, oz, dx, dy, dz, t_in, True)
     return tb
 
 
