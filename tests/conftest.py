@@ -1,9 +1,12 @@
-"""Shared fixtures: the ``device`` fixture and a kernel cache owned by the test session."""
+"""Shared fixtures: the ``device`` fixture, a kernel cache owned by the test session, and a numpy file
+whose header is damaged."""
 
 from __future__ import annotations
 
 import os
 import tempfile
+import zipfile
+from pathlib import Path
 
 import pytest
 
@@ -39,3 +42,29 @@ def cuda_device() -> str:
     if "cuda:0" not in _devices():
         pytest.skip("no CUDA device visible to Warp and torch")
     return "cuda:0"
+
+
+def _unclose_npy_header(path) -> None:
+    """Replace the closing brace of the ``.npy`` header of ``path`` (a ``.npy`` file, or every member of an
+    ``.npz``, rewritten with good CRCs) by a space: numpy then raises tokenize.TokenError, on every Python."""
+
+    def unclosed(data: bytes) -> bytes:
+        b = bytearray(data)
+        b[b.index(b"}")] = ord(" ")
+        return bytes(b)
+
+    path = Path(path)
+    if not zipfile.is_zipfile(path):
+        path.write_bytes(unclosed(path.read_bytes()))
+        return
+    with zipfile.ZipFile(path) as z:
+        members = {name: z.read(name) for name in z.namelist()}
+    with zipfile.ZipFile(path, "w") as z:
+        for name, data in members.items():
+            z.writestr(name, unclosed(data))
+
+
+@pytest.fixture
+def unclose_npy_header():
+    """A function that damages a numpy file's header the way numpy's tokenizer, not its parser, rejects."""
+    return _unclose_npy_header

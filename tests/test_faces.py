@@ -200,12 +200,15 @@ def test_faces_smoke_end_to_end_and_resume(tmp_path, ids, smoke_data, capsys):
     assert train_main(["faces", "--preset", "smoke", "--identities", "1", "--out", str(tmp_path / "c")]) == 2
 
 
-def test_a_file_that_is_not_an_identity_cache_is_refused_by_name_and_left_alone(tmp_path):
-    # --identities-cache README.md read as numpy's "pickled (object) data" error
-    for name, content in (("notes.md", b"# notes\n"), ("empty.npz", b""), ("other.npz", None)):
+def test_a_file_that_is_not_an_identity_cache_is_refused_by_name_and_left_alone(tmp_path, unclose_npy_header):
+    # --identities-cache README.md read as numpy's "pickled (object) data" error; a damaged header as
+    # numpy's tokenize.TokenError
+    for name, content in (("notes.md", b"# notes\n"), ("empty.npz", b""), ("other.npz", None), ("damaged.npz", "damaged")):
         f = tmp_path / name
-        if content is None:
-            np.savez(f, something=np.zeros(3))
+        if content is None or content == "damaged":
+            np.savez(f, vertices=np.zeros(3))
+            if content == "damaged":
+                unclose_npy_header(f)
         else:
             f.write_bytes(content)
         before = f.read_bytes()

@@ -369,6 +369,15 @@ def test_load_rejects_non_archives(tmp_path):
         Retina.load(tmp_path / "absent.npz")
 
 
+def test_load_names_an_archive_whose_headers_are_damaged(retina, tmp_path, unclose_npy_header):
+    # numpy's tokenize.TokenError came through as it was
+    path = tmp_path / "damaged.npz"
+    retina.save(path)
+    unclose_npy_header(path)
+    with pytest.raises(ValueError, match="damaged.npz: not a readable Retina"):
+        Retina.load(path)
+
+
 def test_plot_returns_figure_with_two_axes(retina):
     from warp_vision.viz import plot_retina_layout
 

@@ -306,6 +306,15 @@ def _corrupt_flip_header(path):
         f.write(bytes([b[0] ^ 0x20]))
 
 
+def _corrupt_unclose_header(path):
+    # numpy's header filter raised tokenize.TokenError through load_chunk (and, on Python 3.12+, for
+    # flip-header-byte too): not a CorruptChunkError
+    with open(path, "r+b") as f:
+        head = f.read(128)
+        f.seek(head.index(b"}"))
+        f.write(b" ")
+
+
 def _corrupt_delete(path):
     path.unlink()
 
@@ -316,9 +325,10 @@ def _corrupt_delete(path):
         (_corrupt_truncate, "truncated"),
         (_corrupt_flip, "sha256 mismatch"),
         (_corrupt_flip_header, "sha256 mismatch|header"),
+        (_corrupt_unclose_header, "sha256 mismatch|header"),
         (_corrupt_delete, "missing"),
     ],
-    ids=["truncate", "flip-data-byte", "flip-header-byte", "delete"],
+    ids=["truncate", "flip-data-byte", "flip-header-byte", "unclosed-header", "delete"],
 )
 @pytest.mark.parametrize("field", ["onv", "target"])
 def test_corruption_is_detected(tmp_path, corrupt, what, field):

@@ -6,6 +6,9 @@ renamed over the destination (``os.replace``: atomic on POSIX), and the director
 sees the old file or the new one, never a part. When anything fails (the writer raises, the disk is full,
 the directory is read-only) the temporary file is removed and the error propagates: nothing is left
 behind under either name.
+
+Reads: :data:`NPY_FORMAT_ERRORS` is what numpy raises for a file that is there but is not a readable
+``.npy`` or ``.npz``, for every reader of such files to catch alike.
 """
 
 from __future__ import annotations
@@ -14,9 +17,17 @@ import errno
 import json
 import os
 import tempfile
+import tokenize
 import uuid
+import zipfile
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
+
+#: What numpy raises reading a damaged ``.npy`` or ``.npz`` member, beside OSError (which each reader
+#: treats as it must: a missing file is often not damage). A header that is not a Python literal is
+#: parsed again through :mod:`tokenize`, which raises ``tokenize.TokenError``, neither a ValueError nor a
+#: SyntaxError, for brackets that never close, and on Python 3.12 and later for a control byte.
+NPY_FORMAT_ERRORS = (ValueError, SyntaxError, EOFError, tokenize.TokenError, zipfile.BadZipFile)
 
 
 def temporary_path(final: str | os.PathLike) -> Path:

@@ -23,7 +23,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from warp_vision.fileio import atomic_write, write_json
+from warp_vision.fileio import NPY_FORMAT_ERRORS, atomic_write, write_json
 
 __all__ = ["CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "MANIFEST_NAME"]
 
@@ -331,7 +331,7 @@ def _read_header(f, path: Path, c: int, want_shape: tuple, dtype: str) -> None:
             hshape, fortran, hdtype = np.lib.format.read_array_header_2_0(f)
         else:
             raise ValueError(f"unsupported .npy version {version}")
-    except (ValueError, OSError, EOFError, SyntaxError) as e:
+    except (OSError, *NPY_FORMAT_ERRORS) as e:
         raise CorruptChunkError(path, c, f"unreadable .npy header: {e}") from None
     if tuple(hshape) != want_shape or hdtype != np.dtype(dtype) or fortran:
         raise CorruptChunkError(

@@ -38,7 +38,7 @@ import numpy as np
 
 from warp_vision.data.store import ChunkedStore
 from warp_vision.errors import require_positive, require_seeds
-from warp_vision.fileio import atomic_write
+from warp_vision.fileio import NPY_FORMAT_ERRORS, atomic_write
 from warp_vision.frames import look_rotation
 
 #: Bump when identities or renders change for the same config (caches are keyed by it).
@@ -173,14 +173,12 @@ class FaceIdentities:
     def load(cls, path) -> "FaceIdentities":
         """The identities :meth:`save` wrote to ``path``; any other file is a ValueError naming it (it read as
         numpy's "pickled (object) data" error, or a KeyError), and is left as it is."""
-        import zipfile
-
         try:
             with np.load(path) as z:
                 return cls(z["vertices"], z["faces"], z["colours"].astype(np.float32), z["pivot"], z["face_centre"],
                            z["params"], [str(s) for s in z["param_names"]],
                            int(z["identity_seed"]) if "identity_seed" in z.files else None)
-        except (ValueError, KeyError, EOFError, zipfile.BadZipFile, AttributeError, TypeError) as e:
+        except (*NPY_FORMAT_ERRORS, KeyError, AttributeError, TypeError) as e:
             raise ValueError(f"{path}: not a cache of face identities ({type(e).__name__}); give --identities-cache "
                              "a new path, or the file a run of this package wrote") from None
 

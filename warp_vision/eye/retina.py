@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import zipfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,7 +26,7 @@ from warp_vision.eye.layouts import (
     noisy_log_polar,
 )
 from warp_vision.eye.optics import NavarroEye, eye_from_optical_dir, optical_from_eye
-from warp_vision.fileio import atomic_write
+from warp_vision.fileio import NPY_FORMAT_ERRORS, atomic_write
 from warp_vision.frames import gaze_angles, morton_order
 
 __all__ = ["Retina"]
@@ -291,7 +290,7 @@ class Retina:
                 content = {k: data[k] for k in _SAVED_KEYS if k in files}
         except FileNotFoundError:
             raise
-        except (OSError, zipfile.BadZipFile, EOFError, ValueError) as exc:
+        except (OSError, *NPY_FORMAT_ERRORS) as exc:
             raise ValueError(f"{path}: not a readable Retina .npz archive ({exc})") from None
         missing = [k for k in _SAVED_KEYS if k not in content]
         if missing:

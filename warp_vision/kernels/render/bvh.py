@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -224,7 +223,7 @@ def build_bvh_cached(vertices: np.ndarray, faces: np.ndarray) -> BVH:
     """:func:`build_bvh`, kept on disk (:func:`bvh_cache_dir`, keyed by the mesh's bytes) for meshes of at
     least ``DISK_CACHE_MIN_TRIANGLES`` triangles. An unreadable or mismatched cache file is rebuilt and
     replaced; a cache directory that cannot be written is skipped."""
-    from warp_vision.fileio import atomic_write
+    from warp_vision.fileio import NPY_FORMAT_ERRORS, atomic_write
 
     V, F = _check_mesh(vertices, faces)
     root = bvh_cache_dir()
@@ -236,7 +235,7 @@ def build_bvh_cached(vertices: np.ndarray, faces: np.ndarray) -> BVH:
             b = BVH(**{f.name: z[f.name] for f in dataclasses.fields(BVH)})
         if len(b.tri_face) == len(F) and len(b.node_lo) == len(b.node_left) > 0:
             return b
-    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+    except (OSError, KeyError, *NPY_FORMAT_ERRORS):
         pass
     b = build_bvh(V, F)
     try:
