@@ -345,7 +345,9 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
         for k, v in metrics.items():
             sums[k] = sums.get(k, 0.0) + v * len(idx)
         count += len(idx)
-        bar.set_postfix(loss=f"{sums['loss'] / max(count, 1):.4f}" if "loss" in sums else "")
+        # refresh=False: the bar shows it at its next throttled refresh (set_postfix's default redraws the
+        # bar at every batch, ignoring tqdm's mininterval: a line per batch in a log)
+        bar.set_postfix(loss=f"{sums['loss'] / max(count, 1):.4f}" if "loss" in sums else "", refresh=False)
     return {k: dd.all_mean(v / max(count, 1)) for k, v in sums.items()}
 
 
