@@ -1,12 +1,11 @@
-"""Shared fixtures: the ``device`` fixture, a kernel cache owned by the test session, and a numpy file
-whose header is damaged."""
+"""Shared fixtures: the ``device`` fixture, a kernel cache owned by the test session, and a numpy
+archive whose headers are damaged."""
 
 from __future__ import annotations
 
 import os
 import tempfile
 import zipfile
-from pathlib import Path
 
 import pytest
 
@@ -44,19 +43,15 @@ def cuda_device() -> str:
     return "cuda:0"
 
 
-def _unclose_npy_header(path) -> None:
-    """Replace the closing brace of the ``.npy`` header of ``path`` (a ``.npy`` file, or every member of an
-    ``.npz``, rewritten with good CRCs) by a space: numpy then raises tokenize.TokenError, on every Python."""
+def _unclose_npz_headers(path) -> None:
+    """Replace the closing brace of the ``.npy`` header of every member of the ``.npz`` at ``path`` by a space
+    (the archive rewritten with good CRCs): numpy then raises tokenize.TokenError, on every Python."""
 
     def unclosed(data: bytes) -> bytes:
         b = bytearray(data)
         b[b.index(b"}")] = ord(" ")
         return bytes(b)
 
-    path = Path(path)
-    if not zipfile.is_zipfile(path):
-        path.write_bytes(unclosed(path.read_bytes()))
-        return
     with zipfile.ZipFile(path) as z:
         members = {name: z.read(name) for name in z.namelist()}
     with zipfile.ZipFile(path, "w") as z:
@@ -65,6 +60,6 @@ def _unclose_npy_header(path) -> None:
 
 
 @pytest.fixture
-def unclose_npy_header():
-    """A function that damages a numpy file's header the way numpy's tokenizer, not its parser, rejects."""
-    return _unclose_npy_header
+def unclose_npz_headers():
+    """A function that damages an ``.npz`` archive's headers the way numpy's tokenizer, not its parser, rejects."""
+    return _unclose_npz_headers

@@ -80,7 +80,7 @@ def test_packet_closest_hit_matches_brute_force(device):
     assert np.mean(obj2 == objr2) > 0.998
 
 
-def test_large_meshes_keep_their_bvh_on_disk(tmp_path, monkeypatch, unclose_npy_header):
+def test_large_meshes_keep_their_bvh_on_disk(tmp_path, monkeypatch, unclose_npz_headers):
     """The second build of the same mesh is a load (the builder is never called), equal to the first; a
     corrupt file is rebuilt; small meshes and WARP_VISION_CACHE=off never touch the disk."""
     import trimesh
@@ -100,7 +100,7 @@ def test_large_meshes_keep_their_bvh_on_disk(tmp_path, monkeypatch, unclose_npy_
     for f in ("node_lo", "node_left", "tri_v0", "tri_face"):
         np.testing.assert_array_equal(getattr(again, f), getattr(first, f))
     monkeypatch.setattr(B, "build_bvh", real)
-    for damage in (lambda p: p.write_bytes(b"not a zip"), unclose_npy_header):
+    for damage in (lambda p: p.write_bytes(b"not a zip"), unclose_npz_headers):
         damage(files[0])
         rebuilt = B.build_bvh_cached(V, F)
         np.testing.assert_array_equal(rebuilt.tri_face, first.tri_face)

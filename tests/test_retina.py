@@ -369,11 +369,11 @@ def test_load_rejects_non_archives(tmp_path):
         Retina.load(tmp_path / "absent.npz")
 
 
-def test_load_names_an_archive_whose_headers_are_damaged(retina, tmp_path, unclose_npy_header):
+def test_load_names_an_archive_whose_headers_are_damaged(retina, tmp_path, unclose_npz_headers):
     # numpy's tokenize.TokenError came through as it was
     path = tmp_path / "damaged.npz"
     retina.save(path)
-    unclose_npy_header(path)
+    unclose_npz_headers(path)
     with pytest.raises(ValueError, match="damaged.npz: not a readable Retina"):
         Retina.load(path)
 
