@@ -12,6 +12,7 @@ import re
 import sys
 from pathlib import Path
 
+
 def requirements(pyproject: str) -> list[str]:
     """The quoted entries of ``dependencies = [...]`` and of ``test = [...]``, comments left out."""
     out = []
