@@ -45,7 +45,7 @@ def run(frame_every=(1, None), quick: bool = False, progress: bool = True, log=p
     runs = default_runs(quick)
     specs = plan(runs["left"], runs["right"], runs["oculomotor"], quick=quick)
     provide(specs, progress=progress, log=log)
-    fov = {s: Foveator(spec.run) for s, spec in zip(SIDES, specs[:2])}
+    fov = {s: Foveator(spec.run, eye=s) for s, spec in zip(SIDES, specs[:2])}
     ocu = load_oculomotor(runs["oculomotor"])
     out = {"nets": manifest(specs), "settings": []}
     loops = []

@@ -325,6 +325,20 @@ class ChunkedStore:
     def _all_missing(self) -> list[int]:
         return [c for c in range(self.num_chunks) if not self._chunk_present(c)]
 
+    def content_digest(self) -> str:
+        """The dataset's id by content: a sha256 over every chunk's recorded data checksums, so two stores
+        holding the same samples (one rendered again with the same settings, or copied) have the same digest,
+        and a store with any other sample has another. Reads the chunk records only (no data is hashed);
+        CorruptChunkError for a chunk that is not written."""
+        import hashlib
+
+        h = hashlib.sha256(f"{self.total}:{self.chunk_size}:".encode())
+        for c in range(self.num_chunks):
+            files = self._read_record(c)["files"]
+            for name in sorted(files):
+                h.update(f"{c}:{name}:{files[name]['sha256']};".encode())
+        return h.hexdigest()
+
     @property
     def complete(self) -> bool:
         """True when every chunk of the dataset (all shards) is written (quick size check, no hashing)."""

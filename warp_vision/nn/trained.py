@@ -215,6 +215,78 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     return ck
 
 
+#: A run's settings that say where it reads and writes, or how long it may train, not what it is: left out of
+#: its id (:func:`run_identity`), so a resumed run under a new epoch cap, or a run directory moved, is the same run.
+NOT_IDENTITY = ("out", "data_dir", "identities_cache", "epochs", "device")
+#: the settings that name which eye (or arm) a run's net serves
+SIDE_FIELDS = ("eye", "side")
+
+
+def _digest(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def run_identity(task: str, config: dict) -> dict:
+    """What a run is, from its task and its settings (config.json, or a checkpoint's config): {"task", "run": the
+    run's id, a digest of every setting but :data:`NOT_IDENTITY`, and "eye" or "side" where the task has one}.
+    Two runs of one id train the same net on the same data."""
+    settings = {k: v for k, v in config.items() if k not in NOT_IDENTITY and k != "task"}
+    ident = {"task": task, "run": _digest([task, settings])}
+    ident.update({k: config[k] for k in SIDE_FIELDS if k in config})
+    return ident
+
+
+def new_binding(task: str, config: dict, data_config: dict, dataset: str | None) -> dict:
+    """The ``binding`` a checkpoint carries: :func:`run_identity`, the digest of its dataset's config
+    (``data_config``) and ``dataset``, the dataset's id (its content digest:
+    :meth:`warp_vision.data.store.ChunkedStore.content_digest`; None for a task without a store)."""
+    return {**run_identity(task, config), "data_config": _digest(data_config), "dataset": dataset}
+
+
+def binding(ck: dict) -> dict:
+    """What checkpoint ``ck`` belongs to: its ``binding``; for a checkpoint written before bindings, the
+    identity its task and config give (without the dataset's id)."""
+    b = ck.get("binding")
+    if isinstance(b, dict) and "run" in b:
+        return b
+    config = ck.get("config") if isinstance(ck.get("config"), dict) else {}
+    return run_identity(str(ck.get("task", "foveation")), config)
+
+
+def describe_binding(b: dict) -> str:
+    """"the left eye's foveation run 3f2a9c1b04d7e655", "the right arm's arm run ...", "a foveation net"."""
+    side = next((f"{b[k]} {'arm' if k == 'side' else 'eye'}'s " for k in SIDE_FIELDS if b.get(k)), "")
+    what = f"{b.get('task', 'unknown')} {'run ' + b['run'] if b.get('run') else 'net'}"
+    return f"the {side}{what}" if side or b.get("run") else f"a {what}"
+
+
+def require_binding(ck: dict, expect: dict, source, owner: str | None = None, settings: dict | None = None) -> None:
+    """Refuse checkpoint ``ck`` (read from ``source``) where its :func:`binding` differs from ``expect`` (any of
+    "task", "run", "eye", "side"; a None value is not checked): one ValueError naming what the checkpoint
+    belongs to and what it was expected to belong to: ``owner`` ("the run in runs/x", followed by what that run
+    is), or ``expect`` in words. With ``settings`` (the owner's config), the settings that differ are named."""
+    got = binding(ck)
+    differ = [k for k, v in expect.items() if v is not None and got.get(k) != v]
+    if not differ:
+        return
+    why = ""
+    theirs = ck.get("config") if isinstance(ck.get("config"), dict) else None
+    if settings is not None and theirs is not None:
+        keys = [k for k in sorted(set(settings) | set(theirs)) if k not in NOT_IDENTITY and k != "task"
+                and json.dumps(settings.get(k), default=str) != json.dumps(theirs.get(k), default=str)]
+        why = "".join(f"; {k} {theirs.get(k)!r} there, {settings.get(k)!r} here" for k in keys[:4])
+    wanted = describe_binding({k: v for k, v in expect.items() if v is not None})
+    owner = wanted if owner is None else f"{owner} ({wanted})"
+    raise ValueError(f"{source} belongs to {describe_binding(got)}, not to {owner}{why}")
+
+
+def dataset_mismatch(ck: dict, digest: str | None) -> bool:
+    """Whether the dataset whose content digest is ``digest`` holds other samples than checkpoint ``ck`` was
+    trained on (False where either is unknown: a checkpoint written before bindings, a task without a store)."""
+    trained = binding(ck).get("dataset")
+    return bool(trained and digest and trained != digest)
+
+
 #: a run's checkpoints: its best validation epoch's weights (best.pt) and its last epoch's (latest.pt)
 CHECKPOINTS = ("best", "latest")
 #: the lock file a training process holds in its run directory while it trains
@@ -289,12 +361,20 @@ def net_from_checkpoint(ck: dict, device: str = "cpu", views: int | None = None,
     return model.eval()
 
 
-def load_net(path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
-    """(the trained net in eval mode, the checkpoint) of a checkpoint file or of a run directory (its best.pt)."""
+def load_net(path, device: str = "cpu", expect: dict | None = None) -> tuple[torch.nn.Module, dict]:
+    """(the trained net in eval mode, the checkpoint) of a checkpoint file or of a run directory (its best.pt).
+    ``expect``: what the net must belong to ({"task": "foveation", "eye": "right"}, as :func:`require_binding`
+    reads it); a run directory's checkpoint must also belong to the run its config.json describes."""
     path = Path(path)
+    run_dir = path if path.is_dir() else None
     if path.is_dir():
         path = path / "best.pt"
     ck = read_checkpoint(path, map_location=device)
+    if expect:
+        require_binding(ck, expect, path)
+    config = read_run_config(run_dir) if run_dir is not None else None
+    if config is not None:
+        require_binding(ck, run_identity(saved_task(run_dir, config), config), path, f"the run in {run_dir}", config)
     return net_from_checkpoint(ck, device, source=path), ck
 
 

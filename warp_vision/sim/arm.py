@@ -462,8 +462,9 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
     return out
 
 
-def load_arm(run_dir):
-    """The arm's nets (:class:`warp_vision.nn.arm.ArmNets`) from a run of ``python -m warp_vision.train arm``."""
+def load_arm(run_dir, side: str | None = None):
+    """The arm's nets (:class:`warp_vision.nn.arm.ArmNets`) from a run of ``python -m warp_vision.train arm``; with
+    ``side``, refused unless they are that arm's."""
     from warp_vision.nn.trained import load_net
 
-    return load_net(run_dir)[0]
+    return load_net(run_dir, expect={"task": "arm", "side": side})[0]

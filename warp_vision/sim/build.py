@@ -74,15 +74,15 @@ def setup_loop(args):
     provide(specs, progress=not args.no_progress)
     body = Body(BodyConfig(arms=not args.no_arms))
     body.step(int(SETTLE_S / body.model.opt.timestep))
-    fov = {s: Foveator(spec.run) for s, spec in zip(SIDES, specs[:2])}
+    fov = {s: Foveator(spec.run, eye=s) for s, spec in zip(SIDES, specs[:2])}
     old = [spec.run for s, spec in zip(SIDES, specs[:2]) if fov[s].generator < 8]
     if old and args.ball == "ordinary":
         print(f"note: {', '.join(old)} learnt on generator v7 (a glowing ball in a dim room); with --ball ordinary "
               "it will not find the ball. Retrain it (python -m warp_vision.train --eye EYE --overwrite) or use --ball glowing.")
     ocu_root = os.path.dirname(specs[2].run)
     runs = {(spec.kind, spec.eye): spec.run for spec in specs}
-    pupil = {s: load_pupil(runs["pupil", s]) for s in SIDES} if ("pupil", "left") in runs else None
-    lens = {s: load_lens(runs["lens", s]) for s in SIDES} if ("lens", "left") in runs else None
+    pupil = {s: load_pupil(runs["pupil", s], eye=s) for s in SIDES} if ("pupil", "left") in runs else None
+    lens = {s: load_lens(runs["lens", s], eye=s) for s in SIDES} if ("lens", "left") in runs else None
     loop = VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
                           ball=args.ball, pupil_nets=pupil, lens_nets=lens,
                           perception=getattr(args, "gaze_perception", "nets"))

@@ -439,7 +439,7 @@ class LimbVision(BallisticPerception):
             raise ValueError(f"run_dirs: expected one run per eye {SIDES}, got {sorted(run_dirs)}")
         self.nets, self.norms, self.dtypes, self.data, models = {}, {}, {}, {}, {}
         for s, rd in run_dirs.items():
-            model, ck = load_net(rd, device)
+            model, ck = load_net(rd, device, expect={"eye": s})
             if ck.get("net", {}).get("kind") != "limb":
                 raise ValueError(f"{rd}: expected a limb vision run (python -m warp_vision.train limb), got a "
                                  f"{ck.get('net', {}).get('kind')!r} net")

@@ -84,39 +84,43 @@ INTRAOCULAR = ("nets", "analytic")
 PERCEPTION = ("nets", "oracle")
 
 
-def _load_kind(run_dir: str, kind: str, device: str):
-    """(model, checkpoint) of the run in ``run_dir``, or a ValueError when it holds another kind of net."""
+def _load_kind(run_dir: str, kind: str, device: str, eye: str | None = None):
+    """(model, checkpoint) of the run in ``run_dir``, or a ValueError when it holds another kind of net, or
+    (``eye`` given) the other eye's, or a checkpoint of another run than its config.json's."""
     from warp_vision.nn.trained import load_net, task_command
 
-    model, ck = load_net(run_dir, device)
+    model, ck = load_net(run_dir, device, expect={"task": kind, "eye": eye})
     if ck.get("net", {}).get("kind") != kind:
         raise ValueError(f"{run_dir}: expected a {kind} run ({task_command(kind)}); it holds a "
                          f"net of kind {ck.get('net', {}).get('kind')!r}")
     return model, ck
 
 
-def load_pupil(run_dir: str, device: str = "cpu"):
-    """An eye's trained pupil net (:class:`warp_vision.nn.intraocular.PupilNet`), in eval mode."""
-    return _load_kind(run_dir, "pupil", device)[0]
+def load_pupil(run_dir: str, device: str = "cpu", eye: str | None = None):
+    """An eye's trained pupil net (:class:`warp_vision.nn.intraocular.PupilNet`), in eval mode; with ``eye``, refused
+    unless it is that eye's."""
+    return _load_kind(run_dir, "pupil", device, eye)[0]
 
 
-def load_lens(run_dir: str, device: str = "cpu"):
-    """An eye's trained lens net (:class:`warp_vision.nn.intraocular.LensNet`), in eval mode."""
-    return _load_kind(run_dir, "lens", device)[0]
+def load_lens(run_dir: str, device: str = "cpu", eye: str | None = None):
+    """An eye's trained lens net (:class:`warp_vision.nn.intraocular.LensNet`), in eval mode; with ``eye``, refused
+    unless it is that eye's."""
+    return _load_kind(run_dir, "lens", device, eye)[0]
 
 
 class Foveator:
     """An eye's trained foveation net (a liNet or the retina CNN): ONV [B, 3P] -> the ball's (yaw, pitch) in
     the eye frame, rad ([B, 2] numpy). What rendering an ONV for it takes comes with it, from the run's
     dataset config: ``retina`` (its photoreceptors), ``trained_eye`` (the optics its training ONVs were
-    rendered through), ``samples_per_receptor``; and ``generator``, the dataset's version."""
+    rendered through), ``samples_per_receptor``; and ``generator``, the dataset's version. ``eye``: the eye it
+    serves; another eye's net is refused."""
 
-    def __init__(self, run_dir: str, device: str = "cpu"):
+    def __init__(self, run_dir: str, device: str = "cpu", eye: str | None = None):
         from warp_vision.data.foveation import FoveationDataConfig, make_eye, make_retina
         from warp_vision.nn.trained import onv_dtype
 
         self.run_dir = run_dir
-        self.model, ck = _load_kind(run_dir, "foveation", device)
+        self.model, ck = _load_kind(run_dir, "foveation", device, eye)
         data = FoveationDataConfig.saved(ck["data"])
         self.generator = data.generator
         self.retina = make_retina(data)

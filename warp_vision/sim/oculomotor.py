@@ -262,7 +262,7 @@ def load_oculomotor(run_root) -> dict:
     nets = {}
     for side in SIDES:
         run = os.path.join(run_root, side)
-        nets[side], ck = load_net(run)
+        nets[side], ck = load_net(run, expect={"task": "oculomotor", "eye": side})
         # checkpoints saved before the version travelled with them learnt from v1
         version = int(ck["data"].get("generator_version", 1))
         if version != HOLDING_VERSION:

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from warp_vision.body import SIDES
 from warp_vision.errors import Terminated
 from warp_vision.fileio import FileLock
-from warp_vision.nn.trained import TRAINING_LOCK, read_run_config, saved_task
+from warp_vision.nn.trained import TRAINING_LOCK, read_checkpoint, read_run_config, require_binding, run_identity, saved_task
 
 #: the lock a simulation holds in a net's run directory while it has the net trained there: a second
 #: simulation that needs the net waits for it rather than starting a training the run lock refuses
@@ -94,17 +94,26 @@ class NetSpec:
         return MINUTES.get((self.kind, self.preset), MINUTES[(self.kind, "default")])
 
     def mismatch(self) -> str | None:
-        """Why the run directory holds another net than this one, read from its ``config.json`` (another
-        task, or the other eye or arm), or None: it is this net's run, or holds no run yet."""
+        """Why the run directory holds another net than this one, or None: it is this net's run, or holds no run
+        yet. Read from its ``config.json`` (another task, or the other eye or arm) and from its ``best.pt``,
+        which must belong to that run and to this net (a checkpoint copied in from another run)."""
         config = read_run_config(self.run)
         if config is None:
             return None
         kind = saved_task(self.run, config)
         side = config.get("side" if kind == "arm" else "eye")
-        if kind == self.kind and side in (None, self.eye):
+        if kind != self.kind or side not in (None, self.eye):
+            found = f"the {NetSpec(kind, side, self.run, self.preset).what}" if side in SIDES else f"a {kind} run"
+            return f"{self.run} holds {found}, not the {self.what}"
+        if not os.path.isfile(self.checkpoint):
             return None
-        found = f"the {NetSpec(kind, side, self.run, self.preset).what}" if side in SIDES else f"a {kind} run"
-        return f"{self.run} holds {found}, not the {self.what}"
+        ck = read_checkpoint(self.checkpoint)
+        try:
+            require_binding(ck, {"task": self.kind, _SIDE_FLAG.get(self.kind, "--eye")[2:]: self.eye}, self.checkpoint)
+            require_binding(ck, run_identity(kind, config), self.checkpoint, f"the run in {self.run}", config)
+        except ValueError as e:
+            return str(e)
+        return None
 
 
 def default_runs(quick: bool) -> dict:

@@ -110,7 +110,7 @@ def intercept(args) -> dict:
 
     body, loop = setup_loop(args)
     arm_run, limb_runs = strike_runs(args)
-    nets = load_arm(arm_run)
+    nets = load_arm(arm_run, args.side)
     vision = None
     if args.perception == "vision":
         from warp_vision.sim.limb import LimbVision

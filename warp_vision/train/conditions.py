@@ -58,7 +58,7 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
     from warp_vision.train.foveation import FoveationTask, angular_error_deg
     from warp_vision.train.evaluation import load_for_evaluation, read_label
     from warp_vision.train.harness import pick_device
-    from warp_vision.train.rundir import a_run, dataset_dir, run_config
+    from warp_vision.train.rundir import a_run, dataset_dir, require_own_checkpoint, run_config, saved_config
     from warp_vision.train.workers import dataset_lock
 
     conditions = list(conditions or CONDITIONS[1:])
@@ -80,12 +80,13 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
         out = Path(run)
         path = checkpoint_path(out, checkpoint)
         ck = read_checkpoint(path)
+        require_own_checkpoint(FoveationTask, ck, path, out, saved_config(FoveationTask, out))
         cfg = run_config(FoveationTask, out, ck)
         device = pick_device(cfg.device)
         model = net_from_checkpoint(ck, device, views, source=path)
         dtype = onv_dtype(ck["net"])
         task = FoveationTask(cfg, lambda *a, **k: None)
-        load_for_evaluation(task, print, progress)
+        load_for_evaluation(task, print, progress, ck)
         _, va, te = task.splits()
         te = te if len(te) else va
         row = {}

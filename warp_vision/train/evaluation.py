@@ -8,9 +8,9 @@ from pathlib import Path
 
 import torch
 
-from warp_vision.nn.trained import checkpoint_path, net_from_checkpoint, read_checkpoint
+from warp_vision.nn.trained import binding, checkpoint_path, dataset_mismatch, net_from_checkpoint, read_checkpoint
 from warp_vision.train.harness import Task, held_out, pick_device
-from warp_vision.train.rundir import run_config
+from warp_vision.train.rundir import require_own_checkpoint, run_config, saved_config
 from warp_vision.train.workers import rendering_lock
 
 
@@ -21,18 +21,32 @@ def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
     return f"{run_dir} ({'; '.join(how)})" if how else str(run_dir)
 
 
-def load_for_evaluation(task: Task, log=print, progress: bool = True) -> None:
+def load_for_evaluation(task: Task, log=print, progress: bool = True, ck: dict | None = None) -> None:
     """Load a finished run's dataset to evaluate it. A store gone from the cache (deleted to free the disk, or
-    a run copied from another machine: "not a ChunkedStore" was all evaluate said) is rendered again, the
-    same bytes as in training, saying so."""
+    a run copied from another machine) is rendered again, the same samples as in training, saying so.
+    With ``ck`` (the checkpoint to evaluate), a store that holds other samples than ``ck`` was trained on
+    (its data_dir pointed at another dataset) is refused; one rendered again here that differs (another
+    machine's arithmetic) is said to differ."""
     from warp_vision.data.store import MissingStoreError
 
+    again = False
     try:
         task.load((0, 1), progress=False, synthesize=False)
     except MissingStoreError as e:
         log(f"the run's dataset {e.root} is gone: rendering it again (the same samples as in training)")
         with rendering_lock(task, log):
             task.load((0, 1), progress=progress, synthesize=True)
+        again = True
+    if ck is None:
+        return
+    digest = task.dataset_digest()
+    if dataset_mismatch(ck, digest):
+        trained = binding(ck)["dataset"][:12]
+        if not again:
+            raise ValueError(f"{task.training_store()} holds other samples (dataset {digest[:12]}) than {task.cfg.out}'s "
+                             f"net was trained on (dataset {trained}): its config.json's data_dir names another dataset")
+        log(f"the dataset rendered again differs from the one the net was trained on (dataset {digest[:12]}, "
+            f"trained on {trained}; rendered by another machine or version): evaluating on it all the same")
 
 
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None, checkpoint: str = "best",
@@ -45,9 +59,10 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     rendered again (:func:`load_for_evaluation`)."""
     path = checkpoint_path(run_dir, checkpoint)
     ck = read_checkpoint(path)
+    require_own_checkpoint(task_cls, ck, path, run_dir, saved_config(task_cls, run_dir))
     cfg = run_config(task_cls, Path(run_dir), ck)
     task = task_cls(cfg, log)
-    load_for_evaluation(task, log, progress)
+    load_for_evaluation(task, log, progress, ck)
     ids = task.splits()
     if split == "test":
         split, idx = held_out(ids)

@@ -202,6 +202,8 @@ SHAPE_SETTINGS = {"linet": ("photoreceptors", "layers", "receptive_field", "redu
                   "fc": ("photoreceptors", "layers", "receptive_field", "reduction"),
                   "conv": ("photoreceptors", "layers", "reduction", "channels"),
                   "cnn": ("channels",)}
+#: The models whose weights are shared across the retina: a warm start from the other eye's net is meaningful
+INIT_ACROSS_EYES = ("cnn", "conv")
 
 
 class FoveationTask(harness.OnvTask):
@@ -211,13 +213,14 @@ class FoveationTask(harness.OnvTask):
 
     @classmethod
     def check_new_run(cls, cfg):
-        """``--init``: a foveation run's checkpoint, of a net with this run's model and sizes; refused before
-        any data is rendered (the weights' own check came only after the dataset was synthesised)."""
+        """``--init``: a foveation net's checkpoint of this run's model and sizes, refused before any data is
+        rendered. The other eye's net is a meaningful start only for a net whose weights are shared across the
+        retina (:data:`INIT_ACROSS_EYES`): a liNet's or fc net's weights belong to one eye's photoreceptors."""
         if not cfg.init:
             return
         import errno
 
-        from warp_vision.nn.trained import read_run_config, saved_task
+        from warp_vision.nn.trained import binding, describe_binding, read_checkpoint, read_run_config, saved_task
         from warp_vision.train.rundir import a_run
 
         best = harness.init_checkpoint(cfg.init)
@@ -226,11 +229,20 @@ class FoveationTask(harness.OnvTask):
                                     str(best))
         run = best.parent
         saved = read_run_config(run)
+        there = binding(read_checkpoint(best))
+        task = saved_task(run, saved) if saved is not None else there["task"]
+        if task != cls.name or there["task"] != cls.name:
+            raise ValueError(f"init: {best} is {a_run(there['task'] if task == cls.name else task)}'s; --init takes a "
+                             f"foveation run of the net this run trains")
+        if there.get("eye") not in (None, cfg.eye):
+            if cfg.model not in INIT_ACROSS_EYES:
+                raise ValueError(f"init: {best} belongs to {describe_binding(there)}; a {cfg.model} net's weights "
+                                 f"belong to its own eye's photoreceptors, so --init across eyes is refused (it is "
+                                 f"meaningful for --model {' or '.join(INIT_ACROSS_EYES)}, whose weights are shared across the retina)")
+            print(f"init: starting the {cfg.eye} eye's net from {describe_binding(there)} ({best}): --model {cfg.model} "
+                  f"shares its weights across the retina, so they carry over to this eye's")
         if saved is None:
             return  # a checkpoint on its own: its weights are checked as they load
-        task = saved_task(run, saved)
-        if task != cls.name:
-            raise ValueError(f"init: {run} is {a_run(task)}; --init takes a foveation run of the net this run trains")
         there = {"model": "linet", **saved}  # (a config older than its model)
         keys = ("model",) if there["model"] != cfg.model else SHAPE_SETTINGS[cfg.model]
         differ = [k for k in keys if k in there and there[k] != getattr(cfg, k)]

@@ -41,7 +41,7 @@ from warp_vision.data.store import waiting_for_writers
 from warp_vision.errors import told
 from warp_vision.fileio import write_json
 from warp_vision.provenance import software
-from warp_vision.nn.trained import ONV_DTYPES, build_net, read_checkpoint
+from warp_vision.nn.trained import ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, require_binding
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics)
@@ -89,6 +89,24 @@ class Task:
     def dataset_dirs(self) -> list[Path]:
         """The stores :meth:`render` writes; empty (the default): the task renders in this process only."""
         return []
+
+    def training_store(self) -> Path | None:
+        """The store the net trains on, once :meth:`load` has run: the task's ``ddir`` where it keeps one, else
+        the config's ``data_dir``; None for a task without one."""
+        d = getattr(self, "ddir", None) or getattr(self.cfg, "data_dir", "")
+        return Path(d) if d else None
+
+    def dataset_digest(self) -> str | None:
+        """The training store's id by content (:meth:`warp_vision.data.store.ChunkedStore.content_digest`),
+        which the checkpoints carry; None for a task without a store."""
+        from warp_vision.data.store import ChunkedStore
+
+        d = self.training_store()
+        return ChunkedStore.open(d).content_digest() if d is not None and d.is_dir() else None
+
+    def binding(self) -> dict:
+        """What this run's checkpoints belong to (:func:`warp_vision.nn.trained.new_binding`), after :meth:`load`."""
+        return new_binding(self.name, asdict(self.cfg), self.data_config(), getattr(self, "dataset", None))
 
     def splits(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(train, validation, test) sample ids: what the epoch shuffles, and what evaluate() gets."""
@@ -357,12 +375,15 @@ def init_checkpoint(init) -> Path:
     return p if p.is_file() else p / "best.pt"
 
 
-def warm_start(model: torch.nn.Module, run_dir) -> None:
+def warm_start(model: torch.nn.Module, run_dir, task: str) -> None:
     """Start ``model`` from the best weights of the run in ``run_dir`` (or of the checkpoint file it names:
-    a net of the same model and sizes, e.g. the other eye's; the normalisation is this run's own, set
-    after). A mismatch is a ValueError."""
+    a net of ``task`` of the same model and sizes, e.g. the other eye's where the task allows it, checked
+    before the run began by its ``check_new_run``; the normalisation is this run's own, set after). A mismatch
+    is a ValueError."""
     best = init_checkpoint(run_dir)
-    state = read_checkpoint(best)["model"]
+    ck = read_checkpoint(best)
+    require_binding(ck, {"task": task}, best, f"this {task} run's --init")
+    state = ck["model"]
     try:
         model.load_state_dict(state)
     except RuntimeError as e:
@@ -403,11 +424,15 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
         with waiting_for_writers(3600.0 if dd.world > 1 else 0.0):
             task.load((dd.rank, dd.world), progress)
     dd.barrier()
+    task.dataset = task.dataset_digest()
+    if ck is not None and dataset_mismatch(ck, task.dataset):
+        raise ValueError(f"--resume {out}: its dataset {task.training_store()} holds other samples (dataset "
+                         f"{task.dataset[:12]}) than its checkpoints were trained on (dataset {ck['binding']['dataset'][:12]})")
     tr, va, te = task.splits()
     norm = task.fit_norm(tr)
     model = build_net(task.net_spec(), device)
     if ck is None and getattr(cfg, "init", ""):
-        warm_start(model, cfg.init)
+        warm_start(model, cfg.init, task.name)
     task.prepare(model, norm)
     set_train_precision(task, model, device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
@@ -445,7 +470,7 @@ def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: D
         history = [{k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in state.history]
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "history": history,
                 "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": reproducible_config(cfg), "task": task.name,
-                "net": spec, "data": task.data_config()}
+                "net": spec, "data": task.data_config(), "binding": task.binding()}
 
     if state.ended:
         return state.ended

@@ -24,7 +24,8 @@ import torch
 
 from warp_vision.data.store import ChunkedStore
 from warp_vision.fileio import FileLock, atomic_write, probe_writable, require_output
-from warp_vision.nn.trained import TRAINING_LOCK, read_checkpoint, read_run_config, saved_task, seal, task_command
+from warp_vision.nn.trained import (TRAINING_LOCK, read_checkpoint, read_run_config, require_binding, run_identity,
+                                    saved_task, seal, task_command)
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
 RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
@@ -54,10 +55,30 @@ def claim_out_dir(out: Path, overwrite: bool) -> None:
                 f.unlink(missing_ok=True)
 
 
-def _usable_checkpoint(out: Path, log) -> dict | None:
+def require_own_checkpoint(task_cls, ck: dict, path, run_dir, cfg) -> None:
+    """Refuse checkpoint ``ck`` (read from ``path``) unless it belongs to the run in ``run_dir``, whose config
+    (config.json, read as ``task_cls.config_cls``) is ``cfg``: the same task, eye or side, and run id
+    (:func:`warp_vision.nn.trained.run_identity`: every setting but paths and the epoch cap). One ValueError
+    names what the checkpoint belongs to, the run, and the settings that differ. Both configs are compared
+    as the config class reads them, so a run written before a setting existed compares under its legacy default."""
+    settings = asdict(cfg)
+    theirs = ck
+    if "binding" not in ck and isinstance(ck.get("config"), dict):
+        try:
+            paths = {k: settings[k] for k in PATH_FIELDS if k in settings}
+            full = asdict(config_from_saved(task_cls.config_cls, {**paths, **ck["config"]}, path))
+        except (ValueError, TypeError):
+            full = ck["config"]
+        theirs = {**ck, "config": full, "binding": run_identity(str(ck.get("task", task_cls.name)), full)}
+    require_binding(theirs, run_identity(task_cls.name, settings), path, f"the run in {run_dir}", settings)
+
+
+def _usable_checkpoint(out: Path, log, task_cls=None, cfg=None) -> dict | None:
     """The newest checkpoint of run ``out`` that reads and verifies (latest.pt, else previous.pt, else
     best.pt), saying which when it is not latest.pt; one ValueError naming them all if none does. None
-    for a run stopped before its first epoch ended (no run file at all but its config): it starts again."""
+    for a run stopped before its first epoch ended (no run file at all but its config): it starts again.
+    With ``task_cls`` and ``cfg`` (the run's config), a checkpoint of another run (copied in) is refused
+    (:func:`require_own_checkpoint`), never resumed."""
     if not any((out / n).exists() for n in RUN_FILES):
         log(f"no epoch of {out} finished: training it from the start, as its config.json says")
         return None
@@ -72,6 +93,8 @@ def _usable_checkpoint(out: Path, log) -> dict | None:
         except ValueError as e:
             problems.append(str(e))
             continue
+        if task_cls is not None:
+            require_own_checkpoint(task_cls, ck, path, out, cfg)
         if problems:
             log(f"{'; '.join(problems)}; resuming from {path} (epoch {ck['epoch'] + 1}) instead")
         return ck
@@ -109,7 +132,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         _check_device(cfg.device)
         hold_run_dir(out)  # (before a checkpoint is read: another process may be writing them)
         with _released_on_error(out):
-            ck = _usable_checkpoint(out, log)
+            ck = _usable_checkpoint(out, log, task_cls, cfg)
             if epochs is not None and ck is not None and epochs < ck["epoch"] + 1:  # (it became the saved cap)
                 raise ValueError(f"--epochs {epochs}: {resume} has trained {ck['epoch'] + 1} epochs; expected "
                                  f"{ck['epoch'] + 1} (end it now) or more (train it further)")
@@ -294,6 +317,14 @@ def _row_epoch(line: str) -> int:
 def reproducible_config(cfg) -> dict:
     """The config as checkpoints carry it: without paths."""
     return {k: v for k, v in asdict(cfg).items() if k not in PATH_FIELDS}
+
+
+def saved_config(task_cls, run_dir):
+    """The config of the run in ``run_dir`` as its config.json holds it, read as ``task_cls.config_cls``."""
+    saved = read_run_config(run_dir)
+    if saved is None:
+        raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(Path(run_dir) / "config.json"))
+    return config_from_saved(task_cls.config_cls, saved, Path(run_dir) / "config.json")
 
 
 def run_config(task_cls, run_dir, ck: dict):
