@@ -15,7 +15,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "warp_vision"
 
-#: stage -> the stages it may import (besides itself). ``frames``, ``fileio``, ``resources`` and ``errors`` are the foundations.
+#: stage -> the stages it may import (besides itself). ``frames``, ``fileio``, ``resources``, ``errors`` and ``limits`` are the foundations.
 ALLOWED = {
     "foundation": set(),
     "eye": {"foundation"},
@@ -41,7 +41,7 @@ def stage_of(module: str) -> str:
     head = parts[1]
     if head == "__main__":
         return "index"
-    if head in ("frames", "fileio", "resources", "errors", "provenance"):
+    if head in ("frames", "fileio", "resources", "errors", "provenance", "limits"):
         return "foundation"
     if head not in ALLOWED:
         raise AssertionError(f"{module}: in no stage; add its stage to ALLOWED and docs/ARCHITECTURE.md")

@@ -224,11 +224,14 @@ def preset_defaults(presets: dict, name: str, value) -> str:
 
 
 def require_seeds(cfg) -> None:
-    """Every field of the dataclass ``cfg`` named ``seed`` or ``*_seed`` is >= 0 (numpy's generators take
-    no negative seed, and said so only as "expected non-negative integer", after the work had begun)."""
+    """Every field of the dataclass ``cfg`` named ``seed`` or ``*_seed`` is a seed of
+    :data:`warp_vision.limits.SEED` (numpy takes no negative seed, torch none past 64 bits)."""
+    from warp_vision.limits import SEED
+
     for f in dataclasses.fields(cfg):
-        if f.name.endswith("seed") and getattr(cfg, f.name) < 0:
-            raise ValueError(f"{f.name}: expected a seed >= 0, got {getattr(cfg, f.name)}")
+        v = getattr(cfg, f.name)
+        if f.name.endswith("seed") and not (isinstance(v, int) and SEED.lo <= v <= SEED.hi):
+            raise ValueError(f"{f.name}: expected a seed {SEED.words()}, got {v}")
 
 
 def require_positive(args, names, flags: bool = True) -> None:

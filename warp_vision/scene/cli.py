@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, long_options, require_positive
+from warp_vision.limits import SEED, integer
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -25,7 +26,7 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--samples", type=int, default=16, help="S rays per photoreceptor and channel (default 16)")
     d.add_argument("--accommodation", type=float, default=0.0, help="lens accommodation in dioptres (default 0)")
     d.add_argument("--pupil", type=float, default=4.0, help="pupil diameter in mm (default 4)")
-    d.add_argument("--seed", type=int, default=0, help="seed of the retina and the room (default 0)")
+    d.add_argument("--seed", type=integer(SEED), default=0, help="seed of the retina and the room (default 0)")
     d.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     d.add_argument("--out", default="runs/eye_demo", help="output directory (default runs/eye_demo)")
     add_debug_flag(d)

@@ -171,9 +171,17 @@ class Scene:
         return len(self.objects) - 1
 
     def add_sphere(self, name, radius, centre=(0, 0, 0), material=None, subdivisions: int = 3, static=False) -> int:
-        """An icosphere of ``radius`` m at ``centre``; smooth-shaded unless the material says otherwise."""
+        """An icosphere of ``radius`` m at ``centre``; smooth-shaded unless the material says otherwise. ``subdivisions``
+        (:data:`warp_vision.limits.SUBDIVISIONS`) is refused, before the mesh is built, where its triangles would not
+        fit in memory."""
+        from warp_vision.limits import SUBDIVISIONS, icosphere_bytes, require_int
+        from warp_vision.resources import require_memory
+
         if not radius > 0:
             raise ValueError(f"radius: expected > 0, got {radius}")
+        require_int(subdivisions, SUBDIVISIONS, "subdivisions")
+        require_memory(icosphere_bytes(subdivisions), f"an icosphere of {subdivisions} subdivisions "
+                       f"({20 * 4 ** subdivisions:,} triangles)", "subdivisions")
         m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
         mat = material or Material(smooth=True)
         return self.add(name, m, mat, translation(centre), static)

@@ -43,6 +43,8 @@ import numpy as np
 
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, long_options
 from warp_vision.fileio import require_output, write_json
+from warp_vision.limits import COUNT, PIXELS, SEED, VIDEO_FPS, Range, check, integer, number, video_bytes
+from warp_vision.resources import require_memory
 from warp_vision.provenance import software
 from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.sim.scenarios import SETTLE_S, experiments, goal_lines, plot_experiments, run_scenario
@@ -173,13 +175,6 @@ def flight_error_summary(t, err, times=(0.1, 0.2, 0.3, 0.4, 0.5)) -> dict:
 def _secs(t) -> str:
     """A measured time for the command's lines: "0.34 s", or "never" (None or infinite)."""
     return "never" if t is None or not np.isfinite(t) else f"{t:.2f} s"
-
-
-def _positive_int(text: str) -> int:
-    n = int(text)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
-    return n
 
 
 def intraocular(args) -> dict:
@@ -322,11 +317,11 @@ def _scene_flags(g, name: str) -> None:
 
     if name == "intercept":  # the arms strike
         g.set_defaults(no_arms=False)
-        g.add_argument("--seed", type=int, default=0,
+        g.add_argument("--seed", type=integer(SEED), default=0,
                        help="the room's seed, and the first held-out shot: seed 1,000,000 + --seed (default 0)")
     else:
         g.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
-        g.add_argument("--seed", type=int, default=0, help="the room's seed (default 0)")
+        g.add_argument("--seed", type=integer(SEED), default=0, help="the room's seed (default 0)")
     g.add_argument("--ball", choices=BALLS, default="ordinary",
                    help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
                         "albedos (generators v8 and v9's kind of scene, what the default foveation nets learn); glowing: "
@@ -334,29 +329,30 @@ def _scene_flags(g, name: str) -> None:
                         "python -m warp_vision.train --generator 7 --model linet ...)"
                         + ("; the limb vision nets must have learnt the same ball (train limb --ball)" if name == "intercept" else ""))
     every = INTERCEPT_FRAME_EVERY if name == "intercept" else FRAME_EVERY
-    g.add_argument("--frame-every", type=int, default=every,
+    g.add_argument("--frame-every", type=integer(PERIODS), default=every,
                    help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
                         f"(default {every}: {100 // every} frames a second"
                         + ("; a ball at 12 m/s moves 0.24 m between two" if name == "intercept" else "")
                         + "; 1 renders every period)")
     if name == "intraocular":
-        g.add_argument("--cards", type=_positive_int, default=1,
+        g.add_argument("--cards", type=integer(CARDS), default=1,
                        help="the focus steps with the lens nets on N cards of different textures (default 1; the "
                             "vergence law, blind to the texture, runs on the first): how often each step comes into "
                             "focus within 1.2 s")
     if name == "demo":
-        g.add_argument("--duration", type=float, default=0.8, help="simulated seconds (default 0.8)")
-        g.add_argument("--flight", type=float, default=0.9,
+        g.add_argument("--duration", type=number(DURATION), default=0.8, help="simulated seconds (default 0.8)")
+        g.add_argument("--flight", type=number(FLIGHT), default=0.9,
                        help="s of flight to the point --stop m before the face (default 0.9)")
-        g.add_argument("--stop", type=float, default=1.0, help="m from the head where the ball's flight is aimed (default 1)")
+        g.add_argument("--stop", type=number(STOP), default=1.0,
+                       help="m from the head where the ball's flight is aimed (default 1)")
     if name == "intercept":
         g.add_argument("--side", choices=SIDES, default="left", help="the striking arm: left (default) or right (the other hangs)")
-        g.add_argument("--shots", type=int, default=None,
+        g.add_argument("--shots", type=integer(COUNT), default=None,
                        help="N held-out shots (seeds 1,000,000 + --seed ...), each run several ways: the closed loop "
                             "with the chosen --perception (with vision also with the eyes' fixation), the true ball "
                             "state (no rendering; also off by each --perception-error-cm), passive arms; writes "
                             "intercept_stats.json and figures. Default: one shot with its video")
-        g.add_argument("--shot-seed", type=int, default=None,
+        g.add_argument("--shot-seed", type=integer(SEED), default=None,
                        help="one shot: the shot of this seed (training seeds 0-999,999, held-out 1,000,000-1,999,999; "
                             "default the first held-out one, 1,000,000 + --seed)")
         g.add_argument("--perception-error-cm", type=float, nargs="*", default=[],
@@ -374,11 +370,13 @@ def _output_flags(g, name: str) -> None:
     if name not in ("demo", "intercept"):
         return
     retina = "the left retina beside it is" if name == "intercept" else "the retina images beside it are"
-    g.add_argument("--width", type=int, default=640, help="third-person view width (pixels; default 640)")
-    g.add_argument("--height", type=int, default=480, help=f"third-person view height (pixels; default 480); {retina} half as high")
+    g.add_argument("--width", type=integer(PIXELS), default=640, help="third-person view width (pixels; default 640)")
+    g.add_argument("--height", type=integer(PIXELS), default=480,
+                   help=f"third-person view height (pixels; default 480); {retina} half as high")
     if name == "demo":
-        g.add_argument("--video-every", type=int, default=1, help="a video frame every N control periods (10 ms; default 1)")
-    g.add_argument("--slow-motion", type=float, default=4.0,
+        g.add_argument("--video-every", type=integer(PERIODS), default=1,
+                       help="a video frame every N control periods (10 ms; default 1)")
+    g.add_argument("--slow-motion", type=number(SLOW_MOTION), default=4.0,
                    help="the video plays this many times slower than simulated time (default 4)")
     if name == "intercept":
         g.add_argument("--video-format", choices=("gif", "mp4"), default="gif",
@@ -418,17 +416,38 @@ def _run(args) -> None:
     COMMANDS[args.command](args)
 
 
+#: The ranges of the simulation's own settings (beside :mod:`warp_vision.limits`' shared ones): a period count
+#: (frames, video frames), the focus steps' cards, demo's simulated seconds (each control period keeps the left
+#: eye's ONV for the figure), its flight time and aim, and the video's pace.
+PERIODS = Range(1, 1000, "control periods")
+CARDS = Range(1, 100, "cards")
+DURATION = Range(0.01, 60.0, "simulated seconds")
+FLIGHT = Range(0.05, 10.0, "s")
+STOP = Range(0.05, 10.0, "m")
+SLOW_MOTION = Range(0.001, 1000.0)
+#: the simulated seconds of one intercept shot's video, at the most (its flight and the strike after)
+SHOT_SECONDS = 3.0
+
+
 def _refuse_bad_settings(args) -> None:
-    """A ValueError naming the first flag out of range, or given where the command does not use it."""
-    for flag in ("width", "height", "video_every", "frame_every"):
-        if getattr(args, flag, 1) < 1:
-            raise ValueError(f"--{flag.replace('_', '-')}: expected >= 1, got {getattr(args, flag)}")
-    for flag in ("slow_motion", "duration", "flight", "stop"):  # demo's times and distance, the video's pace
-        v = getattr(args, flag, 1.0)
-        if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"--{flag.replace('_', '-')}: expected a finite number > 0, got {v}")
-    if getattr(args, "seed", 0) < 0:
-        raise ValueError(f"--seed: expected a seed >= 0, got {args.seed}")
+    """A ValueError naming the first flag out of range, or given where the command does not use it, and a video
+    whose frame rate no player shows or whose frames would not fit in memory; all before any net is trained."""
+    if hasattr(args, "slow_motion"):
+        from warp_vision.sim.loop import CONTROL_DT
+
+        every = getattr(args, "video_every", 1)
+        fps = 1.0 / (every * CONTROL_DT * args.slow_motion)
+        try:
+            check(fps, VIDEO_FPS, "video")
+        except ValueError:
+            raise ValueError(f"--slow-motion: {args.slow_motion:g} with a frame every {every} period(s) makes a video of "
+                             f"{fps:.3g} frames a second; expected {VIDEO_FPS.words()}") from None
+        seconds = getattr(args, "duration", SHOT_SECONDS)
+        gif = getattr(args, "gif", False) or getattr(args, "video_format", "mp4") == "gif"
+        frames = int(seconds / (CONTROL_DT * every)) + 1
+        require_memory(video_bytes(args.width, args.height, frames, kept=gif),
+                       f"the video ({frames} frames of a {args.width} x {args.height} view{', kept for the GIF' if gif else ''})",
+                       "--width, --height" + (", --duration or --video-every" if hasattr(args, "duration") else ""))
     if getattr(args, "out", None) is not None:
         require_output(args.out, "--out")
     refuse_unused_given(args)

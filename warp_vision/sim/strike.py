@@ -44,6 +44,8 @@ def pick_shots(args) -> list:
             raise ValueError(f"--shot-seed: expected a shot's seed >= 0, got {args.shot_seed}")
         return [shot_from_seed(args.shot_seed, args.side)]
     n = args.shots or 1
+    if n > len(SPLITS["heldout"]):
+        raise ValueError(f"--shots: expected 1..{len(SPLITS['heldout']):,} (the held-out shots), got {n:,}")
     last = len(SPLITS["heldout"]) - n
     if not 0 <= args.seed <= last:
         raise ValueError(f"--seed: the held-out shots start at seed {SPLITS['heldout'][0]:,} + --seed; expected "
