@@ -480,16 +480,17 @@ def test_a_failed_allocation_is_one_line_and_other_runtime_errors_still_raise(ca
     ["train", "--preset", "smoke", "--data-seed", "-1"], ["train", "--preset", "smoke", "--seed", "-1"],
     ["train", "faces", "--preset", "smoke", "--identity-seed", "-1"], ["train", "pupil", "--preset", "smoke", "--seed", "-1"],
     ["train", "limb", "--preset", "smoke", "--data-seed", "-1"], ["data", "foveation", "--seed", "-1"],
-    ["data", "faces", "--identity-seed", "-1"],
+    ["data", "faces", "--identity-seed", "-1"], ["train", "--preset", "smoke", "--seed", "2147483648"],
+    ["data", "foveation", "--seed", "1180591620717411303424"],
 ])
-def test_a_negative_seed_is_refused_by_name_before_anything_is_written(command, tmp_path, capsys):
+def test_a_seed_out_of_range_is_refused_by_name_before_anything_is_written(command, tmp_path, capsys):
     import importlib
 
     main = importlib.import_module(f"warp_vision.{command[0]}.cli").main
     flag = command[-2]  # (named as the option typed)
     assert main([*command[1:], "--out", str(tmp_path / "out")] + (["--data-dir", str(tmp_path / "d")]
                                                                     if command[0] == "train" else [])) == 2
-    assert f"{flag}: expected a seed >= 0, got -1" in capsys.readouterr().err
+    assert f"{flag}: expected a seed 0..2,147,483,647, got {command[-1]}" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
 
 
@@ -1193,16 +1194,16 @@ def test_a_kernel_cache_that_cannot_be_made_is_refused_by_name(tmp_path):
     assert "WARP_VISION_KERNEL_CACHE" in r.stderr and str(tmp_path / "FILE") in r.stderr, r.stderr
 
 
-#: config.json damage -> what the error says, and which readers refuse it: --resume, evaluate (it reads only
-#: the paths of config.json, the checkpoint holding the rest) and the simulation (it reads the task and the eye)
+#: config.json damage -> what the error says, and which readers refuse it: --resume, evaluate (it reads config.json
+#: to check that the checkpoint belongs to its run) and the simulation (it reads the task and the eye)
 _CONFIG_DAMAGE = [
     (lambda c: "{garbage", "does not read as JSON", "resume evaluate sim"),
     (lambda c: "[1, 2]", "a JSON list, where a run writes an object of settings", "resume evaluate sim"),
     (lambda c: json.dumps({**c, "task": 5}), "task 5 is not a task's name", "resume evaluate sim"),
-    (lambda c: json.dumps({**c, "lr": "fast"}), "'lr' is 'fast'; expected a float", "resume"),
-    (lambda c: json.dumps({**c, "epochs": 2.5}), "'epochs' is 2.5; expected an int", "resume"),
+    (lambda c: json.dumps({**c, "lr": "fast"}), "'lr' is 'fast'; expected a float", "resume evaluate"),
+    (lambda c: json.dumps({**c, "epochs": 2.5}), "'epochs' is 2.5; expected an int", "resume evaluate"),
     (lambda c: json.dumps({**c, "out": 7}), "'out' is 7; expected a str", "resume evaluate"),
-    (lambda c: json.dumps({**c, "bogus": 1}), "'bogus': not a setting of this run's task", "resume"),
+    (lambda c: json.dumps({**c, "bogus": 1}), "'bogus': not a setting of this run's task", "resume evaluate"),
 ]
 
 

@@ -105,9 +105,10 @@ class NetSpec:
         if kind != self.kind or side not in (None, self.eye):
             found = f"the {NetSpec(kind, side, self.run, self.preset).what}" if side in SIDES else f"a {kind} run"
             return f"{self.run} holds {found}, not the {self.what}"
-        if not os.path.isfile(self.checkpoint):
+        try:
+            ck = read_checkpoint(self.checkpoint)
+        except (OSError, ValueError):  # none yet, or damaged: the loader names a damaged file when it reads it
             return None
-        ck = read_checkpoint(self.checkpoint)
         try:
             require_binding(ck, {"task": self.kind, _SIDE_FLAG.get(self.kind, "--eye")[2:]: self.eye}, self.checkpoint)
             require_binding(ck, run_identity(kind, config), self.checkpoint, f"the run in {self.run}", config)

@@ -220,7 +220,8 @@ class FoveationTask(harness.OnvTask):
             return
         import errno
 
-        from warp_vision.nn.trained import binding, describe_binding, read_checkpoint, read_run_config, saved_task
+        from warp_vision.nn.trained import (binding, describe_binding, read_checkpoint, read_run_config, run_identity,
+                                            saved_task)
         from warp_vision.train.rundir import a_run
 
         best = harness.init_checkpoint(cfg.init)
@@ -229,11 +230,15 @@ class FoveationTask(harness.OnvTask):
                                     str(best))
         run = best.parent
         saved = read_run_config(run)
-        there = binding(read_checkpoint(best))
-        task = saved_task(run, saved) if saved is not None else there["task"]
-        if task != cls.name or there["task"] != cls.name:
-            raise ValueError(f"init: {best} is {a_run(there['task'] if task == cls.name else task)}'s; --init takes a "
-                             f"foveation run of the net this run trains")
+        if saved is not None:
+            if (task := saved_task(run, saved)) != cls.name:
+                raise ValueError(f"init: {run} is {a_run(task)}; --init takes a foveation run of the net this run trains")
+            there = run_identity(cls.name, saved)
+        else:  # a checkpoint on its own: what it belongs to is in it
+            there = binding(read_checkpoint(best))
+            if there["task"] != cls.name:
+                raise ValueError(f"init: {best} is {a_run(there['task'])}'s; --init takes a foveation run of the net "
+                                 f"this run trains")
         if there.get("eye") not in (None, cfg.eye):
             if cfg.model not in INIT_ACROSS_EYES:
                 raise ValueError(f"init: {best} belongs to {describe_binding(there)}; a {cfg.model} net's weights "

@@ -41,7 +41,8 @@ from warp_vision.data.store import waiting_for_writers
 from warp_vision.errors import told
 from warp_vision.fileio import write_json
 from warp_vision.provenance import software
-from warp_vision.nn.trained import ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, require_binding
+from warp_vision.nn.trained import (ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, read_run_config,
+                                    require_binding, run_identity, saved_task)
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics)
@@ -375,14 +376,18 @@ def init_checkpoint(init) -> Path:
     return p if p.is_file() else p / "best.pt"
 
 
-def warm_start(model: torch.nn.Module, run_dir, task: str) -> None:
+def warm_start(model: torch.nn.Module, run_dir, task: str | None = None) -> None:
     """Start ``model`` from the best weights of the run in ``run_dir`` (or of the checkpoint file it names:
-    a net of ``task`` of the same model and sizes, e.g. the other eye's where the task allows it, checked
+    a net of ``task`` (when given) of the same model and sizes, e.g. the other eye's where the task allows it, checked
     before the run began by its ``check_new_run``; the normalisation is this run's own, set after). A mismatch
     is a ValueError."""
     best = init_checkpoint(run_dir)
     ck = read_checkpoint(best)
-    require_binding(ck, {"task": task}, best, f"this {task} run's --init")
+    if task is not None:
+        require_binding(ck, {"task": task}, best, f"this {task} run's --init")
+    config = read_run_config(best.parent)
+    if config is not None:  # (what check_new_run read of the run is what the checkpoint is)
+        require_binding(ck, run_identity(saved_task(best.parent, config), config), best, f"the run in {best.parent}", config)
     state = ck["model"]
     try:
         model.load_state_dict(state)
