@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from warp_vision.data.store import ChunkedStore
-from warp_vision.fileio import FileLock, atomic_write, probe_writable, require_output
+from warp_vision.fileio import FileLock, atomic_write, probe_writable, require_output, resolved
 from warp_vision.nn.trained import TRAINING_LOCK, read_checkpoint, read_run_config, saved_task, seal, task_command
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
@@ -89,7 +89,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
     """
     ck = None
     if resume:
-        out = Path(resume).resolve()
+        out = resolved(resume, "--resume")
         if not (out / "config.json").exists():
             raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
         task = saved_task(out)
