@@ -6,7 +6,7 @@ before any work, and left as it is (as root, ``--out /dev/null`` is the system's
 link that leads nowhere (a loop, or a link to what does not exist) given to any path option is refused in
 one line naming the option, and nothing is made through it; a link to a directory where a directory
 belongs is followed. ``fileio.atomic_write`` refuses to rename over anything but a regular file whatever
-its caller checked.
+its caller checked. A training run's latest.pt is there at every moment of its checkpointing.
 """
 
 from __future__ import annotations
@@ -21,8 +21,11 @@ import tempfile
 from pathlib import Path
 
 import pytest
+import torch
 
 from warp_vision import fileio
+from warp_vision.nn.trained import read_checkpoint
+from warp_vision.train.rundir import record_epoch, save_checkpoint
 
 ROOT = os.geteuid() == 0 if hasattr(os, "geteuid") else False
 
@@ -216,3 +219,50 @@ def test_atomic_write_never_renames_over_what_is_not_a_regular_file(kind):
     fileio.atomic_write(d / "plain", b"x")  # a regular file is replaced as ever
     fileio.atomic_write(d / "plain", b"y")
     assert (d / "plain").read_bytes() == b"y"
+
+
+# --------------------------------------------------------------------------------------------------
+# checkpoint rotation
+
+
+def _checking_every_step(monkeypatch, latest: Path) -> list[str]:
+    """Wrap the os calls that add, rename or remove names, so that after each one latest.pt must be there
+    and read as a whole, verified checkpoint: what a reader (``evaluate --checkpoint latest``) finds at any
+    moment. Returns the names of the calls made, in order."""
+    calls = []
+
+    def checked(name, fn):
+        def call(*a, **k):
+            r = fn(*a, **k)
+            calls.append(name)
+            assert latest.is_file(), f"no {latest.name} after os.{name}{a}"
+            read_checkpoint(latest)  # (a ValueError if it were cut or half-written)
+            return r
+        return call
+
+    for name in ("replace", "rename", "unlink", "remove", "link", "symlink", "truncate"):
+        monkeypatch.setattr(os, name, checked(name, getattr(os, name)))
+    return calls
+
+
+@pytest.mark.parametrize("hard_links", [True, False])
+def test_latest_pt_is_there_at_every_step_of_an_epochs_checkpointing(hard_links, tmp_path, monkeypatch):
+    out = tmp_path / "run"
+    out.mkdir()
+    save_checkpoint({"epoch": 0, "w": torch.zeros(4)}, out / "latest.pt")
+    old = (out / "latest.pt").read_bytes()
+    if not hard_links:  # a file system without them: previous.pt is a copy
+        def no_link(*_a, **_k):
+            raise OSError(errno.EPERM, "Operation not permitted")
+
+        monkeypatch.setattr(os, "link", no_link)
+    calls = _checking_every_step(monkeypatch, out / "latest.pt")
+    record_epoch(out, {"epoch": 2}, {"epoch": 1, "w": torch.ones(4)}, best=True)
+    monkeypatch.undo()
+    assert "replace" in calls, calls
+    assert (out / "previous.pt").read_bytes() == old
+    assert read_checkpoint(out / "latest.pt")["epoch"] == 1 and read_checkpoint(out / "best.pt")["epoch"] == 1
+    assert (out / "previous.pt").stat().st_ino != (out / "latest.pt").stat().st_ino
+    assert sorted(p.name for p in out.iterdir()) == ["best.pt", "latest.pt", "metrics.jsonl", "previous.pt"]
+    record_epoch(out, {"epoch": 3}, {"epoch": 2, "w": torch.full((4,), 2.0)}, best=False)  # and once more
+    assert read_checkpoint(out / "previous.pt")["epoch"] == 1 and read_checkpoint(out / "latest.pt")["epoch"] == 2

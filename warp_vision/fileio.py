@@ -21,6 +21,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shutil
 import stat
 import tempfile
 import tokenize
@@ -133,6 +134,32 @@ def _write(final: Path, content, exclusive: bool, mkdir: bool) -> bool:
             os.replace(tmp, final)
         fsync_dir(final.parent)
         return True
+    finally:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+
+
+def atomic_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Make ``dst`` hold ``src``'s bytes, atomically, leaving ``src`` where it is: a reader finds the old ``dst``
+    or the new one, and ``src`` throughout. A hard link to ``src`` under a temporary name renamed over ``dst``
+    (no bytes copied); where the file system has no hard links, a copy through :func:`atomic_write`. Like it,
+    it replaces a regular file only."""
+    src, dst = Path(src), Path(dst)
+    tmp = temporary_path(dst)
+    try:
+        os.link(src, tmp)
+    except OSError:  # a file system without hard links (its other faults are the copy's to name)
+        with open(src, "rb") as f:
+            atomic_write(dst, lambda out: shutil.copyfileobj(f, out))
+        return
+    try:
+        _refuse_replacing(dst)
+        os.replace(tmp, dst)
+        fsync_dir(dst.parent)
+    except OSError as e:  # (named by the file asked for, as atomic_write's are)
+        if e.filename == str(dst) or e.errno is None:
+            raise
+        raise OSError(e.errno, e.strerror, str(dst)) from e
     finally:
         if os.path.lexists(tmp):
             os.unlink(tmp)
