@@ -14,6 +14,7 @@ import ast
 import contextlib
 import dataclasses
 import difflib
+import os
 import re
 import signal
 import sys
@@ -259,13 +260,48 @@ def told(e: BaseException) -> BaseException:
     return e
 
 
-def _terminate(signum, _frame):
+#: how long a SIGTERM that arrived inside a finaliser waits before it is sent again (:func:`_terminate`)
+RESEND_SECONDS = 0.01
+#: the timers that will send such a SIGTERM again
+_resends: list[threading.Timer] = []
+
+
+def _in_finaliser(frame) -> bool:
+    """Whether ``frame`` runs inside an object's ``__del__`` (it or a frame that called it)."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _terminate(signum, frame):
+    """SIGTERM's handler: :class:`Terminated` raised where Python is. Not inside a ``__del__`` (Warp frees an
+    array's memory in one): Python prints an exception that leaves a finaliser and drops it, and the command
+    would run on to its end as if no signal had come. There the signal is sent again a moment later, to be
+    raised once the finaliser has returned."""
+    if _in_finaliser(frame):
+        timer = threading.Timer(RESEND_SECONDS, os.kill, (os.getpid(), signum))
+        timer.daemon = True
+        _resends.append(timer)
+        timer.start()
+        return
+    _cancel_resends()
     raise Terminated(f"signal {signum}")
+
+
+def _cancel_resends() -> bool:
+    """Cancel the SIGTERMs waiting to be sent again; whether there were any."""
+    waiting = bool(_resends)
+    while _resends:
+        _resends.pop().cancel()
+    return waiting
 
 
 @contextlib.contextmanager
 def sigterm_as_interrupt():
-    """Within the block (in the main thread), SIGTERM raises :class:`Terminated`; the old handler after."""
+    """Within the block (in the main thread), SIGTERM raises :class:`Terminated`; the old handler after. A
+    SIGTERM still waiting to be sent again (:func:`_terminate`) when the block ends is raised then."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -273,7 +309,10 @@ def sigterm_as_interrupt():
     try:
         yield
     finally:
+        waiting = _cancel_resends()
         signal.signal(signal.SIGTERM, old)
+    if waiting:
+        raise Terminated(f"signal {int(signal.SIGTERM)}")
 
 
 def long_options(parser: argparse.ArgumentParser) -> frozenset[str]:

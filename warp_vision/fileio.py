@@ -5,7 +5,12 @@ A write goes to a temporary file in the destination's directory, is flushed and 
 renamed over the destination (``os.replace``: atomic on POSIX), and the directory is fsynced. A reader
 sees the old file or the new one, never a part. When anything fails (the writer raises, the disk is full,
 the directory is read-only) the temporary file is removed and the error propagates: nothing is left
-behind under either name.
+behind under either name. A write replaces a regular file only: a device (``/dev/null``), a FIFO, a socket or
+a symbolic link in its place is an OSError, left as it is.
+
+Outputs: :func:`require_output` checks a command's output path before any work, and :func:`resolved` makes a
+path option absolute; both refuse a symbolic link that leads nowhere (a loop, or a link to what does not
+exist, through which a write would make its target), naming the option.
 
 Reads: :data:`NPY_FORMAT_ERRORS` is what numpy raises for a file that is there but is not a readable
 ``.npy`` or ``.npz``, for every reader of such files to catch alike.
@@ -16,6 +21,8 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shutil
+import stat
 import tempfile
 import tokenize
 import uuid
@@ -74,6 +81,31 @@ def atomic_write(path: str | os.PathLike, content: str | bytes | Callable[[Binar
         raise OSError(e.errno, e.strerror, str(final)) from e
 
 
+def what_is(mode: int) -> str:
+    """What an ``st_mode`` is, in words: "a file", "a directory", "a character device", "a FIFO", ..."""
+    for test, words in ((stat.S_ISREG, "a file"), (stat.S_ISDIR, "a directory"), (stat.S_ISLNK, "a symbolic link"),
+                        (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                        (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return words
+    return "not a file"
+
+
+def _refuse_replacing(final: Path) -> None:
+    """An OSError (EEXIST) when ``final`` is there and is not a regular file: a rename would put the file in the
+    place of a device (as root, ``/dev/null`` itself), a FIFO, a socket or a symbolic link."""
+    try:
+        st = os.lstat(final)
+    except FileNotFoundError:
+        return
+    if stat.S_ISREG(st.st_mode):
+        return
+    if stat.S_ISLNK(st.st_mode):
+        raise OSError(errno.EEXIST, f"a symbolic link (to {os.readlink(final)}), not a regular file: not replaced",
+                      str(final))
+    raise OSError(errno.EEXIST, f"{what_is(st.st_mode)}, not a regular file: not replaced", str(final))
+
+
 def _write(final: Path, content, exclusive: bool, mkdir: bool) -> bool:
     if mkdir:
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -94,13 +126,40 @@ def _write(final: Path, content, exclusive: bool, mkdir: bool) -> bool:
             except FileExistsError:
                 return False
             except OSError:  # a file system without hard links: a plain rename after a check
-                if final.exists():
+                if os.path.lexists(final):
                     return False
                 os.replace(tmp, final)
         else:
+            _refuse_replacing(final)
             os.replace(tmp, final)
         fsync_dir(final.parent)
         return True
+    finally:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+
+
+def atomic_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Make ``dst`` hold ``src``'s bytes, atomically, leaving ``src`` where it is: a reader finds the old ``dst``
+    or the new one, and ``src`` throughout. A hard link to ``src`` under a temporary name renamed over ``dst``
+    (no bytes copied); where the file system has no hard links, a copy through :func:`atomic_write`. Like it,
+    it replaces a regular file only."""
+    src, dst = Path(src), Path(dst)
+    tmp = temporary_path(dst)
+    try:
+        os.link(src, tmp)
+    except OSError:  # a file system without hard links (its other faults are the copy's to name)
+        with open(src, "rb") as f:
+            atomic_write(dst, lambda out: shutil.copyfileobj(f, out))
+        return
+    try:
+        _refuse_replacing(dst)
+        os.replace(tmp, dst)
+        fsync_dir(dst.parent)
+    except OSError as e:  # (named by the file asked for, as atomic_write's are)
+        if e.filename == str(dst) or e.errno is None:
+            raise
+        raise OSError(e.errno, e.strerror, str(dst)) from e
     finally:
         if os.path.lexists(tmp):
             os.unlink(tmp)
@@ -116,25 +175,82 @@ def probe_writable(directory: str | os.PathLike) -> None:
     (d / ".write-probe").unlink()
 
 
+def _link_loop(link: Path, flag: str, named: Path) -> OSError:
+    where = "" if link == named else f": {link}"
+    return OSError(errno.ELOOP, f"{flag}{where} is a loop of symbolic links", str(named))
+
+
+def refuse_broken_links(path: str | os.PathLike, flag: str) -> None:
+    """An OSError naming ``flag`` and ``path`` when ``path`` or a directory above it is a symbolic link that
+    leads nowhere: a loop (ELOOP), or a link to what does not exist (ENOENT; a write through it, or a ``mkdir``
+    of its resolved path, would make the target)."""
+    p = Path(path)
+    for a in (p, *p.parents):
+        if os.path.exists(a):
+            return
+        if not os.path.islink(a):  # (missing, or below a link that leads nowhere: looked for further up)
+            continue
+        try:
+            os.stat(a)
+        except OSError as e:
+            if e.errno == errno.ELOOP:
+                raise _link_loop(a, flag, p) from None
+            if e.errno not in (errno.ENOENT, errno.ENOTDIR):
+                raise
+        where = "" if a == p else f": {a}"
+        raise OSError(errno.ENOENT, f"{flag}{where} is a symbolic link to {os.path.realpath(a)}, which does not exist",
+                      str(p))
+
+
+def resolved(path: str | os.PathLike, flag: str) -> Path:
+    """``Path(path).resolve()``: the absolute path with its symbolic links followed, or an OSError naming
+    ``flag`` and ``path`` where a link leads nowhere (:func:`refuse_broken_links`). Python before 3.13 raises
+    pathlib's RuntimeError for a loop, later ones an OSError; both become the one OSError."""
+    p = Path(path)
+    refuse_broken_links(p, flag)
+    try:
+        return p.resolve()
+    except RuntimeError as e:  # ("Symlink loop from ...": a link made since the check)
+        if "loop" not in str(e).lower():
+            raise
+        raise _link_loop(p, flag, p) from None
+    except OSError as e:
+        if e.errno != errno.ELOOP:
+            raise
+        raise _link_loop(p, flag, p) from None
+
+
 def require_output(path: str | os.PathLike, flag: str = "--out", kind: str = "dir", writable: bool = True) -> None:
     """Refuse, before any work and creating nothing, an output ``path`` (``kind`` "dir" or "file") that
     cannot be written: a file where the directory belongs (or a directory where the file belongs), a file
     among its parents, or (``writable``) a first existing parent where nothing can be made: read-only, not
     ours, or refusing whatever its mode says (``/proc``; probed by making an empty directory there and
-    removing it). Raises the OSError, its message naming ``flag``; a path that can be made is left for the
+    removing it). A command writes only to a regular file or a directory: a device, a FIFO or a socket in its
+    place is refused, as is a symbolic link where the file belongs (the write would replace the link) and a
+    link that leads nowhere (:func:`refuse_broken_links`); a link to a directory where the directory belongs
+    is followed. Raises the OSError, its message naming ``flag``; a path that can be made is left for the
     writer to make."""
     p = Path(path)
     if kind not in ("dir", "file"):
         raise ValueError(f"kind: expected 'dir' or 'file', got {kind!r}")
-    if kind == "dir" and p.exists() and not p.is_dir():
-        raise NotADirectoryError(errno.ENOTDIR, f"{flag} names a file, not a directory", str(p))
-    if kind == "file" and p.is_dir():
-        raise IsADirectoryError(errno.EISDIR, f"{flag} names a directory, not a file", str(p))
+    refuse_broken_links(p, flag)
+    if kind == "file" and os.path.islink(p):
+        raise OSError(errno.EEXIST, f"{flag} is a symbolic link (to {os.readlink(p)}), which the file would replace; "
+                                    f"give the path it leads to, or another", str(p))
+    if p.exists():
+        mode = os.stat(p).st_mode
+        if kind == "dir" and not stat.S_ISDIR(mode):
+            raise NotADirectoryError(errno.ENOTDIR, f"{flag} names {what_is(mode)}, not a directory", str(p))
+        if kind == "file" and stat.S_ISDIR(mode):
+            raise IsADirectoryError(errno.EISDIR, f"{flag} names a directory, not a file", str(p))
+        if kind == "file" and not stat.S_ISREG(mode):
+            raise OSError(errno.EEXIST, f"{flag} names {what_is(mode)}, not a regular file", str(p))
     a = p if kind == "dir" else p.parent
     while not a.exists() and a != a.parent:
         a = a.parent
     if not a.is_dir():
-        raise NotADirectoryError(errno.ENOTDIR, f"{flag}: {a} is a file, not a directory", str(p))
+        what = what_is(os.stat(a).st_mode)
+        raise NotADirectoryError(errno.ENOTDIR, f"{flag}: {a} is {what}, not a directory", str(p))
     if writable and not os.access(a, os.W_OK | os.X_OK):
         read_only = bool(os.statvfs(a).f_flag & os.ST_RDONLY) if hasattr(os, "statvfs") else False
         code = errno.EROFS if read_only else errno.EACCES

@@ -143,6 +143,8 @@ def _bench(args) -> int:
         return 0
     device = _device(args.device) if hasattr(args, "device") else "cpu"  # before any work
     require_output(args.out, "--out", kind="file")  # (and the memory figure beside it) before minutes of timing
+    if args.bench == "memory":
+        require_output(Path(args.out).with_suffix(".png"), "--out (its figure)", kind="file")
     t0 = time.time()
     info, code = machine_info(), software()
     print(f"machine: {info['cpu']}, {info['cores']} cores; torch {code['torch']} ({info['torch_threads']} threads), "

@@ -91,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
         # a whole dataset may lie on a read-only disk; one still to be rendered needs a directory that can be
         # written (/proc/x was "No such file or directory" from the first mkdir)
         require_output(out, "--out", writable=not ChunkedStore.whole_at(out))
+        cache = getattr(a, "identities_cache", None)
+        if cache:  # (read where it holds the identities, written where it does not)
+            require_output(cache, "--identities-cache", kind="file", writable=not Path(cache).is_file())
         if a.kind == "foveation":
             return out, synthesize(out, cfg, shard=parse_shard(a.shard), batch=a.batch, device=a.device,
                                    progress=not a.no_progress)

@@ -303,31 +303,64 @@ def launch_split(
             rec.release()
 
 
+class _Slices:
+    """The recorded slices of one launch, handed out one at a time to the threads that :meth:`drain` them,
+    with a count of those running."""
+
+    def __init__(self, cmds: list):
+        self._next = iter(cmds)
+        self._cond = threading.Condition()
+        self._running = 0
+        self._stopped = False
+
+    def drain(self) -> None:
+        """Run slices until none is left (or :meth:`stop`)."""
+        while True:
+            with self._cond:
+                c = None if self._stopped else next(self._next, None)
+                if c is None:
+                    return
+                self._running += 1
+            try:
+                c.launch()
+            finally:
+                with self._cond:
+                    self._running -= 1
+                    self._cond.notify_all()
+
+    def stop(self) -> None:
+        """Hand out no more slices and return once none is running. An interruption (Ctrl-C, SIGTERM) that
+        arrives during the wait does not end it: it is raised after."""
+        interrupted = None
+        while True:
+            try:
+                with self._cond:
+                    self._stopped = True
+                    while self._running:
+                        self._cond.wait()
+                break
+            except BaseException as e:  # (KeyboardInterrupt, errors.Terminated): the wait goes on
+                interrupted = interrupted or e
+        if interrupted is not None:
+            raise interrupted
+
+
 def _run(cmds: list, n: int) -> None:
-    """Run recorded slices on ``n`` threads (the calling thread included)."""
+    """Run recorded slices on ``n`` threads (the calling thread included), each thread taking the next slice
+    as it frees up. Returns or raises only once no slice runs: a running launch reads and writes its
+    arguments' memory, which the caller frees as an exception (Ctrl-C, SIGTERM, raised in this thread)
+    unwinds. An interruption launches no further slice."""
     if len(cmds) == 1:
         cmds[0].launch()
         return
     pool = _get_pool(n)
-    if len(cmds) == n:
-        futures = [pool.submit(c.launch) for c in cmds[1:]]
-        cmds[0].launch()  # the calling thread takes the first slice
+    slices = _Slices(cmds)
+    futures = []
+    try:
+        for _ in range(min(n, len(cmds)) - 1):
+            futures.append(pool.submit(slices.drain))
+        slices.drain()
         for f in futures:
-            f.result()
-        return
-    # more slices than workers: the workers (and this thread) pull the next slice from a shared queue
-    queue = iter(cmds)
-    lock = threading.Lock()
-
-    def drain():
-        while True:
-            with lock:
-                c = next(queue, None)
-            if c is None:
-                return
-            c.launch()
-
-    futures = [pool.submit(drain) for _ in range(n - 1)]
-    drain()
-    for f in futures:
-        f.result()
+            f.result()  # (a worker's error raised here)
+    finally:
+        slices.stop()

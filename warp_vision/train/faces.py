@@ -56,9 +56,20 @@ class FaceTask(harness.OnvTask):
     @classmethod
     def resolve_paths(cls, cfg):
         from warp_vision.data.faces import identities_cache
+        from warp_vision.fileio import resolved
 
         super().resolve_paths(cfg)
-        cfg.identities_cache = str(Path(cfg.identities_cache or identities_cache(cfg.identities, cfg.identity_seed)).resolve())
+        cache = cfg.identities_cache or identities_cache(cfg.identities, cfg.identity_seed)
+        cfg.identities_cache = str(resolved(cache, "--identities-cache"))
+
+    @classmethod
+    def check_new_run(cls, cfg):
+        """``--identities-cache``: a regular file (read where it holds the identities), or a path where one can be
+        written; a device, a FIFO or a symbolic link there is refused before any work."""
+        from warp_vision.fileio import require_output
+
+        cache = Path(cfg.identities_cache)
+        require_output(cache, "--identities-cache", kind="file", writable=not cache.is_file())
 
     def splits(self):
         c = self.cfg

@@ -39,7 +39,7 @@ import torch.distributed as dist
 
 from warp_vision.data.store import waiting_for_writers
 from warp_vision.errors import told
-from warp_vision.fileio import write_json
+from warp_vision.fileio import resolved, write_json
 from warp_vision.provenance import software
 from warp_vision.nn.trained import (ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, read_run_config,
                                     require_binding, run_identity, saved_task)
@@ -129,11 +129,12 @@ class Task:
     def resolve_paths(cls, cfg) -> None:
         """Make ``cfg``'s paths absolute (a new run, before anything is written): ``out`` and the dataset
         directory (the cache directory when ``data_dir`` is empty), and a warm start's ``init``. Tasks with
-        more paths extend this."""
-        cfg.out = str(Path(cfg.out).resolve())
-        cfg.data_dir = str(dataset_dir(cfg, cls.name, cfg.data_config()).resolve())
+        more paths extend this. A symbolic link that leads nowhere (a loop, or a link to what does not exist) is
+        an OSError naming the option (:func:`warp_vision.fileio.resolved`)."""
+        cfg.out = str(resolved(cfg.out, "--out"))
+        cfg.data_dir = str(resolved(dataset_dir(cfg, cls.name, cfg.data_config()), "--data-dir"))
         if getattr(cfg, "init", ""):
-            cfg.init = str(Path(cfg.init).resolve())
+            cfg.init = str(resolved(cfg.init, "--init"))
 
     @classmethod
     def check_new_run(cls, cfg) -> None:

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from warp_vision.data.store import ChunkedStore
-from warp_vision.fileio import FileLock, atomic_write, probe_writable, require_output
+from warp_vision.fileio import FileLock, atomic_copy, atomic_write, probe_writable, require_output, resolved
 from warp_vision.nn.trained import (TRAINING_LOCK, read_checkpoint, read_run_config, require_binding, run_identity,
                                     saved_task, seal, task_command)
 
@@ -112,7 +112,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
     """
     ck = None
     if resume:
-        out = Path(resume).resolve()
+        out = resolved(resume, "--resume")
         if not (out / "config.json").exists():
             raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
         task = saved_task(out)
@@ -263,10 +263,12 @@ def _unshared(x):
 
 def record_epoch(out: Path, row: dict, checkpoint: dict, best: bool) -> None:
     """Write latest.pt (the one before it becomes previous.pt), best.pt when ``best``, then append the
-    epoch's metrics row: a row is never in metrics.jsonl before its checkpoint is on disk."""
+    epoch's metrics row: a row is never in metrics.jsonl before its checkpoint is on disk. latest.pt is there
+    throughout: previous.pt is made from it before the new one is renamed over it (``evaluate --checkpoint
+    latest`` of a run in training reads one or the other)."""
     latest = out / "latest.pt"
     if latest.exists():
-        os.replace(latest, out / "previous.pt")
+        atomic_copy(latest, out / "previous.pt")
     save_checkpoint(checkpoint, latest)
     if best:
         save_checkpoint(checkpoint, out / "best.pt")
