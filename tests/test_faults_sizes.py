@@ -92,3 +92,13 @@ def test_the_argparse_types_read_their_range_and_nothing_else():
         with pytest.raises(argparse.ArgumentTypeError):
             read(bad)
     assert limits.video_frame_shape(640, 480) == (480, 880)
+
+
+def test_the_memory_benchmark_refuses_a_net_it_cannot_build_and_an_out_that_is_its_figure(tmp_path, capsys):
+    from warp_vision.bench.cli import main as bench_main
+
+    assert bench_main(["memory", "--sizes", "100", "--out", str(tmp_path / "m.json")]) == 2
+    assert "--sizes: expected 375..300,000,000 inputs, got 100" in _error(capsys.readouterr().err)
+    assert bench_main(["memory", "--out", str(tmp_path / "m.png")]) == 2
+    assert "names the figure's path" in _error(capsys.readouterr().err)
+    assert not list(tmp_path.iterdir())

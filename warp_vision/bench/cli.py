@@ -15,6 +15,7 @@ from pathlib import Path
 from warp_vision.bench.common import machine_info
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, long_options, require_positive
 from warp_vision.fileio import require_output, write_json
+from warp_vision.limits import require_int
 from warp_vision.provenance import software
 
 
@@ -144,6 +145,9 @@ def _bench(args) -> int:
     device = _device(args.device) if hasattr(args, "device") else "cpu"  # before any work
     require_output(args.out, "--out", kind="file")  # (and the memory figure beside it) before minutes of timing
     if args.bench == "memory":
+        if Path(args.out).suffix == ".png":
+            raise ValueError(f"--out: {args.out} names the figure's path (the JSON's, with .png); give the JSON's, "
+                             f"e.g. {Path(args.out).with_suffix('.json')}")
         require_output(Path(args.out).with_suffix(".png"), "--out (its figure)", kind="file")
     t0 = time.time()
     info, code = machine_info(), software()
@@ -185,7 +189,9 @@ def _bench(args) -> int:
         from warp_vision.bench import memory
 
         sizes = args.sizes or memory.DEFAULT_SIZES
-        require_positive(args, ("sizes", "batch") if args.sizes else ("batch",))
+        require_positive(args, ("batch",))
+        for size in sizes:  # (each of the liNet's 4 layers a fifth of the last: 375 inputs leave 3 at the top)
+            require_int(size, memory.ONV_SIZES, "--sizes")
         if not (math.isfinite(args.budget_gib) and args.budget_gib > 0):
             raise ValueError(f"--budget-gib: expected a positive number, got {args.budget_gib}")
         result = memory.run(sizes, args.batch, args.budget_gib)

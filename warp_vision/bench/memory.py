@@ -28,6 +28,7 @@ import sys
 from typing import Sequence
 
 from warp_vision.fileio import atomic_write
+from warp_vision.limits import Range
 
 DEFAULT_SIZES = [1_000, 4_000, 10_000, 40_000, 100_000, 400_000, 1_000_000, 4_000_000, 12_800_000]
 OUTPUTS = 2  # the (yaw, pitch) head of the foveation net
@@ -35,6 +36,11 @@ FLOAT = 4
 #: the input dtypes measured per model: the fc baseline's torch.nn.Linear reads float32 only
 INPUT_DTYPES = {"linet": ("float32", "float16"), "fc": ("float32",)}
 ITEMSIZE = {"float32": 4, "float16": 2, "bfloat16": 2}
+
+
+#: the ONV sizes the benchmark takes: a liNet of 4 layers, each a fifth of the last, keeps 3 units at the top from
+#: 375 inputs; 3e8 float32 inputs are 1.2 GB an ONV
+ONV_SIZES = Range(375, 3 * 10**8, "inputs")
 
 
 def layer_sizes(onv: int, layers: int = 4, reduction: int = 5) -> list[int]:
