@@ -50,9 +50,13 @@ class ArgumentParser(argparse.ArgumentParser):
         self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message: str):
-        """argparse's error, with its words for a missing or mistyped subcommand replaced by ours: "the
-        following arguments are required: cmd" named the parser's internal field, and "invalid choice:
-        'experiment' (choose from ...)" left finding the nearest command to the user."""
+        """One line on stderr, ``error: <message> (<prog> --help says more)``, and exit code 2, as the typed checks
+        give (argparse printed its usage block above the message; a message that names a command line to type
+        has no pointer to --help). Its words for a missing or mistyped subcommand
+        are replaced by ours: "the following arguments are required: cmd" named the parser's internal field, and
+        "invalid choice: 'experiment' (choose from ...)" left finding the nearest command to the user; its other
+        messages name the option as the typed checks do (``--checkpoint: expected one of best, latest, got
+        'previous'``)."""
         sub = _subcommands(self)
         if sub is not None:
             names = list(sub.choices)
@@ -66,7 +70,9 @@ class ArgumentParser(argparse.ArgumentParser):
                     word = None
                 if isinstance(word, str):
                     message = not_a_command(word, names)
-        super().error(message)
+        message = _as_typed(message)
+        more = "" if "--help" in message or "python -m" in message else f" ({self.prog} --help says more)"
+        self.exit(2, f"error: {message}{more}\n")
 
     def parse_args(self, args=None, namespace=None):
         """argparse's, naming the nearest option of the command for a mistyped flag (``--photoreceptor``:
@@ -79,9 +85,16 @@ class ArgumentParser(argparse.ArgumentParser):
         if misplaced:
             self.error(misplaced)
         parsed, extras = self.parse_known_args(args, namespace)
-        if extras:
-            self.error(f"unrecognized arguments: {' '.join(extras)}{self._hint(parsed, extras)}")
+        if extras:  # (said by the command chosen, whose --help the line points to)
+            self._chosen(parsed).error(f"unrecognized arguments: {' '.join(extras)}{self._hint(parsed, extras)}")
         return parsed
+
+    def _chosen(self, parsed: argparse.Namespace) -> argparse.ArgumentParser:
+        """The parser of the (sub)command ``parsed`` chose: this one, or the subcommand it names, and so on."""
+        chosen = self
+        while (sub := _subcommands(chosen)) is not None and getattr(parsed, sub.dest, None) in sub.choices:
+            chosen = sub.choices[getattr(parsed, sub.dest)]
+        return chosen
 
     def _misplaced(self, args: list[str]) -> str | None:
         """Where a command's option was given before the command (``sim --quick demo``, ``data --preset quick
@@ -139,6 +152,25 @@ def _options(parser: argparse.ArgumentParser) -> list[str]:
 def _listed(names: list[str]) -> str:
     """"a", "a and b", "a, b and c"."""
     return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
+_ARGPARSE_VALUE = re.compile(r"argument (\S+): (?:invalid (\w+) value|invalid choice): (.+?)(?: \(choose from (.*)\))?")
+_KINDS = {"int": "an integer", "float": "a number"}
+
+
+def _as_typed(message: str) -> str:
+    """An argparse message in the typed checks' words: "argument --lr: ..." as "--lr: ...", and a value its
+    type or choices refuse as "--samples: expected an integer, got 'abc'" or "--checkpoint: expected one of
+    best, latest, got 'previous'" (an option with a short form, "-o/--out", by its long one)."""
+    m = _ARGPARSE_VALUE.fullmatch(message)
+    if m:
+        option, kind, value, choices = m.groups()
+        if choices is not None or kind is not None:
+            expected = "one of " + re.sub(r"'([^']*)'", r"\1", choices) if choices is not None else \
+                _KINDS.get(kind, f"a {kind} value")
+            return f"{option.split('/')[-1]}: expected {expected}, got {value}"
+    m = re.match(r"argument (\S+): ", message)
+    return f"{m.group(1).split('/')[-1]}: {message[m.end():]}" if m else message
 
 
 def _values_joined(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:

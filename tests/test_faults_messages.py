@@ -1,0 +1,67 @@
+"""What the commands say when something is wrong: one line that names the file, the setting, the option or
+the variable and what to do, said before any work where it can be, never a default filled in silently.
+
+The drills: a saved config that lacks a setting; a dataset missing a chunk, or holding another dataset's;
+counts too small for the splits; a bad environment variable; a command line argparse refuses.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+from warp_vision.__main__ import main as index_main
+
+
+def one_error_line(err: str) -> str:
+    """The one line of ``err``, checked to be an ``error:`` line and alone."""
+    assert err.count("\n") == 1 and err.startswith("error: ") and "usage:" not in err, err
+    return err[len("error: "):-1]
+
+
+# --------------------------------------------------------------------------------------------------
+# parse errors: one line, as the typed checks give
+
+
+@pytest.mark.parametrize("command, argv, says", [
+    # argparse's own: a type refusing its value, an invalid choice, a missing value or argument, an unknown flag
+    ("train", ["--preset", "smoke", "--workers", "0"],
+     "--workers: expected a positive integer or 'auto', got '0' (python -m warp_vision.train --help says more)"),
+    ("train", ["evaluate", "RUN", "--checkpoint", "previous"],
+     "--checkpoint: expected one of best, latest, got 'previous' (python -m warp_vision.train evaluate --help says more)"),
+    ("train", ["evaluate"],
+     "the following arguments are required: RUN_DIR (python -m warp_vision.train evaluate --help says more)"),
+    ("train", ["compare", "r", "--out"], "--out: expected one argument (python -m warp_vision.train compare --help says more)"),
+    ("train", ["oculomotor", "--lr", "fast"], "--lr: expected a number, got 'fast' (python -m warp_vision.train "
+                                              "oculomotor --help says more)"),
+    ("train", ["faces", "--eye", "middle"], "--eye: expected one of left, right, got 'middle' (python -m "
+                                            "warp_vision.train faces --help says more)"),
+    ("data", ["foveation", "--samples", "abc"],
+     "--samples: expected an integer, got 'abc' (python -m warp_vision.data foveation --help says more)"),
+    ("sim", ["demo", "--bogus"], "unrecognized arguments: --bogus (python -m warp_vision.sim demo --help says more)"),
+    ("sim", ["intraocular", "--cards", "0"],
+     "--cards: expected a positive integer, got 0 (python -m warp_vision.sim intraocular --help says more)"),
+    ("bench", ["linet", "--repeats", "x"],
+     "--repeats: expected an integer, got 'x' (python -m warp_vision.bench linet --help says more)"),
+    ("scene", ["demo", "--samples", "1.5"],
+     "--samples: expected an integer, got '1.5' (python -m warp_vision.scene demo --help says more)"),
+    # ours, as before, on a line of their own
+    ("sim", ["experiment"], "'experiment' is not a command (did you mean 'experiments'?): expected one of demo, "
+                            "experiments, intraocular, oculomotor, intercept (python -m warp_vision.sim --help says more)"),
+    ("scene", [], "expected a command: one of demo (python -m warp_vision.scene COMMAND --help says more)"),
+    ("sim", ["--quick", "demo"], "--quick goes after the command: python -m warp_vision.sim demo --quick"),
+])
+def test_every_parse_error_is_one_error_line_with_exit_code_2(command, argv, says, capsys):
+    main = importlib.import_module(f"warp_vision.{command}.cli").main
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    assert one_error_line(capsys.readouterr().err) == says
+
+
+def test_a_mistyped_command_of_the_index_is_one_error_line(capsys):
+    assert index_main(["trian"]) == 2
+    assert one_error_line(capsys.readouterr().err) == (
+        "'trian' is not a command (did you mean 'train'?): expected one of train, sim, data, bench, scene "
+        "(python -m warp_vision --help says more)")
