@@ -65,3 +65,40 @@ def test_a_mistyped_command_of_the_index_is_one_error_line(capsys):
     assert one_error_line(capsys.readouterr().err) == (
         "'trian' is not a command (did you mean 'train'?): expected one of train, sim, data, bench, scene "
         "(python -m warp_vision --help says more)")
+
+
+# --------------------------------------------------------------------------------------------------
+# the environment, checked when a command starts
+
+
+@pytest.mark.parametrize("variable, value, says", [
+    ("WARP_VISION_THREADS", "0", "WARP_VISION_THREADS: expected a whole number of threads >= 1 (4, say), got '0'"),
+    ("WARP_VISION_THREADS", "abc", "WARP_VISION_THREADS: expected a whole number of threads >= 1 (4, say), got 'abc'"),
+    ("WARP_VISION_MEMORY_LIMIT", "8 GB", "WARP_VISION_MEMORY_LIMIT: expected a number of bytes >= 1 (8e9, say), got '8 GB'"),
+    ("WORLD_SIZE", "0", "WORLD_SIZE: expected a whole number >= 1 (torchrun sets it), got '0'"),
+    ("RANK", "first", "RANK: expected a whole number >= 0 (torchrun sets it), got 'first'"),
+])
+@pytest.mark.parametrize("command, argv", [
+    ("train", ["--preset", "smoke", "--out", "OUT/run", "--data-dir", "OUT/data", "--no-progress"]),
+    ("data", ["foveation", "--preset", "smoke", "--out", "OUT/data"]),
+    ("scene", ["demo", "--photoreceptors", "100", "--out", "OUT/demo"]),
+])
+def test_a_bad_environment_variable_is_one_line_before_any_work(variable, value, says, command, argv, tmp_path,
+                                                                 monkeypatch, capsys):
+    main = importlib.import_module(f"warp_vision.{command}.cli").main
+    monkeypatch.setenv(variable, value)
+    assert main([a.replace("OUT", str(tmp_path)) for a in argv]) == 2
+    out = capsys.readouterr()
+    assert one_error_line(out.err) == says and out.out == ""  # (no bar, no "dataset: ..." line)
+    assert not list(tmp_path.iterdir())  # nothing made
+
+
+def test_a_kernel_cache_where_a_file_is_is_refused_before_the_job_runs(tmp_path, monkeypatch, capsys):
+    from warp_vision.errors import guarded
+
+    (tmp_path / "FILE").write_text("x")
+    monkeypatch.setenv("WARP_VISION_KERNEL_CACHE", str(tmp_path / "FILE" / "kernels"))
+    ran = []
+    assert guarded(lambda: ran.append(1)) == 2 and not ran
+    assert "WARP_VISION_KERNEL_CACHE" in one_error_line(capsys.readouterr().err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["FILE"]

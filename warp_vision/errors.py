@@ -20,6 +20,8 @@ import sys
 import threading
 from typing import Callable
 
+from warp_vision.resources import check_environment
+
 
 def error_line(e: BaseException) -> str:
     """One line for an error a user can act on: an OSError as "FILE: what went wrong", others as their message."""
@@ -330,10 +332,12 @@ def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, in
     code), as does a failed allocation (:func:`out_of_memory`; other RuntimeErrors raise); Ctrl-C returns
     130, SIGTERM 143 (:class:`Terminated`), saying so in a line unless the command has said where it stopped
     (:func:`told`). A line that begins with a setting's name begins with its option where ``options``
-    (the command's, :func:`long_options`) holds one (:func:`as_option`). With ``debug`` the errors raise,
+    (the command's, :func:`long_options`) holds one (:func:`as_option`). The environment variables the package
+    reads are checked first (:func:`warp_vision.resources.check_environment`). With ``debug`` the errors raise,
     traceback and all."""
     codes = codes or {}
     try:
+        check_environment()  # (before any work, bar or file)
         with sigterm_as_interrupt():
             r = job()
     except Terminated as e:
