@@ -8,16 +8,82 @@ counts too small for the splits; a bad environment variable; a command line argp
 from __future__ import annotations
 
 import importlib
+import json
+import shutil
+from pathlib import Path
 
 import pytest
 
 from warp_vision.__main__ import main as index_main
+from warp_vision.data.foveation import synthesize
+from warp_vision.train import foveation
+from warp_vision.train.cli import main as train_main
+from warp_vision.train.config import resolve
+
+QUIET = dict(progress=False, log=lambda *a: None)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("data")
+    synthesize(d, resolve("smoke", {"data_dir": str(d)}).data_config(), **QUIET)
+    return d
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, data):
+    """A finished smoke run, copied by each test that damages it."""
+    out = tmp_path_factory.mktemp("finished") / "run"
+    foveation.run(resolve("smoke", {"out": str(out), "data_dir": str(data)}), **QUIET)
+    return out
+
+
+def copy_of(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
 
 
 def one_error_line(err: str) -> str:
     """The one line of ``err``, checked to be an ``error:`` line and alone."""
     assert err.count("\n") == 1 and err.startswith("error: ") and "usage:" not in err, err
     return err[len("error: "):-1]
+
+
+# --------------------------------------------------------------------------------------------------
+# a saved config that lacks a setting
+
+
+@pytest.mark.parametrize("drop, named", [(["samples"], "the setting 'samples' is missing"),
+                                         (["samples", "lr"], "the settings 'samples', 'lr' are missing")])
+def test_a_config_json_without_a_setting_is_refused_by_name_and_left_as_it_is(drop, named, finished, tmp_path, capsys):
+    run = copy_of(finished, tmp_path / "run")
+    path = run / "config.json"
+    path.write_text(json.dumps({k: v for k, v in json.loads(path.read_text()).items() if k not in drop}))
+    text = path.read_text()
+    assert train_main(["--resume", str(run), "--epochs", "4", "--no-progress"]) == 2
+    out = capsys.readouterr()
+    assert one_error_line(out.err) == (f"{path}: {named} (edited by hand, or cut short?); a default would not be "
+                                       f"the run's own, so none is put in")
+    assert path.read_text() == text and out.out == ""  # (nothing rewritten, no dataset looked at)
+
+
+def test_a_setting_added_since_a_run_was_saved_takes_its_legacy_value(finished):
+    from warp_vision.nn.trained import read_checkpoint
+    from warp_vision.train.config import TrainConfig
+    from warp_vision.train.foveation import FoveationTask
+    from warp_vision.train.rundir import config_from_saved, run_config
+
+    saved = json.loads((finished / "config.json").read_text())
+    old = {k: v for k, v in saved.items() if k not in TrainConfig.LEGACY_DEFAULTS}
+    cfg = config_from_saved(TrainConfig, old, finished / "config.json")
+    assert {k: getattr(cfg, k) for k in TrainConfig.LEGACY_DEFAULTS} == TrainConfig.LEGACY_DEFAULTS
+    # a checkpoint's config carries no paths, and a run may have lost its config.json: the paths are not refused
+    ck = read_checkpoint(finished / "best.pt")
+    assert run_config(FoveationTask, finished / "nowhere", ck, finished / "best.pt").samples == saved["samples"]
+    # a checkpoint without a setting is named, not the config.json that holds only the paths
+    ck["config"] = {k: v for k, v in ck["config"].items() if k != "samples"}
+    with pytest.raises(ValueError, match=f"^{finished / 'best.pt'}: the setting 'samples' is missing"):
+        run_config(FoveationTask, finished, ck, finished / "best.pt")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -144,8 +144,11 @@ class TrainConfig:
     # the run
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
 
-    #: Fields added after runs were saved without them: a saved config that lacks one had this value.
-    LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset", "precision": "float32"}
+    #: Fields added after runs were saved without them: a saved config that lacks one had this value (ONVs read
+    #: in float32; channels, views, no_augment and plain_epochs are read by models that came with them or after).
+    #: Any other setting missing from a saved config is refused (rundir.config_from_saved).
+    LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset", "precision": "float32", "onv_dtype": "float32",
+                       "channels": 16, "init": "", "views": 8, "no_augment": False, "plain_epochs": 0}
     #: the net settings only some models read: {field: those models} (a flag given for another is refused)
     MODEL_FIELDS: ClassVar[dict] = {"layers": ("linet", "fc", "conv"), "receptive_field": ("linet", "fc"),
                                     "reduction": ("linet", "fc", "conv"), "channels": ("conv", "cnn"), "views": ("cnn",)}
@@ -265,6 +268,9 @@ class FaceTrainConfig:
     seed: int = 0  # initialisation and shuffling
     # the run
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
+
+    #: Fields added after runs were saved without them: a saved config that lacks one had this value.
+    LEGACY_DEFAULTS = {"onv_dtype": "float32"}
 
     def data_config(self):
         from warp_vision.data.faces import FaceDataConfig

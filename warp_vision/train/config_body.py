@@ -166,7 +166,7 @@ class LimbTrainConfig:
     device: str = "auto"  # cpu, cuda, or auto
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.
-    LEGACY_DEFAULTS = {"ball": "glowing", "precision": "float32"}
+    LEGACY_DEFAULTS = {"ball": "glowing", "precision": "float32", "channels": 16}  # (channels: read by models after it)
     #: the net settings only some models read (see :attr:`warp_vision.train.config.TrainConfig.MODEL_FIELDS`)
     MODEL_FIELDS: ClassVar[dict] = {"layers": ("linet", "fc"), "receptive_field": ("linet", "fc"),
                                     "reduction": ("linet", "fc"), "channels": ("cnn", "range")}

@@ -45,7 +45,7 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     rendered again (:func:`load_for_evaluation`)."""
     path = checkpoint_path(run_dir, checkpoint)
     ck = read_checkpoint(path)
-    cfg = run_config(task_cls, Path(run_dir), ck)
+    cfg = run_config(task_cls, Path(run_dir), ck, path)
     task = task_cls(cfg, log)
     load_for_evaluation(task, log, progress)
     ids = task.splits()
