@@ -87,6 +87,57 @@ def test_a_setting_added_since_a_run_was_saved_takes_its_legacy_value(finished):
 
 
 # --------------------------------------------------------------------------------------------------
+# a dataset missing a chunk, or holding another dataset's
+
+
+@pytest.fixture(scope="module")
+def other(tmp_path_factory):
+    """Another dataset of the smoke run's sizes (another seed, another dataset id)."""
+    d = tmp_path_factory.mktemp("other")
+    synthesize(d, resolve("smoke", {"data_dir": str(d), "data_seed": 1}).data_config(), **QUIET)
+    return d
+
+
+def run_on(finished: Path, data: Path, tmp_path: Path) -> Path:
+    """A copy of the run ``finished`` whose config.json names ``data`` as its dataset."""
+    run = copy_of(finished, tmp_path / "run")
+    path = run / "config.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "data_dir": str(data)}))
+    return run
+
+
+def test_a_chunk_of_another_dataset_is_named_not_counted_missing(data, other, tmp_path):
+    from warp_vision.data.store import ChunkedStore, ForeignChunkError
+
+    d = copy_of(data, tmp_path / "data")
+    for f in other.glob("chunk_000000.*"):
+        shutil.copy(f, d / f.name)
+    ours, theirs = ChunkedStore.open(d).dataset_id, ChunkedStore.open(other).dataset_id
+    says = (f"{d / 'chunk_000000.json'}: chunk 0 belongs to another dataset: its record's dataset_id is {theirs!r}, "
+            f"this dataset's (manifest.json) {ours!r} (copied in from another dataset's directory?); remove its files "
+            f"({d / 'chunk_000000.*'}) to have it rendered again")
+    store = ChunkedStore.open(d)
+    for read in (store.missing_chunks, store.load, lambda: store.complete):
+        with pytest.raises(ForeignChunkError) as e:
+            read()
+        assert str(e.value) == says
+
+
+def test_a_chunk_of_another_dataset_is_refused_by_training_and_evaluate_in_one_line(finished, data, other, tmp_path,
+                                                                                    capsys):
+    d = copy_of(data, tmp_path / "data")
+    for f in other.glob("chunk_000000.*"):
+        shutil.copy(f, d / f.name)
+    out = tmp_path / "new"
+    assert train_main(["--preset", "smoke", "--out", str(out), "--data-dir", str(d), "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert line.startswith(f"{d / 'chunk_000000.json'}: chunk 0 belongs to another dataset"), line
+    assert not out.exists()  # refused before the run directory is claimed
+    assert train_main(["evaluate", str(run_on(finished, d, tmp_path))]) == 2
+    assert one_error_line(capsys.readouterr().err) == line
+
+
+# --------------------------------------------------------------------------------------------------
 # parse errors: one line, as the typed checks give
 
 

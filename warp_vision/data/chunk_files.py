@@ -25,7 +25,7 @@ import numpy as np
 
 from warp_vision.fileio import NPY_FORMAT_ERRORS, atomic_write, write_json
 
-__all__ = ["CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "MANIFEST_NAME"]
+__all__ = ["CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "ForeignChunkError", "MANIFEST_NAME"]
 
 #: The ``format`` entry of every manifest written by the store.
 FORMAT_NAME = "warp_vision.ChunkedStore"
@@ -61,6 +61,19 @@ class CorruptChunkError(ValueError):
         self.chunk = int(chunk)
         self.what = what
         super().__init__(f"{self.path}: {what} (chunk {self.chunk})")
+
+
+class ForeignChunkError(CorruptChunkError):
+    """A chunk whose record carries another dataset's id than the manifest's: its files were copied in from
+    another dataset's directory (or the manifest was made anew over old chunks). It is neither this dataset's
+    nor missing: it is named, and rendered again only once its files are removed."""
+
+    def __init__(self, path: os.PathLike | str, chunk: int, theirs: Any, ours: str):
+        self.path, self.chunk, self.theirs, self.ours = Path(path), int(chunk), theirs, ours
+        self.what = (f"chunk {self.chunk} belongs to another dataset: its record's dataset_id is {theirs!r}, this "
+                     f"dataset's ({MANIFEST_NAME}) {ours!r} (copied in from another dataset's directory?); remove its "
+                     f"files ({self.path.parent / f'chunk_{self.chunk:06d}.*'}) to have it rendered again")
+        ValueError.__init__(self, f"{self.path}: {self.what}")
 
 
 def is_int(x: Any) -> bool:
@@ -238,6 +251,8 @@ def read_record(path: Path, c: int, expect: Mapping[str, Any], data_files: Mappi
         raise CorruptChunkError(path, c, f"record unreadable: {e}") from None
     if not isinstance(rec, dict):
         raise CorruptChunkError(path, c, "record is not a JSON object")
+    if "dataset_id" in expect and rec.get("dataset_id") != expect["dataset_id"]:
+        raise ForeignChunkError(path, c, rec.get("dataset_id"), expect["dataset_id"])
     for k, v in expect.items():
         if rec.get(k) != v:
             raise CorruptChunkError(path, c, f"record has {k}={rec.get(k)!r}, expected {v!r}")
