@@ -106,6 +106,34 @@ def run_on(finished: Path, data: Path, tmp_path: Path) -> Path:
     return run
 
 
+def test_evaluate_renders_a_chunk_gone_from_the_runs_dataset_again(finished, data, tmp_path, capsys):
+    d = copy_of(data, tmp_path / "data")
+    (d / "chunk_000000.onv.npy").unlink()
+    assert train_main(["evaluate", str(finished)]) == 0
+    intact = capsys.readouterr().out.splitlines()[-1]
+    assert train_main(["evaluate", str(run_on(finished, d, tmp_path)), "--no-progress"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == f"the run's dataset {d} lacks 1 of its 1 chunks: rendering them again (the same samples as in training)"
+    assert out[-1].split(": ", 1)[1] == intact.split(": ", 1)[1]  # the same numbers: the same bytes
+
+
+def test_a_training_run_names_the_command_that_finishes_its_dataset(data, tmp_path, capsys, monkeypatch):
+    from warp_vision.train.foveation import FoveationTask
+
+    d = copy_of(data, tmp_path / "data")
+    (d / "chunk_000000.onv.npy").unlink()
+    out = tmp_path / "run"
+    argv = ["--preset", "smoke", "--out", str(out), "--data-dir", str(d), "--workers", "1", "--no-progress"]
+    with monkeypatch.context() as m:  # a writer that stopped (another rank's, say): the chunk stays missing
+        m.setattr(FoveationTask, "render", lambda self, shard, progress: None)
+        assert train_main(argv) == 2
+    assert one_error_line(capsys.readouterr().err) == (
+        f"{d}: dataset incomplete: 1 of 1 chunks missing (chunks 0); python -m warp_vision.train --resume {out} "
+        f"renders them")
+    assert train_main(["--resume", str(out), "--no-progress"]) == 0  # and it does
+    assert (out / "summary.json").exists()
+
+
 def test_a_chunk_of_another_dataset_is_named_not_counted_missing(data, other, tmp_path):
     from warp_vision.data.store import ChunkedStore, ForeignChunkError
 

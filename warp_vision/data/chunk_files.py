@@ -25,7 +25,8 @@ import numpy as np
 
 from warp_vision.fileio import NPY_FORMAT_ERRORS, atomic_write, write_json
 
-__all__ = ["CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "ForeignChunkError", "MANIFEST_NAME"]
+__all__ = ["CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "ForeignChunkError", "IncompleteStoreError",
+           "MANIFEST_NAME"]
 
 #: The ``format`` entry of every manifest written by the store.
 FORMAT_NAME = "warp_vision.ChunkedStore"
@@ -47,6 +48,25 @@ class MissingStoreError(ValueError):
     def __init__(self, root: os.PathLike | str):
         self.root = Path(root)
         super().__init__(f"{self.root / MANIFEST_NAME} not found: {self.root} is not a ChunkedStore (or was never created)")
+
+
+class IncompleteStoreError(ValueError):
+    """Chunks missing when a store is read whole (``missing``: their indices, of ``num_chunks``). ``finish``: the
+    command that renders them, where the reader knows it (the run whose dataset it is); a reader that does can
+    name it on an error raised without one (:meth:`finished_by`)."""
+
+    def __init__(self, root: os.PathLike | str, missing: list[int], num_chunks: int, finish: str | None = None):
+        self.root, self.missing, self.num_chunks, self.finish = Path(root), list(missing), int(num_chunks), finish
+        head = ", ".join(str(c) for c in self.missing[:10]) + (", ..." if len(self.missing) > 10 else "")
+        how = (f"{finish} renders them" if finish else
+               "the command that made it renders them when run again (a training run's dataset: python -m "
+               "warp_vision.train evaluate RUN_DIR)")
+        super().__init__(f"{self.root}: dataset incomplete: {len(self.missing)} of {self.num_chunks} chunks missing "
+                         f"(chunks {head}); {how}")
+
+    def finished_by(self, command: str) -> "IncompleteStoreError":
+        """This error, naming ``command`` as the one that renders the missing chunks."""
+        return IncompleteStoreError(self.root, self.missing, self.num_chunks, command)
 
 
 class CorruptChunkError(ValueError):

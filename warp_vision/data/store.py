@@ -58,6 +58,7 @@ from warp_vision.data.chunk_files import (
     MANIFEST_NAME,
     CorruptChunkError,
     ForeignChunkError,
+    IncompleteStoreError,
     MissingStoreError,
     fields_from_json,
     fields_to_json,
@@ -76,7 +77,7 @@ from warp_vision.data.chunk_files import (
 )
 
 __all__ = ["ChunkedStore", "CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "ForeignChunkError",
-           "MissingStoreError", "parse_shard"]
+           "IncompleteStoreError", "MissingStoreError", "parse_shard"]
 
 
 def dataset_bytes(fields: Mapping[str, tuple], samples: int) -> int:
@@ -445,7 +446,7 @@ class ChunkedStore:
         """The whole dataset: ``{name: [total, *shape] array}`` in global sample order.
 
         fields: names to load (default all). verify: check every file's sha256 while reading (sizes and
-        headers are always checked). Raises ValueError if chunks are missing (how many, which first),
+        headers are always checked). Raises IncompleteStoreError if chunks are missing (how many, which first),
         CorruptChunkError for a bad chunk and ForeignChunkError for another dataset's.
         """
         names = self._check_field_names(fields)
@@ -455,11 +456,7 @@ class ChunkedStore:
             time.sleep(min(2.0, max(0.0, deadline - time.monotonic())))
             missing = self._all_missing()
         if missing:
-            head = ", ".join(str(c) for c in missing[:10]) + (", ..." if len(missing) > 10 else "")
-            raise ValueError(
-                f"{self.root}: dataset incomplete: {len(missing)} of {self.num_chunks} chunks missing "
-                f"(chunks {head}); run the writers for their shards to finish it"
-            )
+            raise IncompleteStoreError(self.root, missing, self.num_chunks)
         out = {name: np.empty((self.total, *self.fields[name][0]), dtype=np.dtype(self.fields[name][1])) for name in names}
         for c in range(self.num_chunks):
             rec = self._read_record(c)

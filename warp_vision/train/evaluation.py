@@ -23,16 +23,20 @@ def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
 
 def load_for_evaluation(task: Task, log=print, progress: bool = True) -> None:
     """Load a finished run's dataset to evaluate it. A store gone from the cache (deleted to free the disk, or
-    a run copied from another machine: "not a ChunkedStore" was all evaluate said) is rendered again, the
-    same bytes as in training, saying so."""
-    from warp_vision.data.store import MissingStoreError
+    a run copied from another machine: "not a ChunkedStore" was all evaluate said), or chunks of it gone, are
+    rendered again, the same bytes as in training, saying so."""
+    from warp_vision.data.store import IncompleteStoreError, MissingStoreError
 
     try:
         task.load((0, 1), progress=False, synthesize=False)
+        return
     except MissingStoreError as e:
         log(f"the run's dataset {e.root} is gone: rendering it again (the same samples as in training)")
-        with rendering_lock(task, log):
-            task.load((0, 1), progress=progress, synthesize=True)
+    except IncompleteStoreError as e:
+        log(f"the run's dataset {e.root} lacks {len(e.missing)} of its {e.num_chunks} chunks: rendering them again "
+            f"(the same samples as in training)")
+    with rendering_lock(task, log):
+        task.load((0, 1), progress=progress, synthesize=True)
 
 
 def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=None, checkpoint: str = "best",

@@ -37,11 +37,11 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from warp_vision.data.store import waiting_for_writers
+from warp_vision.data.store import IncompleteStoreError, waiting_for_writers
 from warp_vision.errors import told
 from warp_vision.fileio import write_json
 from warp_vision.provenance import software
-from warp_vision.nn.trained import ONV_DTYPES, build_net, read_checkpoint
+from warp_vision.nn.trained import ONV_DTYPES, build_net, read_checkpoint, task_command
 from warp_vision.train.config import epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics)
@@ -401,7 +401,10 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
         # the ranks render their shards of a missing dataset, then each reads the whole: one done first waits
         # for the others' chunks (an hour at most) rather than calling the dataset incomplete
         with waiting_for_writers(3600.0 if dd.world > 1 else 0.0):
-            task.load((dd.rank, dd.world), progress)
+            try:
+                task.load((dd.rank, dd.world), progress)
+            except IncompleteStoreError as e:  # (a writer of another shard stopped, or chunks were removed meanwhile)
+                raise e.finished_by(f"{task_command(task.name)} --resume {out}") from None
     dd.barrier()
     tr, va, te = task.splits()
     norm = task.fit_norm(tr)
