@@ -166,6 +166,39 @@ def test_a_chunk_of_another_dataset_is_refused_by_training_and_evaluate_in_one_l
 
 
 # --------------------------------------------------------------------------------------------------
+# counts too small for the splits: refused before the dataset is rendered or anything written
+
+
+def test_too_few_samples_for_the_splits_are_refused_before_anything_is_written(tmp_path, capsys):
+    argv = ["--preset", "smoke", "--samples", "1", "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "data"),
+            "--no-progress"]
+    assert train_main(argv) == 2
+    out = capsys.readouterr()
+    assert one_error_line(out.err) == ("--samples: 1 leave 0 to train after 1 to validate and 0 to test: expected at "
+                                       "least 2 (more samples, or a smaller --val-fraction or --test-fraction)")
+    assert out.out == "" and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("task, overrides, says", [
+    ("oculomotor", {"gazes": 4}, "gazes: 4 leave 1 to train after 1 to validate and 2 to test"),
+    ("arm", {"postures": 8, "val_fraction": 0.5, "test_fraction": 0.4}, "postures: 8 leave 1 to train after 4 to validate"),
+    ("limb", {"samples": 4}, "samples: 4 leave 1 to train after 1 to validate and 2 to test"),
+    ("pupil", {"samples": 4}, "samples: 4 leave 1 to train after 1 to validate and 2 to test"),
+    ("lens", {"samples": 3}, "samples: 3 leave 0 to train after 1 to validate and 2 to test"),
+    ("faces", {"identities": 2, "val_fraction": 0.5, "test_fraction": 0.47},
+     "identities: 32 samples (2 identities x 16 poses) leave 1 to train after 16 to validate and 15 to test: expected "
+     "at least 2 (more identities, or a smaller --val-fraction or --test-fraction)"),
+])
+def test_every_tasks_config_refuses_counts_too_small_for_its_splits(task, overrides, says):
+    from warp_vision.train.cli import TASKS
+
+    _, cls, presets, _ = TASKS[task]
+    with pytest.raises(ValueError) as e:
+        resolve("smoke", overrides, cls, presets)
+    assert str(e.value).startswith(says), e.value
+
+
+# --------------------------------------------------------------------------------------------------
 # parse errors: one line, as the typed checks give
 
 
