@@ -113,7 +113,8 @@ def test_evaluate_renders_a_chunk_gone_from_the_runs_dataset_again(finished, dat
     intact = capsys.readouterr().out.splitlines()[-1]
     assert train_main(["evaluate", str(run_on(finished, d, tmp_path)), "--no-progress"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[0] == f"the run's dataset {d} lacks 1 of its 1 chunks: rendering them again (the same samples as in training)"
+    assert out[0] == (f"the run's dataset {d} lacks 1 of its 1 chunks: rendering them again (the same samples as in "
+                      f"training)")
     assert out[-1].split(": ", 1)[1] == intact.split(": ", 1)[1]  # the same numbers: the same bytes
 
 
@@ -181,7 +182,8 @@ def test_too_few_samples_for_the_splits_are_refused_before_anything_is_written(t
 
 @pytest.mark.parametrize("task, overrides, says", [
     ("oculomotor", {"gazes": 4}, "gazes: 4 leave 1 to train after 1 to validate and 2 to test"),
-    ("arm", {"postures": 8, "val_fraction": 0.5, "test_fraction": 0.4}, "postures: 8 leave 1 to train after 4 to validate"),
+    ("arm", {"postures": 8, "val_fraction": 0.5, "test_fraction": 0.4},
+     "postures: 8 leave 1 to train after 4 to validate"),
     ("limb", {"samples": 4}, "samples: 4 leave 1 to train after 1 to validate and 2 to test"),
     ("pupil", {"samples": 4}, "samples: 4 leave 1 to train after 1 to validate and 2 to test"),
     ("lens", {"samples": 3}, "samples: 3 leave 0 to train after 1 to validate and 2 to test"),
@@ -207,10 +209,12 @@ def test_every_tasks_config_refuses_counts_too_small_for_its_splits(task, overri
     ("train", ["--preset", "smoke", "--workers", "0"],
      "--workers: expected a positive integer or 'auto', got '0' (python -m warp_vision.train --help says more)"),
     ("train", ["evaluate", "RUN", "--checkpoint", "previous"],
-     "--checkpoint: expected one of best, latest, got 'previous' (python -m warp_vision.train evaluate --help says more)"),
+     "--checkpoint: expected one of best, latest, got 'previous' (python -m warp_vision.train evaluate --help says "
+     "more)"),
     ("train", ["evaluate"],
      "the following arguments are required: RUN_DIR (python -m warp_vision.train evaluate --help says more)"),
-    ("train", ["compare", "r", "--out"], "--out: expected one argument (python -m warp_vision.train compare --help says more)"),
+    ("train", ["compare", "r", "--out"],
+     "--out: expected one argument (python -m warp_vision.train compare --help says more)"),
     ("train", ["oculomotor", "--lr", "fast"], "--lr: expected a number, got 'fast' (python -m warp_vision.train "
                                               "oculomotor --help says more)"),
     ("train", ["faces", "--eye", "middle"], "--eye: expected one of left, right, got 'middle' (python -m "
@@ -226,7 +230,8 @@ def test_every_tasks_config_refuses_counts_too_small_for_its_splits(task, overri
      "--samples: expected an integer, got '1.5' (python -m warp_vision.scene demo --help says more)"),
     # ours, as before, on a line of their own
     ("sim", ["experiment"], "'experiment' is not a command (did you mean 'experiments'?): expected one of demo, "
-                            "experiments, intraocular, oculomotor, intercept (python -m warp_vision.sim --help says more)"),
+                            "experiments, intraocular, oculomotor, intercept (python -m warp_vision.sim --help says "
+                            "more)"),
     ("scene", [], "expected a command: one of demo (python -m warp_vision.scene COMMAND --help says more)"),
     ("sim", ["--quick", "demo"], "--quick goes after the command: python -m warp_vision.sim demo --quick"),
 ])
@@ -252,7 +257,8 @@ def test_a_mistyped_command_of_the_index_is_one_error_line(capsys):
 @pytest.mark.parametrize("variable, value, says", [
     ("WARP_VISION_THREADS", "0", "WARP_VISION_THREADS: expected a whole number of threads >= 1 (4, say), got '0'"),
     ("WARP_VISION_THREADS", "abc", "WARP_VISION_THREADS: expected a whole number of threads >= 1 (4, say), got 'abc'"),
-    ("WARP_VISION_MEMORY_LIMIT", "8 GB", "WARP_VISION_MEMORY_LIMIT: expected a number of bytes >= 1 (8e9, say), got '8 GB'"),
+    ("WARP_VISION_MEMORY_LIMIT", "8 GB",
+     "WARP_VISION_MEMORY_LIMIT: expected a number of bytes >= 1 (8e9, say), got '8 GB'"),
     ("WORLD_SIZE", "0", "WORLD_SIZE: expected a whole number >= 1 (torchrun sets it), got '0'"),
     ("RANK", "first", "RANK: expected a whole number >= 0 (torchrun sets it), got 'first'"),
 ])

@@ -113,7 +113,7 @@ def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False)
     if ck["net"].get("model") != "range":
         raise ValueError(f"{limb_run}: expected a ranging limb vision run (--model range), got {ck['net'].get('model')!r}")
     summary = _json.loads((Path(limb_run) / "summary.json").read_text())
-    again = f"python -m warp_vision.train evaluate {limb_run}"  # (it renders the run's datasets where they are not whole)
+    again = f"python -m warp_vision.train evaluate {limb_run}"  # (renders the run's datasets where they are not whole)
     try:
         store = ChunkedStore.open(summary["heldout_dataset"])
         d = store.load(["onv", "target"])

@@ -112,7 +112,8 @@ class ArmTrainConfig:
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
         self.data_config().validate()
-        check_splits(self.postures, self.val_fraction, self.test_fraction, min_test=2, name="postures")  # (those held split: at most these)
+        # the postures held are split: at most these
+        check_splits(self.postures, self.val_fraction, self.test_fraction, min_test=2, name="postures")
 
 
 ARM_PRESETS: dict[str, dict] = {
