@@ -53,12 +53,11 @@ class ArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         """One line on stderr, ``error: <message> (<prog> --help says more)``, and exit code 2, as the typed checks
-        give (argparse printed its usage block above the message; a message that names a command line to type
-        has no pointer to --help). Its words for a missing or mistyped subcommand
-        are replaced by ours: "the following arguments are required: cmd" named the parser's internal field, and
-        "invalid choice: 'experiment' (choose from ...)" left finding the nearest command to the user; its other
-        messages name the option as the typed checks do (``--checkpoint: expected one of best, latest, got
-        'previous'``)."""
+        give: no usage block, --help says the rest (a message that names a command line to type needs no pointer
+        to it). Its words for a missing or mistyped subcommand are replaced by ours: "the following arguments are
+        required: cmd" named the parser's internal field, and "invalid choice: 'experiment' (choose from ...)" left
+        finding the nearest command to the user; its other messages name the option as the typed checks do
+        (``--checkpoint: expected one of best, latest, got 'previous'``)."""
         sub = _subcommands(self)
         if sub is not None:
             names = list(sub.choices)
@@ -167,10 +166,12 @@ def _as_typed(message: str) -> str:
     m = _ARGPARSE_VALUE.fullmatch(message)
     if m:
         option, kind, value, choices = m.groups()
-        if choices is not None or kind is not None:
-            expected = "one of " + re.sub(r"'([^']*)'", r"\1", choices) if choices is not None else \
-                _KINDS.get(kind, f"a {kind} value")
-            return f"{option.split('/')[-1]}: expected {expected}, got {value}"
+        option = option.split("/")[-1]
+        if choices is not None:
+            unquoted = re.sub(r"'([^']*)'", r"\1", choices)
+            return f"{option}: expected one of {unquoted}, got {value}"
+        if kind is not None:
+            return f"{option}: expected {_KINDS.get(kind, f'a {kind} value')}, got {value}"
     m = re.match(r"argument (\S+): ", message)
     return f"{m.group(1).split('/')[-1]}: {message[m.end():]}" if m else message
 
