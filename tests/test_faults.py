@@ -409,7 +409,8 @@ def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys)
     ("train", ["--preset", "smoke", "faces"], "unrecognized arguments: faces (faces is a command: name it first, before the options)"),
     ("bench", ["linet", "--batchs=3"], "unrecognized arguments: --batchs=3 (did you mean --batch?)"),
     ("train", ["limb", "--epoch", "3"], "unrecognized arguments: --epoch 3 (did you mean --epochs?)"),
-    ("scene", ["demo", "--bogus"], "unrecognized arguments: --bogus\n"),  # nothing near: no guess
+    ("scene", ["demo", "--bogus"], "error: unrecognized arguments: --bogus (python -m warp_vision.scene demo --help "
+                                   "says more)\n"),  # nothing near: no guess
 ])
 def test_a_missing_or_mistyped_command_or_flag_is_named_with_the_nearest(command, argv, says, capsys):
     import importlib

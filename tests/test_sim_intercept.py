@@ -92,7 +92,9 @@ def test_unknown_choices_are_refused_by_the_parser(tmp_path, monkeypatch, capsys
         with pytest.raises(SystemExit) as e:
             main(["intercept", *argv])
         assert e.value.code == 2
-        assert f"argument {argv[0]}: invalid choice: '{argv[1]}'" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {argv[0]}: expected one of ") and f", got '{argv[1]}' (" in err, err
+        assert err.count("\n") == 1, err
     assert not (tmp_path / "runs").exists()
 
 

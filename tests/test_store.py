@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from warp_vision.data.store import ChunkedStore, CorruptChunkError, MissingStoreError, parse_shard
+from warp_vision.data.store import ChunkedStore, CorruptChunkError, ForeignChunkError, MissingStoreError, parse_shard
 
 FIELDS = {"onv": ((6,), "float16"), "target": ((2,), "float32"), "label": ((), "int64")}
 CONFIG = {"seed": 3, "retina": {"n": 1000, "layout": "logpolar"}, "sizes": (1, 2)}
@@ -201,11 +201,14 @@ def test_quick_check_counts_wrong_size_or_absent_data_as_missing(tmp_path):
     with open(tmp_path / "chunk_000003.onv.npy", "ab") as f:
         f.write(b"\0")
     assert store.missing_chunks() == [1, 3]
-    # a record from another dataset (manifest deleted and recreated) does not count either
+    # a record from another dataset (manifest deleted and recreated) is neither present nor missing: it is named
     (tmp_path / "manifest.json").unlink()
     fresh = new_store(tmp_path)
     assert fresh.dataset_id != store.dataset_id
-    assert fresh.missing_chunks() == [0, 1, 2, 3, 4]
+    with pytest.raises(ForeignChunkError) as e:
+        fresh.missing_chunks()
+    assert (f"chunk 0 belongs to another dataset: its record's dataset_id is '{store.dataset_id}', this dataset's "
+            f"(manifest.json) '{fresh.dataset_id}'") in str(e.value)
     with pytest.raises(CorruptChunkError, match="dataset_id"):
         fresh.load_chunk(0)
 

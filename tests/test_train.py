@@ -826,7 +826,8 @@ def test_the_data_commands_help_reads_by_section_and_names_each_fields_values(ki
         assert built < shown.index("--identities-cache")
     with pytest.raises(SystemExit):
         parser().parse_args([kind, "--eye", "middle"])
-    assert "argument --eye: invalid choice: 'middle' (choose from 'left', 'right')" in capsys.readouterr().err
+    assert capsys.readouterr().err == (f"error: --eye: expected one of left, right, got 'middle' (python -m "
+                                       f"warp_vision.data {kind} --help says more)\n")
 
 
 def test_the_data_command_writes_where_the_training_run_looks(tmp_path, monkeypatch, capsys):

@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     name, rest = argv[0], argv[1:]
     if name not in COMMANDS:
-        print(f"{usage()}\n\nerror: {not_a_command(name, COMMANDS)}", file=sys.stderr)
+        print(f"error: {not_a_command(name, COMMANDS)} (python -m warp_vision --help says more)", file=sys.stderr)
         return 2
     return importlib.import_module(f"warp_vision.{name}.cli").main(rest)
 

@@ -21,6 +21,8 @@ import sys
 import threading
 from typing import Callable
 
+from warp_vision.resources import check_environment
+
 
 def error_line(e: BaseException) -> str:
     """One line for an error a user can act on: an OSError as "FILE: what went wrong", others as their message."""
@@ -51,9 +53,12 @@ class ArgumentParser(argparse.ArgumentParser):
         self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message: str):
-        """argparse's error, with its words for a missing or mistyped subcommand replaced by ours: "the
-        following arguments are required: cmd" named the parser's internal field, and "invalid choice:
-        'experiment' (choose from ...)" left finding the nearest command to the user."""
+        """One line on stderr, ``error: <message> (<prog> --help says more)``, and exit code 2, as the typed checks
+        give: no usage block, --help says the rest (a message that names a command line to type needs no pointer
+        to it). Its words for a missing or mistyped subcommand are replaced by ours: "the following arguments are
+        required: cmd" named the parser's internal field, and "invalid choice: 'experiment' (choose from ...)" left
+        finding the nearest command to the user; its other messages name the option as the typed checks do
+        (``--checkpoint: expected one of best, latest, got 'previous'``)."""
         sub = _subcommands(self)
         if sub is not None:
             names = list(sub.choices)
@@ -67,7 +72,9 @@ class ArgumentParser(argparse.ArgumentParser):
                     word = None
                 if isinstance(word, str):
                     message = not_a_command(word, names)
-        super().error(message)
+        message = _as_typed(message)
+        more = "" if "--help" in message or "python -m" in message else f" ({self.prog} --help says more)"
+        self.exit(2, f"error: {message}{more}\n")
 
     def parse_args(self, args=None, namespace=None):
         """argparse's, naming the nearest option of the command for a mistyped flag (``--photoreceptor``:
@@ -80,9 +87,16 @@ class ArgumentParser(argparse.ArgumentParser):
         if misplaced:
             self.error(misplaced)
         parsed, extras = self.parse_known_args(args, namespace)
-        if extras:
-            self.error(f"unrecognized arguments: {' '.join(extras)}{self._hint(parsed, extras)}")
+        if extras:  # (said by the command chosen, whose --help the line points to)
+            self._chosen(parsed).error(f"unrecognized arguments: {' '.join(extras)}{self._hint(parsed, extras)}")
         return parsed
+
+    def _chosen(self, parsed: argparse.Namespace) -> argparse.ArgumentParser:
+        """The parser of the (sub)command ``parsed`` chose: this one, or the subcommand it names, and so on."""
+        chosen = self
+        while (sub := _subcommands(chosen)) is not None and getattr(parsed, sub.dest, None) in sub.choices:
+            chosen = sub.choices[getattr(parsed, sub.dest)]
+        return chosen
 
     def _misplaced(self, args: list[str]) -> str | None:
         """Where a command's option was given before the command (``sim --quick demo``, ``data --preset quick
@@ -140,6 +154,27 @@ def _options(parser: argparse.ArgumentParser) -> list[str]:
 def _listed(names: list[str]) -> str:
     """"a", "a and b", "a, b and c"."""
     return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
+_ARGPARSE_VALUE = re.compile(r"argument (\S+): (?:invalid (\w+) value|invalid choice): (.+?)(?: \(choose from (.*)\))?")
+_KINDS = {"int": "an integer", "float": "a number"}
+
+
+def _as_typed(message: str) -> str:
+    """An argparse message in the typed checks' words: "argument --lr: ..." as "--lr: ...", and a value its
+    type or choices refuse as "--samples: expected an integer, got 'abc'" or "--checkpoint: expected one of
+    best, latest, got 'previous'" (an option with a short form, "-o/--out", by its long one)."""
+    m = _ARGPARSE_VALUE.fullmatch(message)
+    if m:
+        option, kind, value, choices = m.groups()
+        option = option.split("/")[-1]
+        if choices is not None:
+            unquoted = re.sub(r"'([^']*)'", r"\1", choices)
+            return f"{option}: expected one of {unquoted}, got {value}"
+        if kind is not None:
+            return f"{option}: expected {_KINDS.get(kind, f'a {kind} value')}, got {value}"
+    m = re.match(r"argument (\S+): ", message)
+    return f"{m.group(1).split('/')[-1]}: {message[m.end():]}" if m else message
 
 
 def _values_joined(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
@@ -340,10 +375,12 @@ def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, in
     code), as does a failed allocation (:func:`out_of_memory`; other RuntimeErrors raise); Ctrl-C returns
     130, SIGTERM 143 (:class:`Terminated`), saying so in a line unless the command has said where it stopped
     (:func:`told`). A line that begins with a setting's name begins with its option where ``options``
-    (the command's, :func:`long_options`) holds one (:func:`as_option`). With ``debug`` the errors raise,
+    (the command's, :func:`long_options`) holds one (:func:`as_option`). The environment variables the package
+    reads are checked first (:func:`warp_vision.resources.check_environment`). With ``debug`` the errors raise,
     traceback and all."""
     codes = codes or {}
     try:
+        check_environment()  # (before any work, bar or file)
         with sigterm_as_interrupt():
             r = job()
     except Terminated as e:

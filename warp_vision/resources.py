@@ -48,6 +48,52 @@ def _memory_cap(text: str) -> int:
     return int(v)
 
 
+def threads_from_environment() -> int | None:
+    """``WARP_VISION_THREADS``, the worker threads of split CPU launches: None where it is unset or empty;
+    anything but a whole number >= 1 is a ValueError naming the variable."""
+    text = os.environ.get("WARP_VISION_THREADS")
+    if not text:
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"WARP_VISION_THREADS: expected a whole number of threads >= 1 (4, say), got {text!r}")
+    return n
+
+
+def _whole_number(name: str, least: int) -> None:
+    """The environment variable ``name``, where set, is a whole number >= ``least``; else a ValueError naming it."""
+    text = os.environ.get(name)
+    if text is None:
+        return
+    try:
+        ok = int(text) >= least
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ValueError(f"{name}: expected a whole number >= {least} (torchrun sets it), got {text!r}")
+
+
+def check_environment() -> None:
+    """Every environment variable the package reads, checked when a command starts (errors.guarded), before
+    any work: ``WARP_VISION_THREADS``, ``WARP_VISION_MEMORY_LIMIT``, ``WARP_VISION_KERNEL_CACHE`` (no file where
+    its directory belongs) and torchrun's ``RANK`` and ``WORLD_SIZE``; a ValueError or OSError naming the first
+    bad one. (``WARP_VISION_CACHE`` may name any directory: a BVH cache that cannot be written is skipped.)"""
+    from warp_vision.fileio import require_output
+
+    threads_from_environment()
+    cap = os.environ.get("WARP_VISION_MEMORY_LIMIT")
+    if cap:
+        _memory_cap(cap)
+    cache = os.environ.get("WARP_VISION_KERNEL_CACHE")
+    if cache:  # (creating nothing: the directory is made, and found writable or not, when Warp starts)
+        require_output(cache, "WARP_VISION_KERNEL_CACHE", writable=False)
+    _whole_number("WORLD_SIZE", 1)
+    _whole_number("RANK", 0)
+
+
 def human_bytes(n: float) -> str:
     """``n`` bytes as KiB, MiB or GiB."""
     if n < 2**20:

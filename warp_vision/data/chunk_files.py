@@ -25,7 +25,8 @@ import numpy as np
 
 from warp_vision.fileio import NPY_FORMAT_ERRORS, atomic_write, write_json
 
-__all__ = ["CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "MANIFEST_NAME"]
+__all__ = ["CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "ForeignChunkError", "IncompleteStoreError",
+           "MANIFEST_NAME"]
 
 #: The ``format`` entry of every manifest written by the store.
 FORMAT_NAME = "warp_vision.ChunkedStore"
@@ -49,6 +50,25 @@ class MissingStoreError(ValueError):
         super().__init__(f"{self.root / MANIFEST_NAME} not found: {self.root} is not a ChunkedStore (or was never created)")
 
 
+class IncompleteStoreError(ValueError):
+    """Chunks missing when a store is read whole (``missing``: their indices, of ``num_chunks``). ``finish``: the
+    command that renders them, where the reader knows it (the run whose dataset it is); a reader that does can
+    name it on an error raised without one (:meth:`finished_by`)."""
+
+    def __init__(self, root: os.PathLike | str, missing: list[int], num_chunks: int, finish: str | None = None):
+        self.root, self.missing, self.num_chunks, self.finish = Path(root), list(missing), int(num_chunks), finish
+        head = ", ".join(str(c) for c in self.missing[:10]) + (", ..." if len(self.missing) > 10 else "")
+        how = (f"{finish} renders them" if finish else
+               "the command that made it renders them when run again (a training run's dataset: python -m "
+               "warp_vision.train evaluate RUN_DIR)")
+        super().__init__(f"{self.root}: dataset incomplete: {len(self.missing)} of {self.num_chunks} chunks missing "
+                         f"(chunks {head}); {how}")
+
+    def finished_by(self, command: str) -> "IncompleteStoreError":
+        """This error, naming ``command`` as the one that renders the missing chunks."""
+        return IncompleteStoreError(self.root, self.missing, self.num_chunks, command)
+
+
 class CorruptChunkError(ValueError):
     """A chunk's file is missing, truncated, of the wrong size, fails its sha256 check or cannot be read.
 
@@ -61,6 +81,19 @@ class CorruptChunkError(ValueError):
         self.chunk = int(chunk)
         self.what = what
         super().__init__(f"{self.path}: {what} (chunk {self.chunk})")
+
+
+class ForeignChunkError(CorruptChunkError):
+    """A chunk whose record carries another dataset's id than the manifest's: its files were copied in from
+    another dataset's directory (or the manifest was made anew over old chunks). It is neither this dataset's
+    nor missing: it is named, and rendered again only once its files are removed."""
+
+    def __init__(self, path: os.PathLike | str, chunk: int, theirs: Any, ours: str):
+        self.path, self.chunk, self.theirs, self.ours = Path(path), int(chunk), theirs, ours
+        self.what = (f"chunk {self.chunk} belongs to another dataset: its record's dataset_id is {theirs!r}, this "
+                     f"dataset's ({MANIFEST_NAME}) {ours!r} (copied in from another dataset's directory?); remove its "
+                     f"files ({self.path.parent / f'chunk_{self.chunk:06d}.*'}) to have it rendered again")
+        ValueError.__init__(self, f"{self.path}: {self.what}")
 
 
 def is_int(x: Any) -> bool:
@@ -238,6 +271,8 @@ def read_record(path: Path, c: int, expect: Mapping[str, Any], data_files: Mappi
         raise CorruptChunkError(path, c, f"record unreadable: {e}") from None
     if not isinstance(rec, dict):
         raise CorruptChunkError(path, c, "record is not a JSON object")
+    if "dataset_id" in expect and rec.get("dataset_id") != expect["dataset_id"]:
+        raise ForeignChunkError(path, c, rec.get("dataset_id"), expect["dataset_id"])
     for k, v in expect.items():
         if rec.get(k) != v:
             raise CorruptChunkError(path, c, f"record has {k}={rec.get(k)!r}, expected {v!r}")

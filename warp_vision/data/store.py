@@ -18,7 +18,9 @@ On-disk layout of a store rooted at ``root``::
 
 Every file is written to a hidden temporary name in ``root`` and then renamed over its final name, after
 an fsync (:mod:`warp_vision.fileio`), so a reader never sees a half-written file under a final name. A
-chunk whose record is absent (an interrupted write) counts as missing and is never read; ``write_chunk``
+chunk whose record is absent (an interrupted write) counts as missing and is never read; one whose record
+carries another dataset's id (its files copied in from another dataset's directory) is named, with both ids
+(``ForeignChunkError``), wherever chunks are counted or read, and is not rendered over; ``write_chunk``
 deletes an old record before it replaces a chunk's data. There is no shared file that writers update: shard ``i``
 of ``n`` (``my_chunks``: the chunks with ``c % n == i``) writes only its own chunks' files, so ``n``
 processes can fill one directory concurrently. The manifest is created once, with an exclusive
@@ -55,6 +57,8 @@ from warp_vision.data.chunk_files import (
     FORMAT_VERSION,
     MANIFEST_NAME,
     CorruptChunkError,
+    ForeignChunkError,
+    IncompleteStoreError,
     MissingStoreError,
     fields_from_json,
     fields_to_json,
@@ -72,7 +76,8 @@ from warp_vision.data.chunk_files import (
     write_npy,
 )
 
-__all__ = ["ChunkedStore", "CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "MissingStoreError", "parse_shard"]
+__all__ = ["ChunkedStore", "CorruptChunkError", "FORMAT_NAME", "FORMAT_VERSION", "ForeignChunkError",
+           "IncompleteStoreError", "MissingStoreError", "parse_shard"]
 
 
 def dataset_bytes(fields: Mapping[str, tuple], samples: int) -> int:
@@ -235,12 +240,15 @@ class ChunkedStore:
 
     @staticmethod
     def check_settings(root: os.PathLike | str, config: dict) -> None:
-        """Refuse now what :meth:`create_or_resume` would refuse later: ``root`` holding a store written
-        with another ``config`` (ValueError naming the first difference, or an unreadable manifest).
-        Nothing is written; a directory without a manifest passes (its store is yet to be made)."""
+        """Refuse now what :meth:`create_or_resume` and the writers would refuse later: ``root`` holding a store
+        written with another ``config`` (ValueError naming the first difference, or an unreadable manifest), or a
+        chunk of another dataset (:class:`ForeignChunkError`). Nothing is written; a directory without a
+        manifest passes (its store is yet to be made)."""
         root = Path(root)
         if (root / MANIFEST_NAME).exists():
-            _refuse_other_settings(root / MANIFEST_NAME, read_manifest(root), {"config": json_roundtrip(config)})
+            manifest = read_manifest(root)
+            _refuse_other_settings(root / MANIFEST_NAME, manifest, {"config": json_roundtrip(config)})
+            ChunkedStore(root, manifest, (0, 1), writable=False).complete  # (a chunk of another dataset: named)
 
     @classmethod
     def open(cls, root: os.PathLike | str) -> "ChunkedStore":
@@ -299,9 +307,12 @@ class ChunkedStore:
         return read_record(self.record_path(c), c, self._record_expect(c), data_files)
 
     def _chunk_present(self, c: int) -> bool:
-        """Quick check: valid record, and every data file exists with the recorded size (no hashing)."""
+        """Quick check: valid record, and every data file exists with the recorded size (no hashing). A
+        chunk of another dataset is not missing: :class:`ForeignChunkError` names it."""
         try:
             rec = self._read_record(c)
+        except ForeignChunkError:
+            raise
         except CorruptChunkError:
             return False
         for name, entry in rec["files"].items():
@@ -314,7 +325,8 @@ class ChunkedStore:
 
     def missing_chunks(self) -> list[int]:
         """This shard's chunks not (completely) written: no valid record, or a data file absent or of
-        the wrong size. Sizes only, no hashing (use ``verify`` for that)."""
+        the wrong size. Sizes only, no hashing (use ``verify`` for that). ForeignChunkError for a chunk
+        of another dataset."""
         return [c for c in self.my_chunks() if not self._chunk_present(c)]
 
     def written(self, c: int) -> bool:
@@ -448,8 +460,8 @@ class ChunkedStore:
         """The whole dataset: ``{name: [total, *shape] array}`` in global sample order.
 
         fields: names to load (default all). verify: check every file's sha256 while reading (sizes and
-        headers are always checked). Raises ValueError if chunks are missing (how many, which first) and
-        CorruptChunkError for a bad chunk.
+        headers are always checked). Raises IncompleteStoreError if chunks are missing (how many, which first),
+        CorruptChunkError for a bad chunk and ForeignChunkError for another dataset's.
         """
         names = self._check_field_names(fields)
         missing = self._all_missing()
@@ -458,11 +470,7 @@ class ChunkedStore:
             time.sleep(min(2.0, max(0.0, deadline - time.monotonic())))
             missing = self._all_missing()
         if missing:
-            head = ", ".join(str(c) for c in missing[:10]) + (", ..." if len(missing) > 10 else "")
-            raise ValueError(
-                f"{self.root}: dataset incomplete: {len(missing)} of {self.num_chunks} chunks missing "
-                f"(chunks {head}); run the writers for their shards to finish it"
-            )
+            raise IncompleteStoreError(self.root, missing, self.num_chunks)
         out = {name: np.empty((self.total, *self.fields[name][0]), dtype=np.dtype(self.fields[name][1])) for name in names}
         for c in range(self.num_chunks):
             rec = self._read_record(c)

@@ -29,6 +29,8 @@ from typing import Any, Sequence
 import torch
 import warp as wp
 
+from warp_vision.resources import threads_from_environment
+
 wp.config.quiet = True
 wp.config.log_level = wp.LOG_WARNING
 
@@ -108,14 +110,8 @@ def init() -> None:
 
 def cpu_threads() -> int:
     """Worker threads for split CPU launches: ``WARP_VISION_THREADS`` or the usable core count."""
-    env = os.environ.get("WARP_VISION_THREADS")
-    if env:
-        try:
-            n = int(env)
-        except ValueError:
-            n = 0
-        if n < 1:
-            raise ValueError(f"WARP_VISION_THREADS must be a whole number >= 1, got {env!r}")
+    n = threads_from_environment()
+    if n is not None:
         return n
     try:
         return max(1, len(os.sched_getaffinity(0)))

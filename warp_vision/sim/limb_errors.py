@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from warp_vision.data.store import ChunkedStore
+from warp_vision.data.store import ChunkedStore, IncompleteStoreError, MissingStoreError
 from warp_vision.frames import gaze_direction
 from warp_vision.sim.limb import NEAR_M, LimbDataConfig, Poser, ball_in_eye
 
@@ -113,9 +113,15 @@ def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False)
     if ck["net"].get("model") != "range":
         raise ValueError(f"{limb_run}: expected a ranging limb vision run (--model range), got {ck['net'].get('model')!r}")
     summary = _json.loads((Path(limb_run) / "summary.json").read_text())
-    store = ChunkedStore.open(summary["heldout_dataset"])
+    again = f"python -m warp_vision.train evaluate {limb_run}"  # (renders the run's datasets where they are not whole)
+    try:
+        store = ChunkedStore.open(summary["heldout_dataset"])
+        d = store.load(["onv", "target"])
+    except MissingStoreError as e:
+        raise ValueError(f"{e.root}: the held-out dataset of {limb_run} is gone; {again} renders it again") from None
+    except IncompleteStoreError as e:
+        raise e.finished_by(again) from None
     cfg = LimbDataConfig.from_manifest(store.manifest["config"])
-    d = store.load(["onv", "target"])
     onv = torch.from_numpy(d["onv"])
     direction = foveation(onv)  # [N, 2] yaw, pitch
     u = np.stack([gaze_direction(*a) for a in direction])

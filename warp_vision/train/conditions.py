@@ -81,7 +81,7 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
         path = checkpoint_path(out, checkpoint)
         ck = read_checkpoint(path)
         require_own_checkpoint(FoveationTask, ck, path, out, saved_config(FoveationTask, out))
-        cfg = run_config(FoveationTask, out, ck)
+        cfg = run_config(FoveationTask, out, ck, path)
         device = pick_device(cfg.device)
         model = net_from_checkpoint(ck, device, views, source=path)
         dtype = onv_dtype(ck["net"])

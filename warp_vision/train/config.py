@@ -82,6 +82,22 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
                          "(use --precision auto or float32)")
 
 
+def check_splits(n: int, val_fraction: float, test_fraction: float, min_test: int = 0, name: str = "samples",
+                 of: str = "") -> tuple[int, int, int]:
+    """(train, validation, test) counts of ``n`` samples split by the fractions: at least one to validate and
+    ``min_test`` to test. Fewer than 2 left to train is a ValueError beginning with the setting ``name`` (``of``:
+    what the count is made of, after it), as one sample's targets have no spread to standardise by. The harness
+    splits by these counts (``harness.splits``); each config's validate checks its count before any data is
+    rendered."""
+    n_test = max(min_test, int(round(n * test_fraction)))
+    n_val = max(1, int(round(n * val_fraction)))
+    if n - n_val - n_test < 2:
+        raise ValueError(f"{name}: {n:,}{of} leave {max(0, n - n_val - n_test)} to train after {n_val} to validate and "
+                         f"{n_test} to test: expected at least 2 (more {name}, or a smaller --val-fraction or "
+                         f"--test-fraction)")
+    return n - n_val - n_test, n_val, n_test
+
+
 def onv_dtype_name(cfg) -> str:
     """The dtype ``cfg``'s net reads its ONVs in: ``cfg.onv_dtype``, with "auto" meaning float16 (the
     store's) for a liNet and float32 for the fc, conv, cnn and range nets."""
@@ -144,8 +160,11 @@ class TrainConfig:
     # the run
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
 
-    #: Fields added after runs were saved without them: a saved config that lacks one had this value.
-    LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset", "precision": "float32"}
+    #: Fields added after runs were saved without them: a saved config that lacks one had this value (ONVs read
+    #: in float32; channels, views, no_augment and plain_epochs are read by models that came with them or after).
+    #: Any other setting missing from a saved config is refused (rundir.config_from_saved).
+    LEGACY_DEFAULTS = {"generator": 7, "input_norm": "dataset", "precision": "float32", "onv_dtype": "float32",
+                       "channels": 16, "init": "", "views": 8, "no_augment": False, "plain_epochs": 0}
     #: the net settings only some models read: {field: those models} (a flag given for another is refused)
     MODEL_FIELDS: ClassVar[dict] = {"layers": ("linet", "fc", "conv"), "receptive_field": ("linet", "fc"),
                                     "reduction": ("linet", "fc", "conv"), "channels": ("conv", "cnn"), "views": ("cnn",)}
@@ -177,6 +196,7 @@ class TrainConfig:
 
     def validate(self) -> None:
         _check_common(self, PRESETS, ("samples", "photoreceptors", "samples_per_receptor"), test_may_be_empty=True)
+        check_splits(self.samples, self.val_fraction, self.test_fraction)
         if self.model == "fc" and self.head == "softargmax":
             raise ValueError("head: the fc baseline has no unit positions to vote with; use --head linear")
         if self.model in ("conv", "cnn") and self.head == "linear":
@@ -266,6 +286,9 @@ class FaceTrainConfig:
     # the run
     device: str = "auto"  # cpu, cuda, or auto (cuda when Warp and torch see one)
 
+    #: Fields added after runs were saved without them: a saved config that lacks one had this value.
+    LEGACY_DEFAULTS = {"onv_dtype": "float32"}
+
     def data_config(self):
         from warp_vision.data.faces import FaceDataConfig
 
@@ -280,7 +303,10 @@ class FaceTrainConfig:
         if not self.loss_lambda >= 0:
             raise ValueError(f"loss_lambda: expected >= 0, got {self.loss_lambda}")
         check_net_sizes(self)
-        self.data_config().validate()
+        data = self.data_config()
+        data.validate()
+        check_splits(data.samples, self.val_fraction, self.test_fraction, min_test=1, name="identities",
+                     of=f" samples ({self.identities} identities x {data.poses} poses)")
 
 
 #: Each face preset: its dataset (``data.faces.PRESET_DATA``, which ``python -m warp_vision.data faces --preset``

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from warp_vision.train.config import CHOICES, _check_common, check_net_sizes, epoch_lr
+from warp_vision.train.config import CHOICES, _check_common, check_net_sizes, check_splits, epoch_lr
 
 
 @dataclass
@@ -46,6 +46,7 @@ class OculomotorTrainConfig:
     def validate(self) -> None:
         _check_common(self, OCULOMOTOR_PRESETS, ("gazes", "transitions", "hidden", "body_checks"))
         self.data_config().validate()
+        check_splits(self.gazes, self.val_fraction, self.test_fraction, min_test=2, name="gazes")
 
 
 OCULOMOTOR_PRESETS: dict[str, dict] = {
@@ -111,6 +112,8 @@ class ArmTrainConfig:
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
         self.data_config().validate()
+        # the postures held are split: at most these
+        check_splits(self.postures, self.val_fraction, self.test_fraction, min_test=2, name="postures")
 
 
 ARM_PRESETS: dict[str, dict] = {
@@ -166,7 +169,7 @@ class LimbTrainConfig:
     device: str = "auto"  # cpu, cuda, or auto
 
     #: Fields added after runs were saved without them: a saved config that lacks one had this value.
-    LEGACY_DEFAULTS = {"ball": "glowing", "precision": "float32"}
+    LEGACY_DEFAULTS = {"ball": "glowing", "precision": "float32", "channels": 16}  # (channels: read by models after it)
     #: the net settings only some models read (see :attr:`warp_vision.train.config.TrainConfig.MODEL_FIELDS`)
     MODEL_FIELDS: ClassVar[dict] = {"layers": ("linet", "fc"), "receptive_field": ("linet", "fc"),
                                     "reduction": ("linet", "fc"), "channels": ("cnn", "range")}
@@ -189,6 +192,7 @@ class LimbTrainConfig:
 
     def validate(self) -> None:
         _check_common(self, LIMB_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor"))
+        check_splits(self.samples, self.val_fraction, self.test_fraction, min_test=2)
         if not self.near_weight_m > 0:
             raise ValueError(f"near_weight_m: expected > 0 m, got {self.near_weight_m}")
         if self.model in ("cnn", "range") and self.onv_dtype not in ("auto", "float32"):

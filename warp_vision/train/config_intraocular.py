@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from warp_vision.train.config import _check_common
+from warp_vision.train.config import _check_common, check_splits
 
 
 @dataclass
@@ -50,6 +50,7 @@ class PupilTrainConfig:
     def validate(self) -> None:
         _check_common(self, PUPIL_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor",
                                             "hidden", "rings", "sectors"))
+        check_splits(self.samples, self.val_fraction, self.test_fraction, min_test=2)
         self.data_config().validate()
 
 
@@ -104,6 +105,7 @@ class LensTrainConfig:
 
     def validate(self) -> None:
         _check_common(self, LENS_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor", "hidden"))
+        check_splits(self.samples, self.val_fraction, self.test_fraction, min_test=2)
         self.data_config().validate()
 
 

@@ -23,20 +23,25 @@ def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
 
 def load_for_evaluation(task: Task, log=print, progress: bool = True, ck: dict | None = None) -> None:
     """Load a finished run's dataset to evaluate it. A store gone from the cache (deleted to free the disk, or
-    a run copied from another machine) is rendered again, the same samples as in training, saying so.
-    With ``ck`` (the checkpoint to evaluate), a store that holds other samples than ``ck`` was trained on
-    (its data_dir pointed at another dataset) is refused; one rendered again here that differs (another
-    machine's arithmetic) is said to differ."""
-    from warp_vision.data.store import MissingStoreError
+    a run copied from another machine), or chunks of it gone, are rendered again, the same samples as in training,
+    saying so. With ``ck`` (the checkpoint to evaluate), a store that holds other samples than ``ck`` was trained on
+    (its data_dir pointed at another dataset) is refused; one rendered again here that differs (another machine's
+    arithmetic) is said to differ."""
+    from warp_vision.data.store import IncompleteStoreError, MissingStoreError
 
-    again = False
     try:
         task.load((0, 1), progress=False, synthesize=False)
+        again = False
     except MissingStoreError as e:
         log(f"the run's dataset {e.root} is gone: rendering it again (the same samples as in training)")
+        again = True
+    except IncompleteStoreError as e:
+        log(f"the run's dataset {e.root} lacks {len(e.missing)} of its {e.num_chunks} chunks: rendering them again "
+            f"(the same samples as in training)")
+        again = True
+    if again:
         with rendering_lock(task, log):
             task.load((0, 1), progress=progress, synthesize=True)
-        again = True
     if ck is None:
         return
     digest = task.dataset_digest()
@@ -60,7 +65,7 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     path = checkpoint_path(run_dir, checkpoint)
     ck = read_checkpoint(path)
     require_own_checkpoint(task_cls, ck, path, run_dir, saved_config(task_cls, run_dir))
-    cfg = run_config(task_cls, Path(run_dir), ck)
+    cfg = run_config(task_cls, Path(run_dir), ck, path)
     task = task_cls(cfg, log)
     load_for_evaluation(task, log, progress, ck)
     ids = task.splits()

@@ -37,13 +37,13 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from warp_vision.data.store import waiting_for_writers
+from warp_vision.data.store import IncompleteStoreError, waiting_for_writers
 from warp_vision.errors import told
 from warp_vision.fileio import resolved, write_json
 from warp_vision.provenance import software
 from warp_vision.nn.trained import (ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, read_run_config,
-                                    require_binding, run_identity, saved_task)
-from warp_vision.train.config import epoch_lr, onv_dtype_name
+                                    require_binding, run_identity, saved_task, task_command)
+from warp_vision.train.config import check_splits, epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
                                       preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics)
 from warp_vision.train.workers import auto_workers, render_in_processes, rendering_lock
@@ -282,17 +282,11 @@ class Dist:
         return float(t.item()) / self.world
 
 
-def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, min_test: int = 0):
-    """(train, val, test) sample indices: a fixed permutation of ``n`` samples (seeded by ``data_seed``);
-    at least one validation sample and ``min_test`` test samples. Fewer than 2 left to train is a ValueError
-    (one sample's targets have no spread to standardise by: the loss was NaN at the first step)."""
+def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, min_test: int = 0, name: str = "samples"):
+    """(train, val, test) sample indices: a fixed permutation of ``n`` samples (seeded by ``data_seed``), split
+    by :func:`warp_vision.train.config.check_splits` (fewer than 2 left to train: a ValueError naming ``name``)."""
     perm = np.random.default_rng([data_seed, 7919]).permutation(n)
-    n_test = max(min_test, int(round(n * test_fraction)))
-    n_val = max(1, int(round(n * val_fraction)))
-    if n - n_val - n_test < 2:
-        raise ValueError(f"samples: {n:,} leave {max(0, n - n_val - n_test)} to train after {n_val} to validate and "
-                         f"{n_test} to test: expected at least 2 (more samples, or a smaller --val-fraction or "
-                         f"--test-fraction)")
+    _, n_val, n_test = check_splits(n, val_fraction, test_fraction, min_test, name)
     return perm[n_test + n_val :], perm[n_test : n_test + n_val], perm[:n_test]
 
 
@@ -428,7 +422,10 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
         # the ranks render their shards of a missing dataset, then each reads the whole: one done first waits
         # for the others' chunks (an hour at most) rather than calling the dataset incomplete
         with waiting_for_writers(3600.0 if dd.world > 1 else 0.0):
-            task.load((dd.rank, dd.world), progress)
+            try:
+                task.load((dd.rank, dd.world), progress)
+            except IncompleteStoreError as e:  # (a writer of another shard stopped, or chunks were removed meanwhile)
+                raise e.finished_by(f"{task_command(task.name)} --resume {out}") from None
     dd.barrier()
     task.dataset = task.dataset_digest()
     if ck is not None and dataset_mismatch(ck, task.dataset):

@@ -329,27 +329,44 @@ def saved_config(task_cls, run_dir):
     return config_from_saved(task_cls.config_cls, saved, Path(run_dir) / "config.json")
 
 
-def run_config(task_cls, run_dir, ck: dict):
-    """The config of the run in ``run_dir`` whose checkpoint is ``ck``: the checkpoint's config (which
-    carries no paths) with the paths of ``run_dir/config.json``."""
+def run_config(task_cls, run_dir, ck: dict, checkpoint=None):
+    """The config of the run in ``run_dir`` whose checkpoint is ``ck`` (the file ``checkpoint``, named where a
+    setting is missing from it): the checkpoint's config (which carries no paths) with the paths of
+    ``run_dir/config.json``, where it has them."""
     saved = read_run_config(run_dir) or {}
-    return config_from_saved(task_cls.config_cls, {**ck["config"], **{k: v for k, v in saved.items() if k in PATH_FIELDS}},
-                             Path(run_dir) / "config.json")
+    paths = {k: v for k, v in saved.items() if k in PATH_FIELDS}
+    source = Path(run_dir) / "config.json"
+    missing = missing_settings(task_cls.config_cls, {**ck["config"], **paths}, optional=PATH_FIELDS)
+    if missing and checkpoint is not None:
+        source = checkpoint  # (the settings but the paths are the checkpoint's)
+    return config_from_saved(task_cls.config_cls, {**ck["config"], **paths}, source, optional=PATH_FIELDS)
 
 
 _JSON_TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
 
 
-def config_from_saved(cls, saved: dict, source):
+def missing_settings(cls, saved: dict, optional=()) -> list[str]:
+    """The settings of ``cls`` that ``saved`` lacks, but those of ``cls.LEGACY_DEFAULTS`` and ``optional``."""
+    legacy = getattr(cls, "LEGACY_DEFAULTS", {})
+    return [f.name for f in fields(cls) if f.name not in saved and f.name not in legacy and f.name not in optional]
+
+
+def config_from_saved(cls, saved: dict, source, optional=()):
     """A ``cls`` config from the settings of a saved run (config.json; a checkpoint's config with its
-    paths), under ``cls.LEGACY_DEFAULTS`` (settings added since). A setting ``cls`` lacks or a value of
-    another type (``"lr": "fast"``) is a ValueError naming ``source`` and the setting; both ended in a
-    TypeError's traceback."""
+    paths), under ``cls.LEGACY_DEFAULTS`` (settings added since). A setting ``cls`` lacks, a value of
+    another type (``"lr": "fast"``) or a setting missing (but those of ``LEGACY_DEFAULTS`` and ``optional``,
+    which take ``cls``'s defaults) is a ValueError naming ``source`` and the settings: a default put in for a
+    run's own setting would describe another run."""
     kinds = {f.name: f.type for f in fields(cls)}
     unknown = [k for k in saved if k not in kinds]
     if unknown:
         raise ValueError(f"{source}: {', '.join(map(repr, unknown))}: not {'a setting' if len(unknown) == 1 else 'settings'} "
                          f"of this run's task (edited by hand, or written by another version?)")
+    missing = missing_settings(cls, saved, optional)
+    if missing:
+        raise ValueError(f"{source}: the setting{'s' if len(missing) > 1 else ''} {', '.join(map(repr, missing))} "
+                         f"{'are' if len(missing) > 1 else 'is'} missing (edited by hand, or cut short?); a default "
+                         f"would not be the run's own, so none is put in")
     for k, v in saved.items():
         ok = _JSON_TYPES.get(kinds[k])
         if ok is not None and (not isinstance(v, ok) or (isinstance(v, bool) and bool not in ok)):
