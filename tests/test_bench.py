@@ -156,7 +156,7 @@ def test_cnn_bench_times_both_precisions_per_width_with_the_speedup(tmp_path):
     (["raytrace", "--photoreceptors", "100", "--samples", "0"], "--samples"),
     (["memory", "--sizes", "0"], "--sizes"),
     (["memory", "--sizes", "300", "--batch", "0"], "--batch"),
-    (["memory", "--sizes", "300", "--budget-gib", "nan"], "--budget-gib"),
+    (["memory", "--sizes", "375", "--budget-gib", "nan"], "--budget-gib"),
     # these named two options for one ("--batch and --repeats: expected positive integers")
     (["readout", "--batch", "4", "0"], "--batch: expected positive integers, got [4, 0]"),
     (["cnn", "--channels", "0"], "--channels: expected positive integers, got [0]"),
