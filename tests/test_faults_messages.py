@@ -223,7 +223,7 @@ def test_every_tasks_config_refuses_counts_too_small_for_its_splits(task, overri
      "--samples: expected an integer, got 'abc' (python -m warp_vision.data foveation --help says more)"),
     ("sim", ["demo", "--bogus"], "unrecognized arguments: --bogus (python -m warp_vision.sim demo --help says more)"),
     ("sim", ["intraocular", "--cards", "0"],
-     "--cards: expected a positive integer, got 0 (python -m warp_vision.sim intraocular --help says more)"),
+     "--cards: expected an integer 1..100 cards, got 0 (python -m warp_vision.sim intraocular --help says more)"),
     ("bench", ["linet", "--repeats", "x"],
      "--repeats: expected an integer, got 'x' (python -m warp_vision.bench linet --help says more)"),
     ("scene", ["demo", "--samples", "1.5"],
