@@ -1,5 +1,5 @@
-"""Shared fixtures: the ``device`` fixture, a kernel cache owned by the test session, and a numpy
-archive whose headers are damaged."""
+"""Shared fixtures: the ``device`` fixture, a kernel cache owned by the test session, a smoke dataset and a
+finished smoke run on it (one per module), and a numpy archive whose headers are damaged."""
 
 from __future__ import annotations
 
@@ -57,6 +57,28 @@ def _unclose_npz_headers(path) -> None:
     with zipfile.ZipFile(path, "w") as z:
         for name, data in members.items():
             z.writestr(name, unclosed(data))
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """A smoke preset's dataset, synthesised once per test module."""
+    from warp_vision.data.foveation import synthesize
+    from warp_vision.train.config import resolve
+
+    d = tmp_path_factory.mktemp("data")
+    synthesize(d, resolve("smoke", {"data_dir": str(d)}).data_config(), progress=False, log=lambda *a: None)
+    return d
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, data):
+    """A finished smoke run (3 epochs, the left eye) on :func:`data`, copied by each test that damages it."""
+    from warp_vision.train import foveation
+    from warp_vision.train.config import resolve
+
+    out = tmp_path_factory.mktemp("finished") / "run"
+    foveation.run(resolve("smoke", {"out": str(out), "data_dir": str(data)}), progress=False, log=lambda *a: None)
+    return out
 
 
 @pytest.fixture

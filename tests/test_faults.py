@@ -35,21 +35,6 @@ from warp_vision.train.config import resolve
 QUIET = dict(progress=False, log=lambda *a: None)
 
 
-@pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    d = tmp_path_factory.mktemp("data")
-    synthesize(d, resolve("smoke", {"data_dir": str(d)}).data_config(), progress=False, log=lambda *a: None)
-    return d
-
-
-@pytest.fixture(scope="module")
-def finished(tmp_path_factory, data):
-    """A finished smoke run (3 epochs), copied by each test that damages it."""
-    out = tmp_path_factory.mktemp("finished") / "run"
-    foveation.run(resolve("smoke", {"out": str(out), "data_dir": str(data)}), **QUIET)
-    return out
-
-
 def copy_run(src: Path, tmp_path: Path) -> Path:
     dst = tmp_path / "run"
     shutil.copytree(src, dst)

@@ -35,8 +35,8 @@ def _run(tmp_path_factory, name: str, **settings) -> Path:
 
 
 @pytest.fixture(scope="module")
-def left(tmp_path_factory):
-    return _run(tmp_path_factory, "left")
+def left(finished):
+    return finished
 
 
 @pytest.fixture(scope="module")
@@ -45,10 +45,9 @@ def right(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def left_seed1(tmp_path_factory, left):
+def left_seed1(tmp_path_factory, data):
     out = tmp_path_factory.mktemp("seed1") / "run"
-    data = json.loads((left / "config.json").read_text())["data_dir"]
-    foveation.run(resolve("smoke", {"out": str(out), "data_dir": data, "seed": 1}), **QUIET)
+    foveation.run(resolve("smoke", {"out": str(out), "data_dir": str(data), "seed": 1}), **QUIET)
     return out
 
 

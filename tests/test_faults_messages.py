@@ -23,21 +23,6 @@ from warp_vision.train.config import resolve
 QUIET = dict(progress=False, log=lambda *a: None)
 
 
-@pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    d = tmp_path_factory.mktemp("data")
-    synthesize(d, resolve("smoke", {"data_dir": str(d)}).data_config(), **QUIET)
-    return d
-
-
-@pytest.fixture(scope="module")
-def finished(tmp_path_factory, data):
-    """A finished smoke run, copied by each test that damages it."""
-    out = tmp_path_factory.mktemp("finished") / "run"
-    foveation.run(resolve("smoke", {"out": str(out), "data_dir": str(data)}), **QUIET)
-    return out
-
-
 def copy_of(src: Path, dst: Path) -> Path:
     shutil.copytree(src, dst)
     return dst

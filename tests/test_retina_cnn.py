@@ -265,7 +265,7 @@ def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path, monke
         foveation.evaluate_run(str(tmp_path / "run"), checkpoint="previous")
 
     # --init: another run (the other eye) starts from these weights; a net of other sizes is refused
-    from warp_vision.train.harness import warm_start
+    from warp_vision.train.rundir import warm_start
 
     other = build_net({**ck["net"], "seed": 5})
     assert not torch.equal(other.heat.weight, model.heat.weight)

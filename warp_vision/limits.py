@@ -64,36 +64,33 @@ def require_int(value, r: Range, name: str) -> int:
     return value
 
 
-def integer(r: Range):
-    """An argparse ``type`` reading an integer in ``r``; anything else is the option's one-line error."""
+def _argument_type(r: Range, convert, read_as: str, kind: str, shown):
+    """An argparse ``type``: the text read by ``convert`` (int or float; ``read_as`` in words) and within ``r``,
+    finite; anything else is an ArgumentTypeError, the option's one-line error ("expected an integer 1..8,192
+    pixels, got 100,000"). ``kind``: what a value out of range was expected to be; ``shown(text, value)``: it in
+    the error."""
 
-    def parse(text: str) -> int:
+    def parse(text: str):
         try:
-            v = int(text)
+            v = convert(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer {r.words()}, got {text!r}") from None
-        if not r.lo <= v <= r.hi:
-            raise argparse.ArgumentTypeError(f"expected an integer {r.words()}, got {v:,}")
+            raise argparse.ArgumentTypeError(f"expected {read_as} {r.words()}, got {text!r}") from None
+        if not (math.isfinite(v) and r.lo <= v <= r.hi):
+            raise argparse.ArgumentTypeError(f"expected {kind} {r.words()}, got {shown(text, v)}")
         return v
 
-    parse.__name__ = "integer"
+    parse.__name__ = convert.__name__
     return parse
+
+
+def integer(r: Range):
+    """An argparse ``type`` reading an integer in ``r``."""
+    return _argument_type(r, int, "an integer", "an integer", lambda text, v: f"{v:,}")
 
 
 def number(r: Range):
     """An argparse ``type`` reading a finite number in ``r``."""
-
-    def parse(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number {r.words()}, got {text!r}") from None
-        if not (math.isfinite(v) and r.lo <= v <= r.hi):
-            raise argparse.ArgumentTypeError(f"expected a finite number {r.words()}, got {text}")
-        return v
-
-    parse.__name__ = "number"
-    return parse
+    return _argument_type(r, float, "a number", "a finite number", lambda text, v: text)
 
 
 def camera_bytes(width: int, height: int) -> int:

@@ -43,7 +43,7 @@ import numpy as np
 
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, long_options
 from warp_vision.fileio import require_output, write_json
-from warp_vision.limits import COUNT, PIXELS, SEED, VIDEO_FPS, Range, check, integer, number, video_bytes
+from warp_vision.limits import COUNT, PIXELS, SEED, VIDEO_FPS, Range, integer, number, video_bytes
 from warp_vision.resources import require_memory
 from warp_vision.provenance import software
 from warp_vision.body import SIDES, Body, BodyConfig
@@ -437,11 +437,9 @@ def _refuse_bad_settings(args) -> None:
 
         every = getattr(args, "video_every", 1)
         fps = 1.0 / (every * CONTROL_DT * args.slow_motion)
-        try:
-            check(fps, VIDEO_FPS, "video")
-        except ValueError:
+        if not VIDEO_FPS.lo <= fps <= VIDEO_FPS.hi:
             raise ValueError(f"--slow-motion: {args.slow_motion:g} with a frame every {every} period(s) makes a video of "
-                             f"{fps:.3g} frames a second; expected {VIDEO_FPS.words()}") from None
+                             f"{fps:.3g} frames a second; expected {VIDEO_FPS.words()}")
         seconds = getattr(args, "duration", SHOT_SECONDS)
         gif = getattr(args, "gif", False) or getattr(args, "video_format", "mp4") == "gif"
         frames = int(seconds / (CONTROL_DT * every)) + 1

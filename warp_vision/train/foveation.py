@@ -222,9 +222,9 @@ class FoveationTask(harness.OnvTask):
 
         from warp_vision.nn.trained import (binding, describe_binding, read_checkpoint, read_run_config, run_identity,
                                             saved_task)
-        from warp_vision.train.rundir import a_run
+        from warp_vision.train.rundir import a_run, init_checkpoint
 
-        best = harness.init_checkpoint(cfg.init)
+        best = init_checkpoint(cfg.init)
         if not best.is_file():
             raise FileNotFoundError(errno.ENOENT, "no such checkpoint (--init takes a foveation run directory or its best.pt)",
                                     str(best))

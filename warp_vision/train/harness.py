@@ -41,11 +41,10 @@ from warp_vision.data.store import IncompleteStoreError, waiting_for_writers
 from warp_vision.errors import told
 from warp_vision.fileio import resolved, write_json
 from warp_vision.provenance import software
-from warp_vision.nn.trained import (ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, read_run_config,
-                                    require_binding, run_identity, saved_task, task_command)
+from warp_vision.nn.trained import ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, task_command
 from warp_vision.train.config import check_splits, epoch_lr, onv_dtype_name
 from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
-                                      preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics)
+                                      preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics, warm_start)
 from warp_vision.train.workers import auto_workers, render_in_processes, rendering_lock
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
@@ -363,31 +362,6 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
         # bar at every batch, ignoring tqdm's mininterval: a line per batch in a log)
         bar.set_postfix(loss=f"{sums['loss'] / max(count, 1):.4f}" if "loss" in sums else "", refresh=False)
     return {k: dd.all_mean(v / max(count, 1)) for k, v in sums.items()}
-
-
-def init_checkpoint(init) -> Path:
-    """The checkpoint a warm start ``init`` names: a run directory's ``best.pt``, or a checkpoint file."""
-    p = Path(init)
-    return p if p.is_file() else p / "best.pt"
-
-
-def warm_start(model: torch.nn.Module, run_dir, task: str | None = None) -> None:
-    """Start ``model`` from the best weights of the run in ``run_dir`` (or of the checkpoint file it names:
-    a net of ``task`` (when given) of the same model and sizes, e.g. the other eye's where the task allows it, checked
-    before the run began by its ``check_new_run``; the normalisation is this run's own, set after). A mismatch
-    is a ValueError."""
-    best = init_checkpoint(run_dir)
-    ck = read_checkpoint(best)
-    if task is not None:
-        require_binding(ck, {"task": task}, best, f"this {task} run's --init")
-    config = read_run_config(best.parent)
-    if config is not None:  # (what check_new_run read of the run is what the checkpoint is)
-        require_binding(ck, run_identity(saved_task(best.parent, config), config), best, f"the run in {best.parent}", config)
-    state = ck["model"]
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:
-        raise ValueError(f"init: {best} holds another net than this run builds ({str(e).splitlines()[0]})") from None
 
 
 def train_precision(model: torch.nn.Module, device: str) -> str:

@@ -73,6 +73,31 @@ def require_own_checkpoint(task_cls, ck: dict, path, run_dir, cfg) -> None:
     require_binding(theirs, run_identity(task_cls.name, settings), path, f"the run in {run_dir}", settings)
 
 
+def init_checkpoint(init) -> Path:
+    """The checkpoint a warm start ``init`` names: a run directory's ``best.pt``, or a checkpoint file."""
+    p = Path(init)
+    return p if p.is_file() else p / "best.pt"
+
+
+def warm_start(model: torch.nn.Module, run_dir, task: str | None = None) -> None:
+    """Start ``model`` from the best weights of the run in ``run_dir`` (or of the checkpoint file it names:
+    a net of ``task`` (when given) of the same model and sizes, e.g. the other eye's where the task allows it, checked
+    before the run began by its ``check_new_run``; the normalisation is this run's own, set after). A mismatch
+    is a ValueError."""
+    best = init_checkpoint(run_dir)
+    ck = read_checkpoint(best)
+    if task is not None:
+        require_binding(ck, {"task": task}, best, f"this {task} run's --init")
+    config = read_run_config(best.parent)
+    if config is not None:  # (what check_new_run read of the run is what the checkpoint is)
+        require_binding(ck, run_identity(saved_task(best.parent, config), config), best, f"the run in {best.parent}", config)
+    state = ck["model"]
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValueError(f"init: {best} holds another net than this run builds ({str(e).splitlines()[0]})") from None
+
+
 def _usable_checkpoint(out: Path, log, task_cls=None, cfg=None) -> dict | None:
     """The newest checkpoint of run ``out`` that reads and verifies (latest.pt, else previous.pt, else
     best.pt), saying which when it is not latest.pt; one ValueError naming them all if none does. None
