@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from warp_vision.nn.trained import build_net, load_net, seal
+from warp_vision.nn.trained import build_net, load_net, run_identity, seal
 from warp_vision.body import Body, BodyConfig
 from warp_vision.sim.oculomotor import HOLDING_VERSION, HoldingDataConfig, evaluate_on_body, load_oculomotor, transition_pairs
 from warp_vision.train import oculomotor
-from warp_vision.train.rundir import run_config
+from warp_vision.train.rundir import run_config, save_checkpoint
 from warp_vision.train.config import resolve
 from warp_vision.train.config_body import OCULOMOTOR_PRESETS, OculomotorTrainConfig
 
@@ -63,8 +63,20 @@ def test_oculomotor_net_learns_the_inverse(tmp_path):
     untrained = build_net(ck["net"]).eval()
     bad = evaluate_on_body(untrained, body, "left", task.gaze_np, task.act_np, task.test_gazes, n=20)
     assert bad["gaze_error_deg_median"] > 2 * ev["gaze_error_deg_median"], (bad, ev)
-    # the simulation's loader finds both eyes' runs under one root
+    # the left eye's run given as the right eye's is refused
     (tmp_path / "right").symlink_to(run)
+    with pytest.raises(ValueError, match="belongs to the left eye's oculomotor run .* not to the right eye's"):
+        load_oculomotor(tmp_path)
+    # the simulation's loader finds both eyes' runs under one root (the right one: the same weights, as its run)
+    (tmp_path / "right").unlink()
+    right = tmp_path / "right"
+    right.mkdir()
+    config = {**json.loads((run / "config.json").read_text()), "eye": "right", "out": str(right)}
+    (right / "config.json").write_text(json.dumps(config))
+    mirrored = {k: v for k, v in ck.items() if k != "integrity"}
+    mirrored["config"] = {**ck["config"], "eye": "right"}
+    mirrored["binding"] = {**ck["binding"], **run_identity("oculomotor", config)}
+    save_checkpoint(mirrored, right / "best.pt")
     nets = load_oculomotor(tmp_path)
     x = (torch.zeros(1, 2), torch.full((1, 6), 0.2))
     assert torch.equal(nets["left"](*x), net(*x))

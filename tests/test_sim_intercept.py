@@ -77,7 +77,11 @@ def test_bad_input_is_refused_in_one_line_before_any_training(argv, words, tmp_p
     from warp_vision.sim.cli import main
 
     monkeypatch.chdir(tmp_path)
-    assert main(["intercept", *argv, "--no-progress"]) == 2
+    try:
+        code = main(["intercept", *argv, "--no-progress"])
+    except SystemExit as e:  # (a value out of its range is the parser's error: it exits)
+        code = e.code
+    assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and words in err[0], err
     assert not (tmp_path / "runs").exists()  # nothing was trained or written

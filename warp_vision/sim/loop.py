@@ -89,7 +89,7 @@ def _load_kind(run_dir: str, kind: str, device: str, eye: str | None = None):
     (``eye`` given) the other eye's, or a checkpoint of another run than its config.json's."""
     from warp_vision.nn.trained import load_net, task_command
 
-    model, ck = load_net(run_dir, device, expect={"task": kind, "eye": eye})
+    model, ck = load_net(run_dir, device, expect={"eye": eye})  # (the kind is checked below, naming its command)
     if ck.get("net", {}).get("kind") != kind:
         raise ValueError(f"{run_dir}: expected a {kind} run ({task_command(kind)}); it holds a "
                          f"net of kind {ck.get('net', {}).get('kind')!r}")
