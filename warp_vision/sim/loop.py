@@ -5,21 +5,8 @@ On each visual frame (every ``FRAME_EVERY`` control periods of ``CONTROL_DT``) t
 state, each eye renders its ONV from its eye body's pose with its own retina and current optical state
 (pupil, accommodation), and its foveation net (trained by ``python -m warp_vision.train --eye
 left|right``) estimates the ball's direction in the eye frame. Every control period the gaze controller
-turns the latest estimate into a change of the commanded gaze:
-
-- where the eye is: an internal model (efference copy through a first-order lag of ``EYE_MODEL_TAU``)
-  of the commanded gaze, so the ball's direction in the head is that belief plus the retinal error,
-  also while the eye is moving;
-- a saccade when the error exceeds ``SACCADE_DEG``: the command jumps to the ball's direction;
-- pursuit otherwise: the command follows the ball's direction led by its estimated angular velocity
-  times ``LEAD``, and a slow integrator of the retinal error (``BIAS_GAIN`` per period) takes out the
-  muscles' static error;
-- the vestibulo-ocular reflex: the head's rotation since the last period (from the neck joints) is taken
-  off the believed eye-in-head gaze, so the ball's estimated direction, and with it the command, stays
-  put in the world while the head turns;
-- between frames: the last frame's estimate of the ball's direction in the head, turned with the head
-  and moved at the estimated angular velocity, stands in for a new one (no saccade is decided and nothing
-  is learned without a frame). With ``frame_every=1`` every period is a frame.
+(:class:`warp_vision.sim.gaze.GazeController`: an internal model of the eye, saccades, pursuit, bias
+learning, the vestibulo-ocular reflex) turns the latest estimate into a change of the commanded gaze.
 
 The oculomotor net maps (change of commanded gaze, current activations) to the next activations. The
 neck controller moves the head's target a fraction ``NECK_GAIN`` per period toward the eyes' mean gaze
@@ -35,7 +22,6 @@ after their latencies.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
@@ -43,27 +29,15 @@ import torch
 
 from warp_vision.frames import gaze_angles, gaze_direction, line_crossing
 from warp_vision.body import ARM_PARTS, HIDDEN_FROM_EYES, SIDES, Body, visible_parts
+from warp_vision.sim.gaze import CONTROL_DT, GazeController
 from warp_vision.sim.oculomotor import holding_activations
 
-CONTROL_DT = 0.01  # s
 #: The eyes render (and the foveation nets run) every FRAME_EVERY control periods: 25 frames a second.
 #: Human visual latency is 50-100 ms and flicker fusion in the periphery 20-60 Hz. At 40 ms a frame the
 #: loop renders a quarter as often; its saccades are as fast as with a frame every period, its tracking
 #: errors somewhat larger (``python -m warp_vision.bench loop`` measures both; docs/RESULTS.md has the numbers).
 FRAME_EVERY = 4
-SACCADE_DEG = 2.0
-EYE_MODEL_TAU = 0.03  # s
-LEAD = 0.03  # s
-#: The bias integrator's gain per period: a time constant of 0.5 s. It takes out the muscles' static error,
-#: which changes slowly with the gaze; at 0.05 (0.2 s) it also integrated the foveation nets' frame-to-frame
-#: error, and at 25 frames a second (a gain of 0.2 a frame) set the gaze oscillating about the ball at about
-#: 5 Hz (``python -m warp_vision.bench loop``; docs/RESULTS.md has the numbers).
-BIAS_GAIN = 0.02
-VELOCITY_SMOOTHING = 0.15  # weight of the newest velocity sample in its running estimate
-MAX_TARGET_SPEED = np.radians(90.0)  # rad/s: the velocity estimate is clipped to this
-POST_SACCADE = 0.08  # s after a saccade's command during which the eye is still moving: no velocity or bias learning
 NECK_GAIN = 0.02
-MAX_GAZE_DEG = 35.0
 #: The most a muscle's holding activation changes per degree of gaze between neighbouring gazes (above the
 #: 99th percentile over the 35 deg disc): an oculomotor net's output that moves a muscle faster is off the
 #: activations it was trained on, and fed back period after period it can run away with the obliques and
@@ -211,29 +185,11 @@ def set_eye_view(scene, eyes: bool) -> None:
             scene.set_visible(name, not eyes)
 
 
-@dataclass
-class EyeState:
-    command: np.ndarray = field(default_factory=lambda: np.zeros(2))  # commanded gaze in the head, rad
-    activations: np.ndarray = field(default_factory=lambda: np.zeros(6))
-    believed: np.ndarray = field(default_factory=lambda: np.zeros(2))  # the internal model's gaze, rad
-    bias: np.ndarray = field(default_factory=lambda: np.zeros(2))  # learned static offset, rad
-    velocity: np.ndarray = field(default_factory=lambda: np.zeros(2))  # the target's, rad/s in the head
-    last_target: np.ndarray | None = None  # the estimate of the last frame that learned the velocity
-    target: np.ndarray | None = None  # the ball's direction in the head, rad: the last frame's estimate, carried forward
-    quiet_from: float = 0.0  # time the last saccade's movement ends
-
-
 def _quantise(x: float, step: float, last: float | None) -> float:
     """``x`` to the nearest multiple of ``step``, but ``last`` while ``x`` is within OPTICS_HYSTERESIS steps of it."""
     if last is not None and abs(x - last) <= OPTICS_HYSTERESIS * step:
         return last
     return round(x / step) * step
-
-
-def _clamp_gaze(g: np.ndarray) -> np.ndarray:
-    r = np.linalg.norm(g)
-    lim = np.radians(MAX_GAZE_DEG)
-    return g if r <= lim else g * (lim / r)
 
 
 class VisuomotorLoop:
@@ -276,7 +232,8 @@ class VisuomotorLoop:
         #: per eye, the central field rendered for its lens net on the last frame
         self.lens_onv: dict = {}
         self._lens_positions: dict = {}
-        self.eyes = {s: EyeState() for s in SIDES}
+        #: the gaze controller: each eye's commanded and believed gaze, its estimates and the saccade logic
+        self.gaze = GazeController(self.frame_every)
         self.neck_target = np.zeros(3)
         self.last_neck = body.neck_angles()
         self.timing = {"render": 0.0, "nets": 0.0, "mujoco": 0.0, "control": 0.0}
@@ -291,6 +248,11 @@ class VisuomotorLoop:
         self._optics: dict = {}  # per eye, the quantised (accommodation, pupil) it renders with
         self._neck_hold()
 
+    @property
+    def eyes(self) -> dict:
+        """Each eye's :class:`~warp_vision.sim.gaze.EyeState` (the gaze controller's)."""
+        return self.gaze.eyes
+
     def reset(self, settle_s: float = 0.0) -> None:
         """Reset the body (then let it settle ``settle_s`` s with the eyes and neck held centred) and the
         controllers' state; the timing totals are kept."""
@@ -303,7 +265,7 @@ class VisuomotorLoop:
         self._optics = {}
         self.onv, self.lens_onv, self.estimate = {}, {}, {}
         self.lens_teacher, self.pupil_teacher, self.defocus_estimate = {}, {}, {}
-        self.eyes = {s: EyeState() for s in SIDES}
+        self.gaze.reset()
         self.neck_target = np.zeros(3)
         self._neck_hold()
         self.body.step(int(round(settle_s / self.body.model.opt.timestep)))
@@ -348,93 +310,69 @@ class VisuomotorLoop:
     def step(self) -> None:
         """One control period. On a visual frame (every ``frame_every``-th period, the first included) both
         eyes render and their foveation nets estimate the ball's direction; in between, the gaze
-        controller carries its last estimate forward (see the module docstring)."""
-        body = self.body
+        controller (:class:`~warp_vision.sim.gaze.GazeController`) carries its last estimate forward."""
         seen = self.period % self.frame_every == 0
         self.period += 1
-        err = None
-        if seen:
-            onv = self.render()
-            t0 = time.perf_counter()
-            if self.perception == "oracle":
-                err = {s: true_direction(body, s, body.ball_position()) for s in SIDES}
-            else:
-                err = {s: self.fov[s](onv[s])[0] for s in SIDES}  # the ball's (yaw, pitch) in each eye frame
-            self.estimate = err
-            self.timing["nets"] += time.perf_counter() - t0
+        err = self._see() if seen else None
         t0 = time.perf_counter()
-        neck = body.neck_angles()
+        neck = self.body.neck_angles()
         head_turn = (neck - self.last_neck)[:2]  # (yaw, pitch): same signs as the eyes' in the head
         self.last_neck = neck
-        changes = {}
-        k = 1 - np.exp(-CONTROL_DT / EYE_MODEL_TAU)
-        frame_dt = self.frame_every * CONTROL_DT
-        for s in SIDES:
-            e = self.eyes[s]
-            e.believed = e.believed - head_turn  # vestibulo-ocular: the head turned under the eye
-            if e.target is not None:
-                e.target = e.target - head_turn  # the last estimate, fixed in the world, as the head turned
-            if e.last_target is not None:
-                # likewise the estimate the velocity is measured from, so the velocity is the ball's own
-                # (in the world, in head axes) and the head's turn is not counted twice between frames
-                e.last_target = e.last_target - head_turn
-            if err is None:  # no new frame: the last estimate carried forward at its estimated velocity
-                # (period 0, after construction or reset, is always a frame, so e.target is set here)
-                if body.time >= e.quiet_from:
-                    e.target = e.target + e.velocity * CONTROL_DT
-                new = e.target + e.velocity * LEAD + e.bias
-            else:
-                target = e.believed + err[s]  # the ball's direction in the head, as the eye believes it
-                e.target = target
-                if np.degrees(np.linalg.norm(err[s])) > SACCADE_DEG:
-                    e.velocity[:] = 0
-                    e.last_target = None
-                    e.quiet_from = body.time + POST_SACCADE
-                    new = target + e.bias
-                else:
-                    if body.time >= e.quiet_from:
-                        if e.last_target is not None:
-                            v = (target - e.last_target) / frame_dt
-                            # the running estimate's weight per frame, so its time constant does not
-                            # depend on the frame rate
-                            w = 1 - (1 - VELOCITY_SMOOTHING) ** self.frame_every
-                            e.velocity = (1 - w) * e.velocity + w * v
-                            speed = np.linalg.norm(e.velocity)
-                            if speed > MAX_TARGET_SPEED:
-                                e.velocity *= MAX_TARGET_SPEED / speed
-                        e.last_target = target
-                        e.bias = e.bias + BIAS_GAIN * self.frame_every * err[s]
-                    new = target + e.velocity * LEAD + e.bias
-            changes[s] = _clamp_gaze(new) - e.command
-            e.command = e.command + changes[s]
-            e.believed = e.believed + k * (e.command - e.bias - e.believed)
+        changes = self.gaze.update(err, head_turn, self.body.time)
         self.timing["control"] += time.perf_counter() - t0
+        self._drive_eyes(changes)
+        t0 = time.perf_counter()
+        self._drive_neck()
+        self._intraocular(seen)
+        self.timing["control"] += time.perf_counter() - t0
+        self._advance()
+
+    def _see(self) -> dict:
+        """A visual frame: both eyes render, and each eye's retinal error of the target is returned (and kept
+        in ``estimate``): the foveation net's estimate of the ball, or with ``perception="oracle"`` the
+        ball's true direction in the eye frame."""
+        onv = self.render()
+        t0 = time.perf_counter()
+        if self.perception == "oracle":
+            err = {s: true_direction(self.body, s, self.body.ball_position()) for s in SIDES}
+        else:
+            err = {s: self.fov[s](onv[s])[0] for s in SIDES}  # the ball's (yaw, pitch) in each eye frame
+        self.estimate = err
+        self.timing["nets"] += time.perf_counter() - t0
+        return err
+
+    def _drive_eyes(self, changes: dict) -> None:
+        """Each eye's oculomotor net turns its change of commanded gaze into the next activations of its six
+        muscles, under a rate guard: no muscle's activation moves more than ACTIVATION_PER_DEG per degree
+        of gaze change asked for (plus ACTIVATION_SLACK); see the constants."""
         t0 = time.perf_counter()
         with torch.no_grad():
             for s in SIDES:
                 e = self.eyes[s]
                 a = self.ocu[s](torch.as_tensor(changes[s], dtype=torch.float32)[None],
                                 torch.as_tensor(e.activations, dtype=torch.float32)[None])[0].numpy().astype(np.float64)
-                # a rate guard: no muscle's activation moves more than ACTIVATION_PER_DEG per degree of gaze
-                # change asked for (plus ACTIVATION_SLACK); see the constants
                 lim = ACTIVATION_PER_DEG * np.degrees(np.linalg.norm(changes[s])) + ACTIVATION_SLACK
                 e.activations = np.clip(e.activations + np.clip(a - e.activations, -lim, lim), 0, 1)
-                body.set_eye_activations(s, e.activations)
+                self.body.set_eye_activations(s, e.activations)
         self.timing["nets"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
+
+    def _drive_neck(self) -> None:
+        """The eye-head synergy: the head's target moves NECK_GAIN of the eyes' mean gaze a period, held by
+        least-effort neck activations."""
         mean_gaze = 0.5 * (self.eyes["left"].command + self.eyes["right"].command)
         self.neck_target[:2] += NECK_GAIN * mean_gaze
         self.neck_target[2] = 0.0
         self._neck_hold()
-        self._intraocular(seen)
-        self.timing["control"] += time.perf_counter() - t0
+
+    def _advance(self) -> None:
+        """MuJoCo through one control period (calling ``substep`` after every step when it is set)."""
         t0 = time.perf_counter()
-        n = int(round(CONTROL_DT / body.model.opt.timestep))
+        n = int(round(CONTROL_DT / self.body.model.opt.timestep))
         if self.substep is None:
-            body.step(n)
+            self.body.step(n)
         else:  # e.g. the cannon's deflection detector, which reads every MuJoCo step's contacts
             for _ in range(n):
-                body.step()
+                self.body.step()
                 self.substep()
         self.timing["mujoco"] += time.perf_counter() - t0
 
