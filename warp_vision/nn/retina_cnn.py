@@ -319,14 +319,42 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
         """(yaw, pitch) [B, 2] rad: the soft-arg-max of the heat map over the cells near its peak: within
         ``window`` cells of it (the coarse periphery) or within ``window_deg`` degrees of its direction
         (the magnified centre, where a near ball spans many cells and its heat is a plateau)."""
+        return gaze_angles(self._peak_weights(logits, logits.detach().argmax(1)) @ self.cell_dirs)
+
+    def _near_peak(self, peak: Tensor) -> Tensor:
+        """[B, cells] bool: the cells of :meth:`read_out`'s window around each of the cells ``peak`` [B]."""
         m = self.warp.size // 2
-        peak = logits.detach().argmax(1)
         r = self.window // 2
-        cell = torch.arange(m * m, device=logits.device)
+        cell = torch.arange(m * m, device=peak.device)
         near_cells = ((cell[None] // m - (peak // m)[:, None]).abs() <= r) & ((cell[None] % m - (peak % m)[:, None]).abs() <= r)
-        near_angle = self.cell_dirs[peak] @ self.cell_dirs.T >= math.cos(math.radians(self.window_deg))
-        w = logits.masked_fill(~(near_cells | near_angle), float("-inf")).softmax(1)
-        return gaze_angles(w @ self.cell_dirs)
+        return near_cells | (self.cell_dirs[peak] @ self.cell_dirs.T >= math.cos(math.radians(self.window_deg)))
+
+    def _peak_weights(self, logits: Tensor, peak: Tensor) -> Tensor:
+        return logits.masked_fill(~self._near_peak(peak), float("-inf")).softmax(1)
+
+    def candidates(self, x: Tensor, k: int = 4, min_sep_deg: float = 4.0) -> tuple[Tensor, Tensor]:
+        """The ``k`` strongest peaks of the plain image's heat map for ONV inputs ``x`` [B, 3P] (as
+        :meth:`forward` reads them): (directions [B, k, 2] (yaw, pitch) rad, each the soft-arg-max around its
+        peak as :meth:`read_out`'s; scores [B, k], the share of the map's softmax within the peak's window).
+        Each peak after the first is the highest cell farther than ``min_sep_deg`` from every earlier peak;
+        where none is left, the direction is NaN and the score 0."""
+        if not (isinstance(k, (int, np.integer)) and k >= 1):
+            raise ValueError(f"k: expected a positive int, got {k!r}")
+        logits = self.logits(self.image(x, 0)).detach()
+        prob = logits.softmax(1)
+        free = torch.ones_like(logits, dtype=torch.bool)
+        cos_sep = math.cos(math.radians(min_sep_deg))
+        dirs, scores = [], []
+        for _ in range(int(k)):
+            masked = logits.masked_fill(~free, float("-inf"))
+            peak = masked.argmax(1)
+            alive = torch.isfinite(masked.max(1).values)
+            near = self._near_peak(peak)
+            d = gaze_angles(self._peak_weights(logits, peak) @ self.cell_dirs)
+            dirs.append(torch.where(alive[:, None], d, torch.full_like(d, float("nan"))))
+            scores.append(torch.where(alive, (prob * near).sum(1), torch.zeros_like(alive, dtype=prob.dtype)))
+            free &= (self.cell_dirs[peak] @ self.cell_dirs.T) < cos_sep
+        return torch.stack(dirs, 1), torch.stack(scores, 1)
 
     def forward(self, x: Tensor, transform=0, with_logits: bool = False):
         """Standardised (yaw, pitch) [B, 2] of the ball in the image of augmentation ``transform`` (an int,

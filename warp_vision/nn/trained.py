@@ -109,9 +109,15 @@ def _limb(spec: dict):
                            spec["receptive_field"], spec["reduction"], spec["seed"])
 
 
+def _verify(spec: dict):
+    from warp_vision.nn.verify import verify_net
+
+    return verify_net(spec)
+
+
 #: spec["kind"] -> the function that builds the untrained net from the spec
 BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor, "pupil": _pupil, "lens": _lens, "arm": _arm,
-            "limb": _limb}
+            "limb": _limb, "verify": _verify}
 
 #: the ONV dtypes a net can read (spec["onv_dtype"]; checkpoints without one read float32)
 ONV_DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}

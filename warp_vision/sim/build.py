@@ -24,6 +24,10 @@ def net_specs(args) -> list:
     specs = plan(left, right, args.oculomotor or runs["oculomotor"], quick=args.quick,
                  pupil=(getattr(args, "pupil", None) or runs["pupil"]) if nets else None,
                  lens=(getattr(args, "lens", None) or runs["lens"]) if nets else None)
+    if args.command == "search" or getattr(args, "gaze_perception", "nets") == "search":
+        from warp_vision.sim.provision import search_plan
+
+        specs += search_plan(getattr(args, "verify", None) or runs["verify"], quick=args.quick)
     if args.command == "intercept":
         from warp_vision.sim.provision import strike_plan
 
@@ -83,9 +87,16 @@ def setup_loop(args):
     runs = {(spec.kind, spec.eye): spec.run for spec in specs}
     pupil = {s: load_pupil(runs["pupil", s], eye=s) for s in SIDES} if ("pupil", "left") in runs else None
     lens = {s: load_lens(runs["lens", s], eye=s) for s in SIDES} if ("lens", "left") in runs else None
+    perception = getattr(args, "gaze_perception", "nets")
+    search = None
+    if perception == "search":
+        from warp_vision.sim.search import ActiveSearch, Verifier
+
+        search = ActiveSearch({s: Verifier(runs["verify", s], eye=s) for s in SIDES})
     loop = VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
-                          ball=args.ball, pupil_nets=pupil, lens_nets=lens,
-                          perception=getattr(args, "gaze_perception", "nets"))
+                          ball=args.ball, pupil_nets=pupil, lens_nets=lens, perception=perception, search=search)
+    #: the verification runs the search reads (``sim search`` builds its own searches from them)
+    loop.verify_runs = {s: runs["verify", s] for s in SIDES} if ("verify", "left") in runs else None
     os.makedirs(args.out, exist_ok=True)  # recorded once every net has loaded: a failed start leaves the last record
     write_json(os.path.join(args.out, "nets.json"), manifest(specs))
     return body, loop

@@ -13,6 +13,11 @@
                Writes intraocular.json and figures/light_steps.png,
                focus_steps.png and focus_retina.png.
   oculomotor   both eyes' oculomotor nets only: trains the missing ones.
+  search       active search: --trials N static trials in held-out rooms, the ball 10-35 deg from the starting
+               gaze among look-alikes (the cannon's muzzle end-on, a decoy, a lamp panel, a raised hand); each
+               under the active search (both eyes' candidates, foveal verification nets, inhibition of return)
+               and under the foveation nets' single answer. Writes search.json, figures/search.png and
+               scanpath figures (figures/scanpath_SEED.png).
   intercept    the paper's Fig. 8: the cannon shoots a held-out shot, the eyes and head track the ball, both eyes'
                limb vision nets see it and the left arm (--side) strikes it. One shot: intercept.gif (the
                third-person view with the gaze lines and the hand's path beside the left retina), the hand-ball
@@ -294,9 +299,14 @@ def _net_flags(g, name: str) -> None:
 
         g.add_argument("--gaze-perception", choices=PERCEPTION, default="nets",
                        help="where the gaze controller learns the ball's direction: nets (default), each eye's "
-                            "foveation net from its ONV; oracle: the ball's true direction in each eye frame (the "
-                            "eyes still render), which separates perception's errors from the controller's and "
-                            "oculomotor nets'")
+                            "foveation net's single answer from its ONV; search: active search over both eyes' "
+                            "candidates with foveal verification nets (--verify); oracle: the ball's true direction in "
+                            "each eye frame (the eyes still render), which separates perception's errors from the "
+                            "controller's and oculomotor nets'")
+    if name in ("demo", "experiments", "search"):
+        g.add_argument("--verify", default=None,
+                       help="the foveal verification runs' directory: <dir>/left, <dir>/right (default runs/verify, or "
+                            "runs/quick/verify with --quick, trained there if missing), read by the active search")
     if name == "intercept":
         g.add_argument("--perception", choices=("vision", "fixation", "oracle"), default="vision",
                        help="how the arm knows the ball: vision (default), both eyes' limb vision nets (trained into "
@@ -315,13 +325,29 @@ def _scene_flags(g, name: str) -> None:
     from warp_vision.sim.intercept import INTERCEPT_FRAME_EVERY
     from warp_vision.sim.loop import BALLS, FRAME_EVERY
 
-    if name == "intercept":  # the arms strike
+    if name == "search":  # a raised hand is one of the look-alikes
+        g.set_defaults(no_arms=False)
+        g.add_argument("--trials", type=integer(COUNT), default=200,
+                       help="the number of trials (default 200), each run under the active search and under the "
+                            "foveation nets' single answer")
+        g.add_argument("--seed", type=integer(SEED), default=0,
+                       help="the first trial: seed 1,000,000 + --seed of the held-out split, or --seed of the training split")
+        g.add_argument("--split", choices=("heldout", "train"), default="heldout",
+                       help="held-out trials (default: rooms, balls and look-alikes never used to tune the search) or "
+                            "training ones")
+        g.add_argument("--scanpaths", type=integer(Range(0, 1000, "figures")), default=4,
+                       help="scanpath figures of the first N trials (default 4)")
+        g.add_argument("--no-baseline", action="store_true", help="skip the single-answer runs of the same trials")
+    elif name == "intercept":  # the arms strike
         g.set_defaults(no_arms=False)
         g.add_argument("--seed", type=integer(SEED), default=0,
                        help="the room's seed, and the first held-out shot: seed 1,000,000 + --seed (default 0)")
     else:
         g.add_argument("--no-arms", action="store_true", help="a bare torso instead of myo-sim's arms (faster)")
         g.add_argument("--seed", type=integer(SEED), default=0, help="the room's seed (default 0)")
+    if name == "search":
+        g.set_defaults(ball="ordinary", frame_every=FRAME_EVERY)
+        return
     g.add_argument("--ball", choices=BALLS, default="ordinary",
                    help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
                         "albedos (generators v8 and v9's kind of scene, what the default foveation nets learn); glowing: "
@@ -514,9 +540,18 @@ def _experiments(args) -> None:
     print(f"wrote {os.path.join(args.out, 'experiments.json')} and {figure}")
 
 
+def _search(args) -> None:
+    """``sim search``: the trials under the active search and the single answer; a line each, search.json, figures."""
+    from warp_vision.sim.search_report import report_lines, search_command
+
+    report = search_command(args)
+    print("\n".join(report_lines(report)))
+    print(f"wrote {os.path.join(args.out, 'search.json')} and figures in {os.path.join(args.out, 'figures')}")
+
+
 #: Each command and its work, in the order --help lists them.
 COMMANDS = {"demo": _demo, "experiments": _experiments, "intraocular": _intraocular, "oculomotor": _oculomotor,
-            "intercept": _intercept}
+            "intercept": _intercept, "search": _search}
 
 
 def oculomotor_line(eye: str, run: str, summary: dict) -> str:

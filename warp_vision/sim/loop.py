@@ -53,9 +53,10 @@ OPTICS_HYSTERESIS = 0.75  # of a step: how far from its rendered state the eye m
 #: Who commands the iris and the lens: "nets" (each eye's pupil and lens nets) or "analytic" (their
 #: teachers: Watson & Yellott's pupil, and accommodation to where the gaze lines converge).
 INTRAOCULAR = ("nets", "analytic")
-#: Who tells the gaze controller where the ball is: "nets" (each eye's foveation net, from its ONV) or
-#: "oracle" (the ball's true direction in the eye frame: separates perception's errors from control's).
-PERCEPTION = ("nets", "oracle")
+#: Who tells the gaze controller where the ball is: "nets" (each eye's foveation net's single answer, from its
+#: ONV), "search" (active search over both eyes' candidates with foveal verification: :mod:`warp_vision.sim.search`)
+#: or "oracle" (the ball's true direction in the eye frame: separates perception's errors from control's).
+PERCEPTION = ("nets", "search", "oracle")
 
 
 def _load_kind(run_dir: str, kind: str, device: str, eye: str | None = None):
@@ -108,6 +109,31 @@ class Foveator:
         from warp_vision.nn.trained import predict_targets
 
         return predict_targets(self.model, onv, self.norm, self.device, self.onv_dtype).numpy()
+
+    def candidates(self, onv: torch.Tensor, k: int = 4, min_sep_deg: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+        """The net's few strongest answers for one ONV [1, 3P]: (directions [k, 2] (yaw, pitch) rad in the eye
+        frame, scores [k]), the first of them the net's single answer (:meth:`__call__`). A retina CNN adds
+        the further peaks of its heat map (:meth:`~warp_vision.nn.retina_cnn.RetinaCNNFoveationNet.candidates`)
+        farther than ``min_sep_deg`` from it and from each other; a net without a heat map gives its one answer.
+        Missing candidates have NaN directions and score 0."""
+        from warp_vision.nn.trained import net_input
+
+        best = self(onv)[0]
+        dirs, scores = np.full((k, 2), np.nan), np.zeros(k)
+        dirs[0], scores[0] = best, 1.0
+        if not hasattr(self.model, "candidates"):
+            return dirs, scores
+        with torch.no_grad():
+            d, sc = self.model.candidates(net_input(onv[:1], self.norm, self.device, self.onv_dtype), k + 1, min_sep_deg)
+        d, sc = d[0].cpu().numpy().astype(np.float64), sc[0].cpu().numpy().astype(np.float64)
+        cos_sep = np.cos(np.radians(min_sep_deg))
+        best_dir = gaze_direction(*best)
+        near_best = [j for j in range(len(d)) if np.isfinite(d[j]).all() and gaze_direction(*d[j]) @ best_dir >= cos_sep]
+        scores[0] = float(sc[near_best[0]]) if near_best else 0.0
+        rest = [j for j in range(len(d)) if j not in near_best and np.isfinite(d[j]).all()][: k - 1]
+        for n, j in enumerate(rest, start=1):
+            dirs[n], scores[n] = d[j], sc[j]
+        return dirs, scores
 
 
 #: Bodies whose parts move together in the scene: each arm's humerus, ulna, radius and hand (the carpals
@@ -198,9 +224,13 @@ class VisuomotorLoop:
 
     def __init__(self, body: Body, foveators: dict, oculomotor: dict, seed: int = 0, frame_every: int = FRAME_EVERY,
                  ball: str = "glowing", pupil_nets: dict | None = None, lens_nets: dict | None = None,
-                 perception: str = "nets"):
+                 perception: str = "nets", search=None):
         if perception not in PERCEPTION:
             raise ValueError(f"perception: expected one of {PERCEPTION}, got {perception!r}")
+        if (perception == "search") != (search is not None):
+            raise ValueError("search: an ActiveSearch (warp_vision.sim.search) goes with perception='search', and only with it")
+        #: the active search (:class:`warp_vision.sim.search.ActiveSearch`) with perception "search", else None
+        self.search = search
         #: "nets" (the foveation nets' estimates) or "oracle" (the true directions; the eyes still render)
         self.perception = perception
         if not isinstance(frame_every, (int, np.integer)) or frame_every < 1:
@@ -266,6 +296,8 @@ class VisuomotorLoop:
         self.onv, self.lens_onv, self.estimate = {}, {}, {}
         self.lens_teacher, self.pupil_teacher, self.defocus_estimate = {}, {}, {}
         self.gaze.reset()
+        if self.search is not None:
+            self.search.reset()
         self.neck_target = np.zeros(3)
         self._neck_hold()
         self.body.step(int(round(settle_s / self.body.model.opt.timestep)))
@@ -327,17 +359,20 @@ class VisuomotorLoop:
         self.timing["control"] += time.perf_counter() - t0
         self._advance()
 
-    def _see(self) -> dict:
+    def _see(self) -> dict | None:
         """A visual frame: both eyes render, and each eye's retinal error of the target is returned (and kept
-        in ``estimate``): the foveation net's estimate of the ball, or with ``perception="oracle"`` the
-        ball's true direction in the eye frame."""
+        in ``estimate``): the foveation net's estimate of the ball, with ``perception="search"`` the active
+        search's target (None while it holds the gaze), or with ``perception="oracle"`` the ball's true
+        direction in the eye frame."""
         onv = self.render()
         t0 = time.perf_counter()
         if self.perception == "oracle":
             err = {s: true_direction(self.body, s, self.body.ball_position()) for s in SIDES}
+        elif self.perception == "search":
+            err = self.search.frame(self, onv)
         else:
             err = {s: self.fov[s](onv[s])[0] for s in SIDES}  # the ball's (yaw, pitch) in each eye frame
-        self.estimate = err
+        self.estimate = err if err is not None else {}
         self.timing["nets"] += time.perf_counter() - t0
         return err
 

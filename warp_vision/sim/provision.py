@@ -46,7 +46,8 @@ PROVIDING_LOCK = ".providing.lock"
 MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 2.0,
            ("oculomotor", "default"): 2.5, ("oculomotor", "quick"): 0.5,
            ("pupil", "default"): 2.5, ("pupil", "quick"): 1.5, ("lens", "default"): 10.0, ("lens", "quick"): 3.0,
-           ("arm", "default"): 6.0, ("arm", "quick"): 1.5, ("limb", "default"): 11.0, ("limb", "quick"): 2.0}
+           ("arm", "default"): 6.0, ("arm", "quick"): 1.5, ("limb", "default"): 11.0, ("limb", "quick"): 2.0,
+           ("verify", "default"): 12.0, ("verify", "quick"): 3.0}
 
 #: Training commands whose side flag is ``--side`` (the arm's) rather than ``--eye``.
 _SIDE_FLAG = {"arm": "--side"}
@@ -119,11 +120,12 @@ class NetSpec:
 
 def default_runs(quick: bool) -> dict:
     """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor", "pupil", "lens",
-    "arm", "limb"} (the last five: directories holding one run per side, ``<dir>/left`` and ``<dir>/right``)."""
+    "arm", "limb", "verify"} (the last six: directories holding one run per side, ``<dir>/left`` and ``<dir>/right``)."""
     root = os.path.join("runs", "quick") if quick else "runs"
     return {"left": os.path.join(root, "foveation_left"), "right": os.path.join(root, "foveation_right"),
             "oculomotor": os.path.join(root, "oculomotor"), "pupil": os.path.join(root, "pupil"),
-            "lens": os.path.join(root, "lens"), "arm": os.path.join(root, "arm"), "limb": os.path.join(root, "limb")}
+            "lens": os.path.join(root, "lens"), "arm": os.path.join(root, "arm"), "limb": os.path.join(root, "limb"),
+            "verify": os.path.join(root, "verify")}
 
 
 def plan(left: str, right: str, oculomotor: str, quick: bool = False, pupil: str | None = None,
@@ -148,6 +150,12 @@ def strike_plan(side: str, arm: str, limb: str | None, quick: bool = False) -> l
     preset = "quick" if quick else "default"
     return ([NetSpec("arm", side, os.path.join(arm, side), preset)]
             + ([NetSpec("limb", s, os.path.join(limb, s), preset) for s in SIDES] if limb else []))
+
+
+def search_plan(verify: str, quick: bool = False) -> list[NetSpec]:
+    """The nets the active search adds to the loop's: both eyes' foveal verification nets in ``verify/<eye>``;
+    ``quick`` trains missing ones with the ``quick`` presets."""
+    return [NetSpec("verify", s, os.path.join(verify, s), "quick" if quick else "default") for s in SIDES]
 
 
 def _about(minutes: float) -> str:

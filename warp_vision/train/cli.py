@@ -27,6 +27,7 @@ from warp_vision.errors import ArgumentParser, guarded, long_options, not_a_comm
 from warp_vision.train import config as C
 from warp_vision.train import config_body as body
 from warp_vision.train import config_intraocular as intraocular
+from warp_vision.train import config_verify
 
 
 def _run_flags(p: argparse.ArgumentParser, groups: dict) -> argparse.ArgumentParser:
@@ -129,6 +130,14 @@ TASKS = {
              "pupil) to the signed defocus (read from the colour channels' unequal blur), measure it on new "
              "textures, lamps and distances, and write config, checkpoints, metrics, summary and figures to --out "
              "(default runs/lens/<eye>)."),
+    "verify": ("verify", config_verify.VerifyTrainConfig, config_verify.VERIFY_PRESETS,
+               "An eye's foveal verification net (active search): synthesise (or reuse) central-field ONVs of "
+               "generator-v9 scenes fixating the ball or a look-alike (a decoy's face, the muzzle end-on, a hand, a "
+               "bright object, a lamp's patch, the ball's shadow, furniture), 0-2 deg off; train the net (default "
+               "the CNN; --model linet: the paper's liNet) to say whether the ball is at the fovea and how far off; "
+               "fit the threshold that rejects 1%% of the balls; measure false accepts per look-alike class on rooms "
+               "training never saw, and write config, checkpoints, metrics, summary and the ROC figure to --out "
+               "(default runs/verify/<eye>)."),
 }
 
 
