@@ -1,7 +1,7 @@
 """The README's snippets run: every ```python block executes as written, and every command line of a
-```bash block, in the README and in docs/RESULTS.md (the commands behind the measurements), names a
-command and flags that exist (its --help parses them); every relative link of the docs reaches a file and a
-heading."""
+```bash block, in the README and in every page of docs/ (docs/RESULTS.md: the commands behind the
+measurements; the site's tutorials, concepts and results), names a command and flags that exist (its --help
+parses them); every relative link of the README and of every page of docs/ reaches a file and a heading."""
 
 from __future__ import annotations
 
@@ -16,6 +16,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 RESULTS = (ROOT / "docs" / "RESULTS.md").read_text()
+#: every Markdown page of docs/ (RESULTS.md, ARCHITECTURE.md and the documentation site's pages), by its path
+DOCS = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md"))
 
 
 def blocks(lang: str, text: str = README) -> list[str]:
@@ -33,9 +35,19 @@ def commands(text: str = README) -> list[list[str]]:
     return out
 
 
+def doc_commands() -> list[list[str]]:
+    """The command lines of the README and of every page of docs/, each once (the pages repeat some)."""
+    out = []
+    for text in [README] + [(ROOT / doc).read_text() for doc in DOCS]:
+        out += [argv for argv in commands(text) if argv not in out]
+    return out
+
+
 def test_the_readme_has_snippets():
     assert len(blocks("python")) >= 2 and len(commands()) >= 10
     assert len(commands(RESULTS)) >= 10
+    assert {"docs/index.md", "docs/cli.md", "docs/tutorials/train-foveation.md", "docs/results/index.md"} <= set(DOCS)
+    assert len(doc_commands()) > len(commands()) + 20  # the site's pages show commands of their own
 
 
 @pytest.mark.parametrize("k", range(len(blocks("python"))))
@@ -55,7 +67,7 @@ def _help_argv(argv: list[str]) -> list[str]:
     return [sys.executable, "-m", module, *sub, "--help"]
 
 
-@pytest.mark.parametrize("argv", commands() + commands(RESULTS), ids=lambda a: " ".join(a)[:60])
+@pytest.mark.parametrize("argv", doc_commands(), ids=lambda a: " ".join(a)[:60])
 def test_bash_command_exists(argv, tmp_path):
     """The command and subcommand exist, and each --flag the README passes is in its --help."""
     r = subprocess.run(_help_argv(argv), cwd=ROOT, capture_output=True, text=True, timeout=300)
@@ -66,10 +78,10 @@ def test_bash_command_exists(argv, tmp_path):
 
 
 def _training_commands() -> list[list[str]]:
-    """The training command lines of the README and RESULTS (not compare, evaluate or --resume), after
-    ``python -m warp_vision.train``."""
+    """The training command lines of the README and the pages of docs/ (not compare, evaluate or --resume),
+    after ``python -m warp_vision.train``."""
     out = []
-    for argv in commands() + commands(RESULTS):
+    for argv in doc_commands():
         i = argv.index("-m")
         rest = argv[i + 2:]
         if argv[i + 1] == "warp_vision.train" and rest[:1] not in (["compare"], ["evaluate"]) and "--resume" not in rest:
@@ -98,7 +110,7 @@ def anchors(path: Path) -> set[str]:
     return {re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in heads}
 
 
-@pytest.mark.parametrize("doc", ["README.md", "docs/RESULTS.md", "docs/ARCHITECTURE.md"])
+@pytest.mark.parametrize("doc", ["README.md", *DOCS])
 def test_the_docs_links_reach_a_file_and_a_heading(doc):
     """Every relative link of the docs names a file of the repository, and its #fragment a heading there
     (the README pointed to sections of the results by their titles in quotes, which no reader could follow)."""

@@ -93,7 +93,7 @@ def corneal_flux_density(luminance_cd_m2, field_deg=60.0, eyes: int = 1):
 
     Raises:
         ValueError: negative, NaN or infinite luminance; a non-positive, non-finite or > 360 deg field;
-        eyes not in {1, 2}.
+            eyes not in {1, 2}.
     """
     lum = _check_real("luminance_cd_m2", luminance_cd_m2, allow_zero=True)
     field = _check_real("field_deg", field_deg, allow_zero=False, upper=360.0)
@@ -144,7 +144,7 @@ def pupil_diameter_mm(
 
     Raises:
         ValueError: negative, NaN or infinite luminance; a field outside (0, 360] deg; an age outside
-        (0, 120] years or not finite; eyes not in {1, 2}; non-numeric input.
+            (0, 120] years or not finite; eyes not in {1, 2}; non-numeric input.
     """
     flux = np.asarray(corneal_flux_density(luminance_cd_m2, field_deg, eyes))
     age = _check_real("age_years", age_years, allow_zero=False, upper=120.0)

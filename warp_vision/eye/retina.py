@@ -166,7 +166,7 @@ class Retina:
 
         Raises:
             ValueError: shapes that differ or are not [P] with P >= 1, non-finite values, rho outside
-            [0, rho_max], a bad rho_max, seed, layout or params.
+                [0, rho_max], a bad rho_max, seed, layout or params.
         """
         rho = np.array(rho, dtype=np.float64, copy=True)
         theta = np.array(theta, dtype=np.float64, copy=True)
@@ -278,7 +278,7 @@ class Retina:
         Raises:
             FileNotFoundError: no such file.
             ValueError: naming the problem: not an .npz archive, a missing or malformed entry, an unknown
-            format version, or content a retina cannot hold (shapes, NaN, rho outside [0, rho_max], ...).
+                format version, or content a retina cannot hold (shapes, NaN, rho outside [0, rho_max], ...).
         """
         path = os.fspath(path)
         try:

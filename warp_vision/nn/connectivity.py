@@ -168,7 +168,7 @@ def build_connectivity(
 
     Raises:
         ValueError: naming the argument, what was expected and what came (bad shapes, non-finite
-        positions, H < 1, f < 1, a receptive field larger than its previous layer, an empty layer).
+            positions, H < 1, f < 1, a receptive field larger than its previous layer, an empty layer).
     """
     prev = check_positions("in_positions", in_positions)
     if isinstance(layers, bool) or not isinstance(layers, (int, np.integer)) or layers < 1:

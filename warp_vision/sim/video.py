@@ -194,7 +194,8 @@ def compose_frame(
 
     Args:
         third_person: uint8 [H, W, 3], H >= 2 (e.g. 480 x 640).
-        left, right:  uint8 [s, s, 3] retina images (:class:`RetinaRaster`); any side s.
+        left:         uint8 [s, s, 3] retina image (:class:`RetinaRaster`); any side s.
+        right:        the same, the right eye's.
         time_s:       the simulated time [s] (finite).
         captions:     the texts on the left and right retina images ("" for none).
 

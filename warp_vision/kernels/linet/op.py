@@ -420,7 +420,7 @@ def locally_connected(
 
     Raises:
         ValueError: on a wrong rank, shape, dtype or device, an out-of-range index, or non-finite
-        weight or bias, naming the argument, what was expected and what came.
+            weight or bias, naming the argument, what was expected and what came.
     """
     _check_tensor("x", x, 2)
     _check_tensor("weight", weight, 2, like=x)
