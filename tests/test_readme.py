@@ -124,3 +124,14 @@ def test_the_docs_links_reach_a_file_and_a_heading(doc):
         assert path.exists(), f"{doc}: {link} names no file"
         if fragment:
             assert fragment in anchors(path), f"{doc}: {link}: no heading of {path.name} makes #{fragment}"
+
+
+def test_every_module_has_an_api_page():
+    """Each module of the package (packages' __init__ and the command-line modules aside: docs/cli.md covers
+    those) is rendered on one of docs/api's pages, so a new module is not left out of the reference."""
+    pages = "\n".join(p.read_text() for p in (ROOT / "docs" / "api").glob("*.md"))
+    listed = set(re.findall(r"^::: (warp_vision[\w.]*)$", pages, flags=re.M))
+    modules = {".".join(p.relative_to(ROOT).with_suffix("").parts) for p in (ROOT / "warp_vision").rglob("*.py")
+               if p.stem not in ("__init__", "__main__", "cli")}
+    missing = sorted(m for m in modules if m not in listed)
+    assert not missing, f"modules on no docs/api page: {missing}"
