@@ -54,6 +54,7 @@ from warp_vision.provenance import software
 from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.sim.scenarios import SETTLE_S, experiments, goal_lines, plot_experiments, run_scenario
 from warp_vision.sim.build import net_specs, refuse_missing_given, refuse_unused_given, setup_loop
+from warp_vision.sim.loop import CONTROL_DT, set_eye_view, sync_scene
 from warp_vision.sim.strike import intercept, pick_shots
 
 
@@ -83,34 +84,48 @@ class _Viewer:
 
 
 def demo(args) -> dict:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from warp_vision.frames import look_at
-    from warp_vision.kernels.render import render_camera
-    from warp_vision.sim.loop import CONTROL_DT, set_eye_view, sync_scene
-    from warp_vision.sim.video import RetinaRaster, VideoWriter, compose_frame, draw_gaze
-    from warp_vision.viz import plot_onv, tone_map
-
+    """``sim demo``'s run: the cannon lobs the ball toward the face; the video, the left retina at four moments
+    (Fig. 7) and the gaze error over time are written to --out."""
     body, loop = setup_loop(args)
     viewer = _Viewer(body, args.viewer)
     head = body.head_pose()[:3, 3]
     # the cannon, 25 deg to the left in the periphery, lobs the ball to a point 1 m before the face
     muzzle = body.data.site_xpos[body.model.site("muzzle").id]
     v = body.fire_cannon(head + args.stop * (muzzle - head) / np.linalg.norm(muzzle - head), after=args.flight)
-    retinas = []
-    t_start = body.time
-    # behind the body's right shoulder, so the body, the gaze lines, the ball's path and the cannon show
-    cam = look_at([-1.3, 1.6, 2.0], [0.4, -1.0, 1.0])
-    rasters = {s: RetinaRaster(loop.fov[s].retina, size=args.height // 2) for s in SIDES}
-    # one exposure per eye for the whole video (set on the first frame), so brightness changes are real
-    white: dict = {}
-    # a video frame every --video-every periods, played --slow-motion times slower than simulated time
-    fps = 1.0 / (args.video_every * CONTROL_DT * args.slow_motion)
+    retinas: list = []
+    fps = 1.0 / (args.video_every * CONTROL_DT * args.slow_motion)  # --slow-motion times slower than simulated time
     paths = [os.path.join(args.out, "demo.mp4")] + ([os.path.join(args.out, "demo.gif")] if args.gif else [])
     size: list = []  # (width, height) of the frames written
+    # a failed run leaves no video: each writer removes its temporary file when the block raises
+    with contextlib.ExitStack() as stack:
+        from warp_vision.sim.video import VideoWriter
+
+        writers = [stack.enter_context(VideoWriter(p, fps)) for p in paths]
+        stack.callback(viewer.close)
+        record = _demo_recorder(args, body, loop, viewer, writers, retinas, size)
+        tr = run_scenario(loop, args.duration, record=record, progress=not args.no_progress)
+    _fig7_retinas(loop, tr, retinas, os.path.join(args.out, "left_retina.png"))
+    _gaze_error_figure(tr, os.path.join(args.out, "gaze_error.png"))
+    return {"launch_velocity_m_s": v.tolist(), "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES},
+            "gaze_error_deg": {s: flight_error_summary(tr["t"], tr[f"error_{s}"]) for s in SIDES},
+            "video": {"paths": paths, "frames": writers[0].frames, "fps": fps, "size": size},
+            "timing_s": dict(loop.timing)}
+
+
+def _demo_recorder(args, body, loop, viewer, writers, retinas: list, size: list):
+    """The per-period callback of the demo: keeps the left ONV (for Fig. 7), and every --video-every periods
+    renders the third-person view (behind the body's right shoulder: the body, the gaze lines, the ball's path
+    and the cannon show) with the gaze lines, beside both retinas, and writes the frame; with the active
+    search, its state is written on the view."""
+    from warp_vision.frames import look_at
+    from warp_vision.kernels.render import render_camera
+    from warp_vision.sim.video import RetinaRaster, compose_frame, draw_gaze, label
+    from warp_vision.viz import tone_map
+
+    t_start = body.time
+    cam = look_at([-1.3, 1.6, 2.0], [0.4, -1.0, 1.0])
+    rasters = {s: RetinaRaster(loop.fov[s].retina, size=args.height // 2) for s in SIDES}
+    white: dict = {}  # one exposure per eye for the whole video (set on the first frame), so brightness changes are real
 
     def record(lp):
         k = len(retinas)
@@ -122,6 +137,8 @@ def demo(args) -> dict:
         set_eye_view(lp.scene, False)
         img = render_camera(lp.scene, cam, args.width, args.height, fov_deg=50).numpy()
         third = draw_gaze(tone_map(img), body, cam, args.width, args.height, 50)
+        if lp.search is not None:
+            third = label(third, search_caption(lp.search), (6, args.height - max(10, round(args.height / 20)) - 8))
         eyes = {}
         for s in SIDES:
             onv = lp.onv[s][0].numpy()
@@ -132,24 +149,45 @@ def demo(args) -> dict:
         for w in writers:
             w.append(frame)
 
-    # a failed run leaves no video: each writer removes its temporary file when the block raises
-    with contextlib.ExitStack() as stack:
-        writers = [stack.enter_context(VideoWriter(p, fps)) for p in paths]
-        stack.callback(viewer.close)
-        tr = run_scenario(loop, args.duration, record=record, progress=not args.no_progress)
-    # the left retina at four moments: the ball's entry, mid-saccade, fixation and tracking (Fig. 7)
+    return record
+
+
+def search_caption(search) -> str:
+    """The active search's state in words, for the video: its state, and how many candidates it has rejected."""
+    rejected = sum(kind in ("reject", "lost") for _, kind, _ in search.log)
+    state = {"search": "searching", "verify": "verifying a candidate", "track": "tracking"}[search.s.state]
+    return f"active search: {state}; {rejected} rejected"
+
+
+def _fig7_retinas(loop, tr: dict, retinas: list, path: str) -> None:
+    """The left retina at four moments: the ball's entry, mid-saccade, fixation and tracking (Fig. 7)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from warp_vision.viz import plot_onv
+
     err = tr["error_left"]
     seen = np.nonzero(err < 60)[0]
     k0 = int(seen[0]) if len(seen) else 0
     moments = [k0, min(k0 + 4, len(err) - 1), min(k0 + 15, len(err) - 1), len(err) - 1]
     fig, axes = plt.subplots(1, 4, figsize=(16, 4.4))
     white_fig = max(float(np.percentile(retinas[k][1].numpy(), 99.5)) for k in moments)  # one exposure for all four
-    for ax, k, label in zip(axes, moments, ("t0", "t1", "t2", "t3")):
+    for ax, k, name in zip(axes, moments, ("t0", "t1", "t2", "t3")):
         plot_onv(loop.fov["left"].retina, retinas[k][1], ax=ax, white=white_fig,
-                 title=f"{label}: t = {retinas[k][0]:.2f} s, error {err[k]:.1f} deg")
+                 title=f"{name}: t = {retinas[k][0]:.2f} s, error {err[k]:.1f} deg")
     fig.tight_layout()
-    fig.savefig(os.path.join(args.out, "left_retina.png"), dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _gaze_error_figure(tr: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(7, 4))
     for s in SIDES:
         ax.plot(tr["t"], tr[f"error_{s}"], label=f"{s} eye")
@@ -159,12 +197,8 @@ def demo(args) -> dict:
     ax.legend()
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(os.path.join(args.out, "gaze_error.png"), dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    return {"launch_velocity_m_s": v.tolist(), "final_error_deg": {s: float(tr[f"error_{s}"][-1]) for s in SIDES},
-            "gaze_error_deg": {s: flight_error_summary(tr["t"], tr[f"error_{s}"]) for s in SIDES},
-            "video": {"paths": paths, "frames": writers[0].frames, "fps": fps, "size": size},
-            "timing_s": dict(loop.timing)}
 
 
 def flight_error_summary(t, err, times=(0.1, 0.2, 0.3, 0.4, 0.5)) -> dict:
@@ -338,6 +372,10 @@ def _scene_flags(g, name: str) -> None:
         g.add_argument("--scanpaths", type=integer(Range(0, 1000, "figures")), default=4,
                        help="scanpath figures of the first N trials (default 4)")
         g.add_argument("--no-baseline", action="store_true", help="skip the single-answer runs of the same trials")
+        g.add_argument("--cannon", type=integer(Range(0, 10_000, "shots")), default=50,
+                       help="also N cannon shots of the split (seeds as sim intercept's, default 50; 0: none) in the "
+                            "trials' rooms, arms passive: the share of shots with both eyes within 2 deg of the ball for "
+                            "90%% of the flight after its first 0.15 s, under each perception")
     elif name == "intercept":  # the arms strike
         g.set_defaults(no_arms=False)
         g.add_argument("--seed", type=integer(SEED), default=0,

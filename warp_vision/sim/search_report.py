@@ -78,6 +78,54 @@ def run_all(loop, trials: list, verifiers: dict | None, baseline: bool = True, p
                           "trials": results[m]} for m in modes}}
 
 
+#: the cannon shots' measure: from this time after the launch on, the share of the flight with both eyes
+#: within CANNON_WITHIN_DEG of the ball
+CANNON_FROM_S, CANNON_WITHIN_DEG = 0.15, 2.0
+
+
+def run_cannon_shot(loop, shot, scene, perception: str, search=None, settle_s: float = 0.2) -> dict:
+    """One cannon shot (:mod:`warp_vision.sim.cannon`) under ``perception``: the loop runs from the launch
+    for the shot's flight time with the arms passive; per period both eyes' gaze error to the ball."""
+    from warp_vision.sim.gaze import CONTROL_DT
+    from warp_vision.sim.loop import gaze_error_deg
+
+    body = loop.body
+    loop.scene = scene
+    loop.perception, loop.search = perception, search
+    loop.reset(settle_s=settle_s)
+    for name in [o.name for o in scene.objects if o.name.startswith("decoy_") or o.name == "lamp_panel"]:
+        scene.set_visible(name, False)
+    body.fire_cannon(shot.target, shot.flight_time)
+    err = []
+    for _ in range(int(round(shot.flight_time / CONTROL_DT))):
+        loop.step()
+        err.append([gaze_error_deg(body, s, body.ball_position()) for s in SIDES])
+    err = np.asarray(err)
+    t = (np.arange(len(err)) + 1) * CONTROL_DT
+    late = t >= CANNON_FROM_S
+    share = float((err[late].max(1) <= CANNON_WITHIN_DEG).mean()) if late.any() else 0.0
+    return {"seed": shot.seed, "perception": perception, "flight_s": shot.flight_time, "share_within": share,
+            "tracked": share >= 0.9, "median_error_deg": float(np.median(err[late].max(1))) if late.any() else None}
+
+
+def run_cannon(loop, shots: list, rooms: list, verifiers: dict | None, baseline: bool, progress: bool) -> dict:
+    """Every shot under the active search and (``baseline``) the single answer, in the trials' rooms in turn."""
+    from tqdm import tqdm
+
+    from warp_vision.sim.search import ActiveSearch
+
+    modes = ["search"] + (["nets"] if baseline else [])
+    out = {m: [] for m in modes}
+    cache: dict = {}
+    for k, shot in enumerate(tqdm(shots, desc="cannon shots", disable=not progress)):
+        scene = _trial_scene(loop.body, rooms[k % len(rooms)], cache)
+        for m in modes:
+            out[m].append(run_cannon_shot(loop, shot, scene, m, ActiveSearch(verifiers) if m == "search" else None))
+    return {m: {"shots": len(r), "tracked_share": float(np.mean([x["tracked"] for x in r])) if r else None,
+                "median_share_within": float(np.median([x["share_within"] for x in r])) if r else None, "per_shot": r}
+            for m, r in out.items()}
+
+
 def _mean_gaze_point(body) -> np.ndarray:
     mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
     axis = body.eye_pose("left")[:3, 2] + body.eye_pose("right")[:3, 2]
@@ -174,6 +222,11 @@ def summary_figure(report: dict, file: str) -> str:
 
 def report_lines(report: dict) -> list[str]:
     lines = []
+    for m, c in report.get("cannon", {}).items():
+        what = "active search" if m == "search" else "single answer"
+        lines.append(f"cannon, {what}: both eyes within {CANNON_WITHIN_DEG:g} deg of the ball for 90% of the flight after "
+                     f"{CANNON_FROM_S:g} s in {100 * c['tracked_share']:.0f}% of {c['shots']} shots (median share of the "
+                     f"flight {100 * c['median_share_within']:.0f}%)")
     for m, d in report["modes"].items():
         s = d["summary"]
         what = "active search" if m == "search" else "single answer (today's foveation nets)"
@@ -199,7 +252,13 @@ def search_command(args) -> dict:
     trials = [sample_trial(s, args.split) for s in seeds]
     report = run_all(loop, trials, verifiers, baseline=not args.no_baseline, progress=not args.no_progress,
                      scanpaths=args.scanpaths, out=args.out)
-    report["settings"] = {"trials": args.trials, "seed": args.seed, "split": args.split, "verify": loop.verify_runs,
+    if args.cannon:
+        from warp_vision.sim.cannon import sample_shots
+
+        shots = sample_shots(args.cannon, seed=args.seed, split=args.split, side="left")
+        report["cannon"] = run_cannon(loop, shots, sorted({t.room_seed for t in trials}), verifiers,
+                                      not args.no_baseline, not args.no_progress)
+    report["settings"] = {"trials": args.trials, "cannon_shots": args.cannon, "seed": args.seed, "split": args.split, "verify": loop.verify_runs,
                           "foveation": {s: loop.fov[s].run_dir for s in SIDES}}
     write_json(os.path.join(args.out, "search.json"), {**report, "software": software()})
     summary_figure(report, os.path.join(args.out, "figures", "search.png"))
