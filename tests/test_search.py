@@ -270,3 +270,43 @@ def test_verification_samples_do_not_depend_on_batching():
     assert np.all(whole["ball_ecc_deg"][labels] <= 2.5) and set(whole["cls"]) <= set(range(len(CLASSES)))
     with pytest.raises(ValueError, match="max_offset_deg"):
         VerifyDataConfig(max_offset_deg=9.0).validate()
+
+
+def test_the_trials_are_seeded_disjoint_and_scored(bare_body, tmp_path):
+    """Held-out and training trials come from disjoint seed ranges and rooms; run_all runs a trial under the
+    search (scripted candidates: a decoy's face, then the ball; verification by the true ball) and under the
+    single answer, scores both, and draws the scanpath and summary figures."""
+    from warp_vision.sim import search_report as R
+    from warp_vision.sim import search_trials as T
+    from warp_vision.sim.loop import VisuomotorLoop
+
+    held, train = T.trial_seeds(8, split="heldout"), T.trial_seeds(8, split="train")
+    assert not set(held) & set(train)
+    assert {T.sample_trial(s).room_seed for s in held}.isdisjoint({T.sample_trial(s).room_seed for s in train})
+    assert T.sample_trial(held[3]).ball == T.sample_trial(held[3]).ball  # reproducible
+    with pytest.raises(ValueError, match="trials"):
+        T.trial_seeds(0)
+    trial = next(T.sample_trial(s) for s in T.trial_seeds(50) if T.sample_trial(s).decoy is not None)
+    body = bare_body
+    body.reset()
+
+    def seen():  # the decoy's face first (the face toward the eyes), then the ball
+        from warp_vision.data.foveation_decoys import DECOYS
+
+        T_dec = loop.scene.objects[loop.scene.index(trial.decoy["name"])].transform[0]
+        face = T_dec[:3, 3] - T_dec[:3, 2] * DECOYS[trial.decoy["name"]][1] / 2
+        return [face, body.ball_position()]
+
+    fov = {s: _ScriptedFoveator(body, s, seen) for s in SIDES}
+    loop = VisuomotorLoop(body, fov, _holding_oculomotor(body), ball="ordinary")
+    report = R.run_all(loop, [trial], {s: _OracleVerifier(body, s) for s in SIDES}, scanpaths=1, out=str(tmp_path))
+    s, n = report["modes"]["search"], report["modes"]["nets"]
+    assert s["trials"][0]["found"], s["trials"][0]["events"]
+    assert [e[1] for e in s["trials"][0]["events"]][:2] == ["target", "reject"]
+    assert not n["trials"][0]["found"] and n["summary"]["found_share"] == 0.0
+    assert "decoy" in s["trials"][0]["look_alikes"] and report["search_cost"]["frame_ms"] > 0
+    assert (tmp_path / "figures" / f"scanpath_{trial.seed}.png").exists()
+    assert R.summary_figure(report, str(tmp_path / "figures" / "search.png"))
+    lines = R.report_lines(report)
+    assert any("active search" in ln and "1/1 trials" in ln for ln in lines), lines
+    body.reset()

@@ -163,6 +163,9 @@ class ActiveSearch:
         self.log: list = []
         #: the last frame's pairs (for figures and tests)
         self.pairs: list = []
+        #: wall seconds of what the search adds to a frame: the candidates (beyond the net's single answer, which
+        #: the loop also computes without a search), pairing and memory, the verification nets; and the frames
+        self.timing = {"candidates": 0.0, "pairs": 0.0, "verify": 0.0, "frames": 0}
 
     # ----------------------------------------------------------------------------------------------
     def inhibited(self, body, point: np.ndarray, now: float) -> bool:
@@ -197,10 +200,15 @@ class ActiveSearch:
     def frame(self, loop, onv: dict) -> dict | None:
         """One visual frame: each eye's retinal error (yaw, pitch) rad of the target, or None (hold)."""
         body, now = loop.body, loop.body.time
+        t0 = time.perf_counter()
         cands = {s: loop.fov[s].candidates(onv[s], self.k, MIN_SEP_DEG) for s in SIDES}
+        t1 = time.perf_counter()
         found = [q for q in pairs(body, cands) if not self.inhibited(body, q.point, now)]
         self._mark_motion(body, found)
         self.pairs = found
+        self.timing["candidates"] += t1 - t0
+        self.timing["pairs"] += time.perf_counter() - t1
+        self.timing["frames"] += 1
         st = self.s
         if st.state == "verify":
             self._verify(loop, onv, now)
@@ -226,7 +234,7 @@ class ActiveSearch:
             return {s: (True, 1.0, np.zeros(2)) for s in SIDES}
         t0 = time.perf_counter()
         out = {s: self.verifiers[s](onv[s]) for s in SIDES}
-        loop.timing["nets"] += time.perf_counter() - t0
+        self.timing["verify"] += time.perf_counter() - t0
         return out
 
     def _fixated_point(self, body, verdicts: dict) -> np.ndarray | None:

@@ -61,6 +61,7 @@ def run_all(loop, trials: list, verifiers: dict | None, baseline: bool = True, p
     cache: dict = {}
     wall = {m: 0.0 for m in modes}
     sim_s = {m: 0.0 for m in modes}
+    added = {"candidates": 0.0, "pairs": 0.0, "verify": 0.0, "frames": 0}
     for k, trial in enumerate(tqdm(trials, desc="search trials", disable=not progress)):
         scene = _trial_scene(loop.body, trial.room_seed, cache)
         for m in modes:
@@ -72,10 +73,18 @@ def run_all(loop, trials: list, verifiers: dict | None, baseline: bool = True, p
             wall[m] += time.perf_counter() - t0
             sim_s[m] += len(r["errors_deg"]) * 0.01
             results[m].append(r)
+            if search is not None:
+                for key in added:
+                    added[key] += search.timing[key]
             if path is not None and out:
                 scanpath_figure(loop, trial, scene, r, path, os.path.join(out, "figures", f"scanpath_{trial.seed}.png"))
+    frames = max(added["frames"], 1)
+    per_frame = {k: 1e3 * added[k] / frames for k in ("candidates", "pairs", "verify")}
+    frame_ms = 1e3 * wall["search"] / frames
     return {"modes": {m: {"summary": summarise(results[m]), "real_time_factor": sim_s[m] / max(wall[m], 1e-9),
-                          "trials": results[m]} for m in modes}}
+                          "trials": results[m]} for m in modes},
+            "search_cost": {"ms_per_frame": per_frame, "frame_ms": frame_ms,
+                            "share_of_frame": sum(per_frame.values()) / max(frame_ms, 1e-9)}}
 
 
 #: the cannon shots' measure: from this time after the launch on, the share of the flight with both eyes
@@ -222,6 +231,11 @@ def summary_figure(report: dict, file: str) -> str:
 
 def report_lines(report: dict) -> list[str]:
     lines = []
+    c = report.get("search_cost")
+    if c:
+        parts = ", ".join(f"{k} {v:.1f} ms" for k, v in c["ms_per_frame"].items())
+        lines.append(f"what the search adds per frame: {parts}; {100 * c['share_of_frame']:.0f}% of the search's "
+                     f"{c['frame_ms']:.0f} ms a frame (4 control periods)")
     for m, c in report.get("cannon", {}).items():
         what = "active search" if m == "search" else "single answer"
         lines.append(f"cannon, {what}: both eyes within {CANNON_WITHIN_DEG:g} deg of the ball for 90% of the flight after "

@@ -161,12 +161,12 @@ def hand_posture(body, trial: Trial) -> dict | None:
 
     from warp_vision.data.foveation_scenes import _ARM_JOINTS, _apply_joint_couplings
 
-    if trial.hand is None:
-        return None
     m = body.model
+    side = trial.hand["side"] if trial.hand is not None else "r"
+    if trial.hand is None or f"lunate_{side}" not in [m.body(b).name for b in range(m.nbody)]:
+        return None  # no hand in this trial, or a body without arms
     d = mujoco.MjData(m)
     d.qpos[:] = body.data.qpos
-    side = trial.hand["side"]
     rng = np.random.default_rng(trial.hand["seed"])
     head = body.head_pose()
     adrs = [m.jnt_qposadr[j] for j in range(m.njnt) if m.joint(j).name.endswith(f"_{side}")]
@@ -258,7 +258,8 @@ def run_trial(loop, trial: Trial, scene, perception: str, search=None, record=No
         while k > 0 and both[k - 1]:
             k -= 1
         held_from = float(t[k])
-    return {"seed": trial.seed, "perception": perception, "ball_in_sight": visible, "look_alikes": look_alikes(trial),
+    shown = [k for k in look_alikes(trial) if k != "hand" or posture]
+    return {"seed": trial.seed, "perception": perception, "ball_in_sight": visible, "look_alikes": shown,
             "ball": list(trial.ball), "found": held_from is not None and held_from <= BY_S, "held_from_s": held_from,
             "final_error_deg": err[-1].tolist(), "saccades": int(max(saccades.values())),
             "events": [(tm - t0, kind, p.tolist()) for tm, kind, p in (search.log if search is not None else [])],
