@@ -1,7 +1,8 @@
-"""The README's snippets run: every ```python block executes as written, and every command line of a
-```bash block, in the README and in docs/RESULTS.md (the commands behind the measurements), names a
-command and flags that exist (its --help parses them); every relative link of the docs reaches a file and a
-heading."""
+"""The README's snippets run: every ```python block of the README and of the user guide (docs/guide.md)
+executes as written, and every command line of a ```bash block, in the README, the guide and
+docs/RESULTS.md (the commands behind the measurements), names a command and flags that exist (its --help
+parses them); every relative link of the docs reaches a file and a heading; the README stays short, and its
+install and test commands are the ones .ci/run runs."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 RESULTS = (ROOT / "docs" / "RESULTS.md").read_text()
+GUIDE = (ROOT / "docs" / "guide.md").read_text()
 
 
 def blocks(lang: str, text: str = README) -> list[str]:
@@ -34,15 +36,36 @@ def commands(text: str = README) -> list[list[str]]:
 
 
 def test_the_readme_has_snippets():
-    assert len(blocks("python")) >= 2 and len(commands()) >= 10
+    """The README: one Python snippet, the quick start's three commands and the list of commands; the
+    guide: the longer snippets and every command in depth."""
+    assert len(blocks("python")) >= 1 and len(commands()) >= 12
+    assert len(blocks("python", GUIDE)) >= 2 and len(commands(GUIDE)) >= 40
     assert len(commands(RESULTS)) >= 10
 
 
-@pytest.mark.parametrize("k", range(len(blocks("python"))))
-def test_python_snippet_runs(k, tmp_path):
-    code = blocks("python")[k]
+def test_the_readme_is_short():
+    """About 150 lines: what it is, the data path, install and test, the quick start, the results, one
+    snippet, the commands and the docs; the rest belongs in docs/guide.md."""
+    assert len(README.splitlines()) <= 180
+    assert len(README.split()) <= 1800
+
+
+def test_the_readme_install_and_test_commands_are_what_ci_runs():
+    """.ci/run's lines after its "# --- README: install ---" and "# --- README: test ---" markers are
+    the README's two commands, in one bash block, in that order."""
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    install = ci[ci.index("    # --- README: install ---") + 1].strip()
+    test = ci[ci.index("# --- README: test ---") + 1].strip()
+    assert any(b.splitlines()[:2] == [install, test] for b in blocks("bash")), (install, test)
+
+
+SNIPPETS = [("README.md", code) for code in blocks("python")] + [("docs/guide.md", code) for code in blocks("python", GUIDE)]
+
+
+@pytest.mark.parametrize("doc, code", SNIPPETS, ids=[f"{d}:{k}" for k, (d, _) in enumerate(SNIPPETS)])
+def test_python_snippet_runs(doc, code, tmp_path):
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900)
-    assert r.returncode == 0, f"README python block {k} failed:\n{code}\n{r.stderr[-3000:]}"
+    assert r.returncode == 0, f"{doc} python block failed:\n{code}\n{r.stderr[-3000:]}"
 
 
 def _help_argv(argv: list[str]) -> list[str]:
@@ -55,7 +78,7 @@ def _help_argv(argv: list[str]) -> list[str]:
     return [sys.executable, "-m", module, *sub, "--help"]
 
 
-@pytest.mark.parametrize("argv", commands() + commands(RESULTS), ids=lambda a: " ".join(a)[:60])
+@pytest.mark.parametrize("argv", commands() + commands(GUIDE) + commands(RESULTS), ids=lambda a: " ".join(a)[:60])
 def test_bash_command_exists(argv, tmp_path):
     """The command and subcommand exist, and each --flag the README passes is in its --help."""
     r = subprocess.run(_help_argv(argv), cwd=ROOT, capture_output=True, text=True, timeout=300)
@@ -66,10 +89,10 @@ def test_bash_command_exists(argv, tmp_path):
 
 
 def _training_commands() -> list[list[str]]:
-    """The training command lines of the README and RESULTS (not compare, evaluate or --resume), after
-    ``python -m warp_vision.train``."""
+    """The training command lines of the README, the guide and RESULTS (not compare, evaluate or --resume),
+    after ``python -m warp_vision.train``."""
     out = []
-    for argv in commands() + commands(RESULTS):
+    for argv in commands() + commands(GUIDE) + commands(RESULTS):
         i = argv.index("-m")
         rest = argv[i + 2:]
         if argv[i + 1] == "warp_vision.train" and rest[:1] not in (["compare"], ["evaluate"]) and "--resume" not in rest:
@@ -98,17 +121,20 @@ def anchors(path: Path) -> set[str]:
     return {re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in heads}
 
 
-@pytest.mark.parametrize("doc", ["README.md", "docs/RESULTS.md", "docs/ARCHITECTURE.md"])
+@pytest.mark.parametrize("doc", ["README.md", "docs/guide.md", "docs/RESULTS.md", "docs/ARCHITECTURE.md"])
 def test_the_docs_links_reach_a_file_and_a_heading(doc):
     """Every relative link of the docs names a file of the repository, and its #fragment a heading there
     (the README pointed to sections of the results by their titles in quotes, which no reader could follow)."""
     page = ROOT / doc
     links = re.findall(r"\]\(([^)\s]+)\)", page.read_text())
     local = [link for link in links if not link.startswith(("http://", "https://", "mailto:"))]
-    assert local or doc != "README.md"
+    assert local or doc not in ("README.md", "docs/guide.md")
+    broken = []  # every broken link, not only the first
     for link in local:
         target, _, fragment = link.partition("#")
         path = (page.parent / target).resolve() if target else page
-        assert path.exists(), f"{doc}: {link} names no file"
-        if fragment:
-            assert fragment in anchors(path), f"{doc}: {link}: no heading of {path.name} makes #{fragment}"
+        if not path.exists():
+            broken.append(f"{link} names no file")
+        elif fragment and fragment not in anchors(path):
+            broken.append(f"{link}: no heading of {path.name} makes #{fragment}")
+    assert not broken, f"{doc}: " + "; ".join(broken)
