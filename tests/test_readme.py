@@ -1,7 +1,9 @@
-"""The README's snippets run: every ```python block executes as written, and every command line of a
-```bash block, in the README and in every page of docs/ (docs/RESULTS.md: the commands behind the
-measurements; the site's tutorials, concepts and results), names a command and flags that exist (its --help
-parses them); every relative link of the README and of every page of docs/ reaches a file and a heading."""
+"""The README's and the docs' snippets run: every ```python block of the README and of the user guide
+(docs/guide.md) executes as written, and every command line of a ```bash block, in the README and in every
+page of docs/ (docs/RESULTS.md: the commands behind the measurements; the guide; the site's tutorials,
+concepts and results), names a command and flags that exist (its --help parses them); every relative link of
+the README and of every page of docs/ reaches a file and a heading; the README stays short, and its install
+and test commands are the ones .ci/run runs."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ README = (ROOT / "README.md").read_text()
 RESULTS = (ROOT / "docs" / "RESULTS.md").read_text()
 #: every Markdown page of docs/ (RESULTS.md, ARCHITECTURE.md and the documentation site's pages), by its path
 DOCS = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md"))
+GUIDE = (ROOT / "docs" / "guide.md").read_text()
 
 
 def blocks(lang: str, text: str = README) -> list[str]:
@@ -44,17 +47,38 @@ def doc_commands() -> list[list[str]]:
 
 
 def test_the_readme_has_snippets():
-    assert len(blocks("python")) >= 2 and len(commands()) >= 10
+    """The README: one Python snippet, the quick start's three commands and the list of commands; the
+    guide: the longer snippets and every command in depth."""
+    assert len(blocks("python")) >= 1 and len(commands()) >= 12
+    assert len(blocks("python", GUIDE)) >= 2 and len(commands(GUIDE)) >= 40
     assert len(commands(RESULTS)) >= 10
     assert {"docs/index.md", "docs/cli.md", "docs/tutorials/train-foveation.md", "docs/results/index.md"} <= set(DOCS)
     assert len(doc_commands()) > len(commands()) + 20  # the site's pages show commands of their own
 
 
-@pytest.mark.parametrize("k", range(len(blocks("python"))))
-def test_python_snippet_runs(k, tmp_path):
-    code = blocks("python")[k]
+def test_the_readme_is_short():
+    """About 150 lines: what it is, the data path, install and test, the quick start, the results, one
+    snippet, the commands and the docs; the rest belongs in docs/guide.md."""
+    assert len(README.splitlines()) <= 180
+    assert len(README.split()) <= 1800
+
+
+def test_the_readme_install_and_test_commands_are_what_ci_runs():
+    """.ci/run's lines after its "# --- README: install ---" and "# --- README: test ---" markers are
+    the README's two commands, in one bash block, in that order."""
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    install = ci[ci.index("    # --- README: install ---") + 1].strip()
+    test = ci[ci.index("# --- README: test ---") + 1].strip()
+    assert any(b.splitlines()[:2] == [install, test] for b in blocks("bash")), (install, test)
+
+
+SNIPPETS = [("README.md", code) for code in blocks("python")] + [("docs/guide.md", code) for code in blocks("python", GUIDE)]
+
+
+@pytest.mark.parametrize("doc, code", SNIPPETS, ids=[f"{d}:{k}" for k, (d, _) in enumerate(SNIPPETS)])
+def test_python_snippet_runs(doc, code, tmp_path):
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=900)
-    assert r.returncode == 0, f"README python block {k} failed:\n{code}\n{r.stderr[-3000:]}"
+    assert r.returncode == 0, f"{doc} python block failed:\n{code}\n{r.stderr[-3000:]}"
 
 
 def _help_argv(argv: list[str]) -> list[str]:
@@ -67,14 +91,23 @@ def _help_argv(argv: list[str]) -> list[str]:
     return [sys.executable, "-m", module, *sub, "--help"]
 
 
-@pytest.mark.parametrize("argv", doc_commands(), ids=lambda a: " ".join(a)[:60])
-def test_bash_command_exists(argv, tmp_path):
-    """The command and subcommand exist, and each --flag the README passes is in its --help."""
-    r = subprocess.run(_help_argv(argv), cwd=ROOT, capture_output=True, text=True, timeout=300)
+def _by_help() -> dict[str, list[list[str]]]:
+    """The docs' command lines grouped by the --help that checks them (one subprocess per (sub)command)."""
+    groups: dict[str, list[list[str]]] = {}
+    for argv in doc_commands():
+        groups.setdefault(" ".join(_help_argv(argv)[1:]), []).append(argv)
+    return groups
+
+
+@pytest.mark.parametrize("command", sorted(_by_help()))
+def test_bash_command_exists(command, tmp_path):
+    """The command and subcommand exist, and each --flag that any of the docs' lines passes it is in its --help."""
+    r = subprocess.run([sys.executable, *command.split()], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
-    after_module = argv[argv.index("-m") + 2:]
-    for flag in (a.split("=")[0] for a in after_module if a.startswith("--")):
-        assert flag in r.stdout, f"{' '.join(argv)}: {flag} is not an option of {' '.join(_help_argv(argv)[1:])}"
+    for argv in _by_help()[command]:
+        after_module = argv[argv.index("-m") + 2:]
+        for flag in (a.split("=")[0] for a in after_module if a.startswith("--")):
+            assert flag in r.stdout, f"{' '.join(argv)}: {flag} is not an option of {command}"
 
 
 def _training_commands() -> list[list[str]]:
@@ -117,13 +150,16 @@ def test_the_docs_links_reach_a_file_and_a_heading(doc):
     page = ROOT / doc
     links = re.findall(r"\]\(([^)\s]+)\)", page.read_text())
     local = [link for link in links if not link.startswith(("http://", "https://", "mailto:"))]
-    assert local or doc != "README.md"
+    assert local or doc not in ("README.md", "docs/guide.md")
+    broken = []  # every broken link, not only the first
     for link in local:
         target, _, fragment = link.partition("#")
         path = (page.parent / target).resolve() if target else page
-        assert path.exists(), f"{doc}: {link} names no file"
-        if fragment:
-            assert fragment in anchors(path), f"{doc}: {link}: no heading of {path.name} makes #{fragment}"
+        if not path.exists():
+            broken.append(f"{link} names no file")
+        elif fragment and fragment not in anchors(path):
+            broken.append(f"{link}: no heading of {path.name} makes #{fragment}")
+    assert not broken, f"{doc}: " + "; ".join(broken)
 
 
 def test_every_module_has_an_api_page():
