@@ -6,9 +6,24 @@ import numpy as np
 import pytest
 
 from warp_vision.body import Body, BodyConfig
-from warp_vision.sim.cannon import (ARM_REACH, ENVELOPE, GRAVITY, HELDOUT_SEEDS, SHOULDER_LEFT, SPLITS, TRAIN_SEEDS,
-                                    DeflectionDetector, arm_actuators, geom_parts, make_shot, part_name, run_shot,
-                                    sample_shots, shoulder, shot_from_seed)
+from warp_vision.sim.cannon import (
+    ARM_REACH,
+    ENVELOPE,
+    GRAVITY,
+    HELDOUT_SEEDS,
+    SHOULDER_LEFT,
+    SPLITS,
+    TRAIN_SEEDS,
+    DeflectionDetector,
+    arm_actuators,
+    geom_parts,
+    make_shot,
+    part_name,
+    run_shot,
+    sample_shots,
+    shot_from_seed,
+    shoulder,
+)
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,8 @@ import argparse
 import errno
 import hashlib
 import json
-import re
 import os
+import re
 import shutil
 import signal
 import subprocess

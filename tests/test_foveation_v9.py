@@ -86,8 +86,8 @@ def test_decoys_are_rendered_in_sight_and_the_ball_stays_visible():
 
 
 def test_the_training_presets_use_v9():
-    from warp_vision.train.config import resolve
     from warp_vision.train.conditions import condition_config
+    from warp_vision.train.config import resolve
 
     for preset in ("quick", "default", "paper"):
         assert resolve(preset, {}).generator == 9

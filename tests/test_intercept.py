@@ -11,8 +11,14 @@ import torch
 from warp_vision.body import Body
 from warp_vision.nn.arm import ArmNets
 from warp_vision.sim.cannon import ARM_REACH, arm_actuators, make_shot, run_shot, sample_shots, shoulder
-from warp_vision.sim.intercept import (MIN_FRONT, REACH_FRACTION, arm_interceptor, ballistic_path, intercept_point,
-                                       intercept_stats)
+from warp_vision.sim.intercept import (
+    MIN_FRONT,
+    REACH_FRACTION,
+    arm_interceptor,
+    ballistic_path,
+    intercept_point,
+    intercept_stats,
+)
 
 TRAINED_LEFT = Path(__file__).resolve().parents[1] / "runs" / "arm" / "left"
 
@@ -70,7 +76,7 @@ def test_controller_sets_only_its_arm_within_bounds(body, untrained):
         assert np.linalg.norm(ctrl.arm.hand(body.data) - ctrl.ready_hand) < 0.01
         seen = []
 
-        def watch(b, t):
+        def watch(b, t, ctrl=ctrl, seen=seen):
             ctrl(b, t)
             seen.append(b.data.ctrl.copy())
 

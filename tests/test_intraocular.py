@@ -232,7 +232,9 @@ def test_the_lens_holds_on_an_image_without_contrast():
     c_uni = float(net.contrast(net.raw_features(uniform, torch.tensor([4.0])))[0])
     assert c_uni < -7 < c_tex
     net.contrast_floor.fill_(c_tex - 1.0)
-    central = lambda onv: onv.view(1, 300, 3)[:, :100].reshape(1, 300)  # the loop renders the net's field only
+    def central(onv):  # the loop renders the net's field only
+        return onv.view(1, 300, 3)[:, :100].reshape(1, 300)
+
     assert _lens_command(net, central(uniform), 2.0, 4.0, hold=1.5) == (1.5, None)
     cmd, d = _lens_command(net, central(textured), 2.0, 4.0, hold=1.5)
     assert d is not None and cmd == pytest.approx(2.0 - d)
@@ -332,7 +334,9 @@ def test_the_lens_net_subtracts_its_bias_at_the_lens_state():
 def test_focus_summary_counts_the_steps_in_focus_by_the_goal():
     from warp_vision.sim.scenarios import focus_summary
 
-    step = lambda to, t, end: {"from_m": 2.0 if to < 1 else 0.33, "to_m": to, "in_focus_s": t, "end_defocus_D": end}
+    def step(to, t, end):
+        return {"from_m": 2.0 if to < 1 else 0.33, "to_m": to, "in_focus_s": t, "end_defocus_D": end}
+
     runs = [[step(0.33, 1.0, -0.1), step(2.0, 0.8, 0.05)], [step(0.33, None, -0.3), step(2.0, 1.3, 0.2)]]
     f = focus_summary(runs, goal_s=1.2)
     assert f["near"]["steps"] == 2 and f["near"]["in_focus_within_goal"] == 1 and f["near"]["median_in_focus_s"] is None

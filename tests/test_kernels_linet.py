@@ -198,7 +198,7 @@ def test_gradcheck_float64(B, feature_major_x, device):
     for relu in (False, True):
         inputs = tuple(t.clone().requires_grad_(True) for t in (x, w, b))
         assert torch.autograd.gradcheck(
-            lambda x_, w_, b_: locally_connected(x_, w_, b_, index, relu=relu), inputs, eps=1e-6, atol=1e-8
+            lambda x_, w_, b_, relu=relu: locally_connected(x_, w_, b_, index, relu=relu), inputs, eps=1e-6, atol=1e-8
         )
 
 

@@ -8,10 +8,19 @@ import pytest
 import torch
 
 from warp_vision.sim.cannon import GRAVITY
-from warp_vision.sim.limb import (META, NEAR_M, SIDES, LimbDataConfig, Poser, dataset_fields, fit_ballistic,
-                                  render_samples, sample_params)
-from warp_vision.train.cli import main as train_main
+from warp_vision.sim.limb import (
+    META,
+    NEAR_M,
+    SIDES,
+    LimbDataConfig,
+    Poser,
+    dataset_fields,
+    fit_ballistic,
+    render_samples,
+    sample_params,
+)
 from warp_vision.sim.limb_errors import discrepancy_errors
+from warp_vision.train.cli import main as train_main
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ import torch
 
 from warp_vision.body import SIDES, Body, BodyConfig
 
-
 # --- provisioning ------------------------------------------------------------------------------------
 
 

@@ -272,7 +272,7 @@ def test_a_folded_standardisation_reads_half_inputs_as_the_float32_path_does(hal
     folded.input_mean.copy_(mean)
     folded.input_std.copy_(std)
     x = (torch.rand(64, 300, generator=g) * 3).to(half)
-    want = plain(((x.float() - mean) / std))
+    want = plain((x.float() - mean) / std)
     got = folded(x)
     scale = plain.bias.abs() + (x.float()[:, index].abs() / std + mean / std) @ torch.ones(9) * plain.weight.abs().max()
     assert got.dtype == torch.float32 and ((got - want).abs() <= 1e-5 * scale + 1e-6).all()

@@ -7,13 +7,19 @@ import numpy as np
 import pytest
 import torch
 
-from warp_vision.nn.trained import build_net, load_net, run_identity, seal
 from warp_vision.body import Body, BodyConfig
-from warp_vision.sim.oculomotor import HOLDING_VERSION, HoldingDataConfig, evaluate_on_body, load_oculomotor, transition_pairs
+from warp_vision.nn.trained import build_net, load_net, run_identity, seal
+from warp_vision.sim.oculomotor import (
+    HOLDING_VERSION,
+    HoldingDataConfig,
+    evaluate_on_body,
+    load_oculomotor,
+    transition_pairs,
+)
 from warp_vision.train import oculomotor
-from warp_vision.train.rundir import run_config, save_checkpoint
 from warp_vision.train.config import resolve
 from warp_vision.train.config_body import OCULOMOTOR_PRESETS, OculomotorTrainConfig
+from warp_vision.train.rundir import run_config, save_checkpoint
 
 
 def cfg_for(tmp_path, **kw):

@@ -9,8 +9,16 @@ import torch
 
 from warp_vision.eye.retina import Retina
 from warp_vision.frames import gaze_angles, gaze_directions
-from warp_vision.nn.retina_cnn import (CONSENSUS_DEG, ROTATIONS, RetinaCNNFoveationNet, consensus_of, consensus_transforms,
-                                      native_bfloat16, training_autocast, transform_matrix)
+from warp_vision.nn.retina_cnn import (
+    CONSENSUS_DEG,
+    ROTATIONS,
+    RetinaCNNFoveationNet,
+    consensus_of,
+    consensus_transforms,
+    native_bfloat16,
+    training_autocast,
+    transform_matrix,
+)
 
 
 @pytest.fixture(scope="module")

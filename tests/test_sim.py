@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from warp_vision.frames import fick_rotation, gaze_angles, torsion_angle
 from warp_vision.body import EYE_MUSCLE_NAMES, NECK_MUSCLE_NAMES, SIDES, Body, BodyConfig, SimulationError
+from warp_vision.frames import fick_rotation, gaze_angles, torsion_angle
 
 
 @pytest.fixture(scope="module")

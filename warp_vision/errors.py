@@ -19,7 +19,7 @@ import re
 import signal
 import sys
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 from warp_vision.resources import check_environment
 

@@ -11,7 +11,6 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-
 __all__ = ["plot_receptive_fields", "plot_retina_layout", "tone_map", "plot_onv", "plot_eye_rays", "plot_image"]
 
 

@@ -18,7 +18,6 @@ from warp_vision.fileio import require_output, write_json
 from warp_vision.limits import require_int
 from warp_vision.provenance import software
 
-
 #: what ``python -m warp_vision.bench`` with no command runs, in order, each on its defaults: the benchmarks of
 #: the two kernels everything else stands on (the liNet layer, the ray tracer)
 KERNELS = ("linet", "raytrace")

@@ -31,7 +31,6 @@ thread count) and the kernels-alone timing (CPU launches). The JSON then also ho
 
 from __future__ import annotations
 
-
 import torch
 
 from warp_vision.bench import torch_baselines as tb

@@ -25,7 +25,7 @@ import json
 import os
 import subprocess
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 from warp_vision.fileio import atomic_write
 from warp_vision.limits import Range

@@ -33,8 +33,18 @@ import mujoco
 import numpy as np
 
 from warp_vision.body.meshes import ARM_PARTS, HIDDEN_FROM_EYES, geom_mesh, visible_parts
-from warp_vision.body.spec import (BODY_CONTYPE, EYE_MUSCLE_NAMES, EYE_REST_ROTATION, NECK_JOINTS, NECK_MUSCLE_NAMES,
-                                   SCAFFOLD_HEAD_ROTATION, SIDES, BodyConfig, build_spec, quat_from_matrix)
+from warp_vision.body.spec import (
+    BODY_CONTYPE,
+    EYE_MUSCLE_NAMES,
+    EYE_REST_ROTATION,
+    NECK_JOINTS,
+    NECK_MUSCLE_NAMES,
+    SCAFFOLD_HEAD_ROTATION,
+    SIDES,
+    BodyConfig,
+    build_spec,
+    quat_from_matrix,
+)
 from warp_vision.eye.plants import LensPlant, PupilPlant
 from warp_vision.frames import gaze_angles, torsion_angle
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-
 #: Bodies the eyes do not see: the skull and cervical spine around them (its inside would shadow every
 #: ray) and the eyes themselves; a third-person camera sees them.
 HIDDEN_FROM_EYES = ("head", "neck", "eye_left", "eye_right", "orbit_left", "orbit_right")

@@ -15,7 +15,6 @@ import numpy as np
 from warp_vision.eye.plants import LENS_RANGE_D, PUPIL_RANGE_MM
 from warp_vision.frames import fick_rotation, gaze_angles, gaze_direction
 
-
 EYE_RADIUS = 0.012  # m
 EYE_MASS = 0.0075  # kg
 INTEROCULAR = 0.063  # m

@@ -18,8 +18,9 @@ import platform
 import re
 import socket
 import uuid
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -64,7 +65,7 @@ class IncompleteStoreError(ValueError):
         super().__init__(f"{self.root}: dataset incomplete: {len(self.missing)} of {self.num_chunks} chunks missing "
                          f"(chunks {head}); {how}")
 
-    def finished_by(self, command: str) -> "IncompleteStoreError":
+    def finished_by(self, command: str) -> IncompleteStoreError:
         """This error, naming ``command`` as the one that renders the missing chunks."""
         return IncompleteStoreError(self.root, self.missing, self.num_chunks, command)
 

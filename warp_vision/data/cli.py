@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             out, store = job()
         except KeyboardInterrupt as e:
             print("interrupted: the chunks written are kept; the same command carries on from them", file=sys.stderr)
-            raise told(e)
+            raise told(e)  # noqa: B904 (told returns e: the caught exception, raised again)
         left = len(store.missing_chunks())
         print(f"{out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
               f"{'' if not left else f' ({left} chunks of this shard missing)'}")

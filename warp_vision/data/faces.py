@@ -147,7 +147,7 @@ class FaceIdentities:
     def __len__(self) -> int:
         return len(self.vertices)
 
-    def subset(self, n: int) -> "FaceIdentities":
+    def subset(self, n: int) -> FaceIdentities:
         return FaceIdentities(self.vertices[:n], self.faces, self.colours[:n], self.pivot[:n], self.face_centre[:n],
                               self.params[:n], self.param_names, self.seed)
 
@@ -170,7 +170,7 @@ class FaceIdentities:
         atomic_write(path, write)
 
     @classmethod
-    def load(cls, path) -> "FaceIdentities":
+    def load(cls, path) -> FaceIdentities:
         """The identities :meth:`save` wrote to ``path``; any other file is a ValueError naming it (it read as
         numpy's "pickled (object) data" error, or a KeyError), and is left as it is."""
         try:
@@ -194,9 +194,8 @@ class FaceIdentities:
 
 
 def _anny_model():
-    import torch
-
     import anny
+    import torch
 
     return anny.Anny(**ANNY_MODEL).to(dtype=torch.float32)
 
@@ -204,10 +203,9 @@ def _anny_model():
 def _region_masks(model) -> dict:
     """Per-vertex weights in [0, 1] of anny's regions: UV masks (face, lips, eyelids, ears) sampled at
     each vertex's texture coordinates, and part labels (eyeball front/back, cavities, tongue)."""
-    from PIL import Image
-
     from anny.face_segmentation import get_face_segmentation_mask
     from anny.paths import get_anny_root_dir
+    from PIL import Image
 
     faces = model.faces.cpu().numpy()
     V = int(faces.max()) + 1

@@ -145,7 +145,7 @@ class FoveationDataConfig:
                 f"largest allowed ({MAX_APPARENT_DIAMETER_DEG:g} deg); use more photoreceptors or a smaller --max-field-deg")
 
     @classmethod
-    def saved(cls, d: dict) -> "FoveationDataConfig":
+    def saved(cls, d: dict) -> FoveationDataConfig:
         """The config recorded as ``d`` (a checkpoint's ``data``); one saved before ``generator`` existed is v7's."""
         return cls(**{"generator": 7, **d})
 

@@ -94,7 +94,7 @@ class ArmKit:
 
     @staticmethod
     @lru_cache(maxsize=1)
-    def load() -> "ArmKit":
+    def load() -> ArmKit:
         import trimesh
 
         from warp_vision.body import ARM_PARTS, HIDDEN_FROM_EYES, Body, visible_parts

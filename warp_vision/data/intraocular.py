@@ -92,7 +92,7 @@ class PupilDataConfig:
                                    samples_per_receptor=self.samples_per_receptor, generator=8, rooms=self.rooms,
                                    seed=self.seed, accommodation_D=self.accommodation_D)
 
-    def heldout(self, samples: int | None = None) -> "PupilDataConfig":
+    def heldout(self, samples: int | None = None) -> PupilDataConfig:
         """The held-out set of this config: held-out rooms, sample seeds offset by 1000."""
         return PupilDataConfig(**{**asdict(self), "rooms": "heldout", "seed": self.seed + 1000,
                                   "samples": samples or max(200, self.samples // 6)})
@@ -240,7 +240,7 @@ class LensDataConfig:
     def key(self) -> str:
         return hashlib.sha256(json.dumps(self.manifest(), sort_keys=True).encode()).hexdigest()[:12]
 
-    def heldout(self, samples: int | None = None) -> "LensDataConfig":
+    def heldout(self, samples: int | None = None) -> LensDataConfig:
         """The held-out set: new card textures, lamps and distances (seed + 1000)."""
         return LensDataConfig(**{**asdict(self), "seed": self.seed + 1000, "samples": samples or max(200, self.samples // 6)})
 

@@ -73,7 +73,7 @@ RANGE_GATE_DEG = 5.6
 PRECISIONS = ("auto", "float32", "bfloat16")
 
 
-@functools.lru_cache(maxsize=None)  # a property of the machine, asked on every training forward
+@functools.cache  # a property of the machine, asked on every training forward
 def native_bfloat16(device_type: str) -> bool:
     """Whether ``device_type`` ("cpu", "cuda") runs bfloat16 convolutions in hardware: a CPU with AVX512-BF16
     or AMX tiles, a CUDA GPU that torch says supports bfloat16 without emulation (compute capability 8.0 on).

@@ -104,6 +104,11 @@ def _as_ambient(ambient) -> np.ndarray:
     return a
 
 
+#: The default world-from-object transform: one read-only array, shared by every object added without a transform.
+IDENTITY = np.eye(4)
+IDENTITY.setflags(write=False)
+
+
 def _as_transforms(name: str, T) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     if T.shape == (4, 4):
@@ -150,7 +155,7 @@ class Scene:
 
     # --- building -----------------------------------------------------------------------------
     def add(
-        self, name: str, mesh: trimesh.Trimesh, material: Material | None = None, transform=np.eye(4), static: bool = False
+        self, name: str, mesh: trimesh.Trimesh, material: Material | None = None, transform=IDENTITY, static: bool = False
     ) -> int:
         """Add a mesh (object frame, metres). Returns the object's index.
 
@@ -186,11 +191,11 @@ class Scene:
         mat = material or Material(smooth=True)
         return self.add(name, m, mat, translation(centre), static)
 
-    def add_box(self, name, extents, transform=np.eye(4), material=None, static=False) -> int:
+    def add_box(self, name, extents, transform=IDENTITY, material=None, static=False) -> int:
         """An axis-aligned box of ``extents`` (m) in its object frame, placed by ``transform``."""
         return self.add(name, trimesh.creation.box(extents=extents), material, transform, static)
 
-    def add_plane(self, name, size, transform=np.eye(4), material=None, static=False) -> int:
+    def add_plane(self, name, size, transform=IDENTITY, material=None, static=False) -> int:
         """A two-triangle rectangle of ``size`` (w, h) m in the object's xy plane, normal +z."""
         w, h = 0.5 * float(size[0]), 0.5 * float(size[1])
         v = np.array([[-w, -h, 0], [w, -h, 0], [w, h, 0], [-w, h, 0]], dtype=np.float64)

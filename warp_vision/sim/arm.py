@@ -444,7 +444,7 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
     for mode in ("posture_net", "teacher") if hold else ():
         drift = []
         for s in starts:
-            def control(t, s=s):
+            def control(t, s=s, mode=mode):
                 if mode == "teacher":
                     a = act[s]
                 else:

@@ -96,7 +96,7 @@ class LimbDataConfig:
             raise ValueError(f"ball: expected one of {BALLS}, got {self.ball!r}")
 
     @classmethod
-    def from_manifest(cls, m: dict) -> "LimbDataConfig":
+    def from_manifest(cls, m: dict) -> LimbDataConfig:
         """The config a dataset store recorded (:meth:`manifest`)."""
         return cls(**{"ball": "glowing", **{k: v for k, v in m.items() if k != "generator_version"}})
 
@@ -286,7 +286,7 @@ def render_samples(cfg: LimbDataConfig, indices, poser: Poser, retina, device: s
     ps, poses = [], {name: [] for name, _ in sc._mj_bodies}
     for i in indices:
         p = sample_params(cfg, i, poser)
-        for (name, b), T in zip(sc._mj_bodies, poser.body_poses([b for _, b in sc._mj_bodies])):
+        for (name, _b), T in zip(sc._mj_bodies, poser.body_poses([b for _, b in sc._mj_bodies])):
             poses[name].append(T)
         ps.append(p)
     for name, Ts in poses.items():

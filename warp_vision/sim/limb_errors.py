@@ -10,7 +10,6 @@ from warp_vision.data.store import ChunkedStore, IncompleteStoreError, MissingSt
 from warp_vision.frames import gaze_direction
 from warp_vision.sim.limb import NEAR_M, LimbDataConfig, Poser, ball_in_eye
 
-
 #: m: the distance bins of the summary
 BINS_M = (0.0, 0.2, 0.4, 0.6, 1.0, 2.0, 4.0)
 #: m: the ranging summary's bins of the eye-ball distance

@@ -30,9 +30,9 @@ import numpy as np
 import torch
 from scipy.optimize import lsq_linear
 
+from warp_vision.body import EYE_MUSCLE_NAMES, SIDES, Body, BodyConfig, quat_from_matrix
 from warp_vision.frames import fick_rotation
 from warp_vision.nn.heads import OculomotorNet
-from warp_vision.body import EYE_MUSCLE_NAMES, SIDES, Body, BodyConfig, quat_from_matrix
 
 #: Effort weight: small next to the torque residual (N m), so the pose is held exactly where it can be.
 EFFORT = 1e-8
@@ -234,7 +234,7 @@ def evaluate_on_body(net: OculomotorNet, body: Body, side: str, gaze: np.ndarray
     exact = np.array([np.degrees(np.linalg.norm(settle_gaze(body, side, acts[j[k]]) - g[j[k]])) for k in range(n)])
     chain = []
     lim = np.radians(30.0)
-    for k in range(n // 4):
+    for _ in range(n // 4):
         start = g[te[rng.integers(len(te))]]
         phi = rng.uniform(0, 2 * np.pi)
         step = np.radians(0.5) * np.array([np.cos(phi), np.sin(phi)])

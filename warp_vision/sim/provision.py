@@ -31,7 +31,14 @@ from dataclasses import dataclass
 from warp_vision.body import SIDES
 from warp_vision.errors import Terminated
 from warp_vision.fileio import FileLock
-from warp_vision.nn.trained import TRAINING_LOCK, read_checkpoint, read_run_config, require_binding, run_identity, saved_task
+from warp_vision.nn.trained import (
+    TRAINING_LOCK,
+    read_checkpoint,
+    read_run_config,
+    require_binding,
+    run_identity,
+    saved_task,
+)
 
 #: the lock a simulation holds in a net's run directory while it has the net trained there: a second
 #: simulation that needs the net waits for it rather than starting a training the run lock refuses

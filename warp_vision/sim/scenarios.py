@@ -350,11 +350,10 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
     (default the lens data's); ``card_seed``: their textures' seed."""
     from tqdm import tqdm
 
+    from warp_vision.data.intraocular import CARD_VERTICES, card_size_for
     from warp_vision.scene import Material
     from warp_vision.scene.textures import textured_card
     from warp_vision.sim.loop import CONTROL_DT, point_at
-
-    from warp_vision.data.intraocular import CARD_VERTICES, card_size_for
 
     body = loop.body
     body.model.opt.gravity[:] = 0

@@ -21,7 +21,6 @@ from warp_vision.body import SIDES, Body
 from warp_vision.fileio import write_json
 from warp_vision.provenance import software
 
-
 #: The interception video's camera: behind the body's left shoulder, the cannon at the left edge
 #: (world from camera: position, target), and its vertical field of view (deg).
 STRIKE_CAMERA = ((1.9, 0.9, 1.75), (0.3, -0.8, 1.0))
@@ -235,10 +234,9 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
     import time
 
     from warp_vision.sim.intercept import OffsetOracle, arm_interceptor, intercept_stats, run_vision_shot
-    from warp_vision.sim.strike_figures import mode_label, stats_figures, target_offset
-
     from warp_vision.sim.limb import FixationVision
     from warp_vision.sim.limb_errors import frame_error_summary, frame_errors
+    from warp_vision.sim.strike_figures import mode_label, stats_figures, target_offset
 
     progress = not args.no_progress
     loop_mode = {"vision": "vision", "fixation": "fixation"}.get(args.perception, "loop_oracle")

@@ -120,7 +120,7 @@ def compose_strike_frame(third_person: np.ndarray, retina: np.ndarray, caption: 
     width (as an .mp4 needs): uint8 [H + H % 2, W + H/2 (+1), 3]."""
     from PIL import Image, ImageDraw
 
-    from warp_vision.sim.video import check_rgb_u8, resize_square, label
+    from warp_vision.sim.video import check_rgb_u8, label, resize_square
 
     third_person = check_rgb_u8("third_person", third_person)
     H, W = third_person.shape[:2]

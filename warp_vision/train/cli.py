@@ -22,8 +22,8 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
-from warp_vision.errors import add_debug_flag as _debug_flag
 from warp_vision.errors import ArgumentParser, guarded, long_options, not_a_command
+from warp_vision.errors import add_debug_flag as _debug_flag
 from warp_vision.train import config as C
 from warp_vision.train import config_body as body
 from warp_vision.train import config_intraocular as intraocular

@@ -53,10 +53,17 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
     from warp_vision.data.store import ChunkedStore
     from warp_vision.fileio import atomic_write
     from warp_vision.nn.retina_cnn import consensus_transforms
-    from warp_vision.nn.trained import (CHECKPOINTS, checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets,
-                                        read_checkpoint, saved_task)
-    from warp_vision.train.foveation import FoveationTask, angular_error_deg
+    from warp_vision.nn.trained import (
+        CHECKPOINTS,
+        checkpoint_path,
+        net_from_checkpoint,
+        onv_dtype,
+        predict_targets,
+        read_checkpoint,
+        saved_task,
+    )
     from warp_vision.train.evaluation import load_for_evaluation, read_label
+    from warp_vision.train.foveation import FoveationTask, angular_error_deg
     from warp_vision.train.harness import pick_device
     from warp_vision.train.rundir import a_run, dataset_dir, require_own_checkpoint, run_config, saved_config
     from warp_vision.train.workers import dataset_lock

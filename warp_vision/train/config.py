@@ -16,7 +16,6 @@ from warp_vision.data.foveation import PRESET_DATA as FOVEATION_DATA
 from warp_vision.data.foveation import FoveationDataConfig, generator_flag
 from warp_vision.errors import field_help, field_sections, preset_defaults, require_positive, require_seeds
 
-
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
 CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn"], "eye": ["left", "right"],
            "onv_dtype": ["auto", "float16", "bfloat16", "float32"], "precision": ["auto", "float32", "bfloat16"],

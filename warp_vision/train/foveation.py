@@ -220,8 +220,14 @@ class FoveationTask(harness.OnvTask):
             return
         import errno
 
-        from warp_vision.nn.trained import (binding, describe_binding, read_checkpoint, read_run_config, run_identity,
-                                            saved_task)
+        from warp_vision.nn.trained import (
+            binding,
+            describe_binding,
+            read_checkpoint,
+            read_run_config,
+            run_identity,
+            saved_task,
+        )
         from warp_vision.train.rundir import a_run, init_checkpoint
 
         best = init_checkpoint(cfg.init)

@@ -40,11 +40,23 @@ import torch.distributed as dist
 from warp_vision.data.store import IncompleteStoreError, waiting_for_writers
 from warp_vision.errors import told
 from warp_vision.fileio import resolved, write_json
-from warp_vision.provenance import software
 from warp_vision.nn.trained import ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, task_command
+from warp_vision.provenance import software
 from warp_vision.train.config import check_splits, epoch_lr, onv_dtype_name
-from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
-                                      preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics, warm_start)
+from warp_vision.train.rundir import (
+    TIMING_FIELDS,
+    a_run,
+    check_checkpoint_space,
+    dataset_dir,
+    open_run,
+    preflight,
+    record_epoch,
+    release_run_dir,
+    reproducible_config,
+    save_checkpoint,
+    sync_metrics,
+    warm_start,
+)
 from warp_vision.train.workers import auto_workers, render_in_processes, rendering_lock
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
@@ -561,7 +573,7 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
         ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress, workers, new_cap)
     except KeyboardInterrupt as e:
         say(_interrupted(out))
-        raise told(e)
+        raise told(e)  # noqa: B904 (told returns e: the caught exception, raised again)
     t_data = time.perf_counter() - t_start
     spec = task.net_spec()
     if dd.rank == 0:
@@ -573,7 +585,7 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
     except (KeyboardInterrupt, _Interrupt) as e:
         say(_interrupted(out))
         if stop_after_epoch is None:
-            raise told(e)
+            raise told(e)  # noqa: B904 (told returns e: the caught exception, raised again)
         return {"interrupted": True}
     say(stopped)
     summary = _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)

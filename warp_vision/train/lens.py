@@ -20,11 +20,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
 from warp_vision.train import evaluation, harness
 from warp_vision.train.config_intraocular import LensTrainConfig
-from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
 from warp_vision.train.intraocular import ShallowNetTask
-
 
 #: The sign of the defocus is scored on samples whose defocus exceeds this (D).
 SIGN_ABOVE_D = 0.5

@@ -24,8 +24,16 @@ import torch
 
 from warp_vision.data.store import ChunkedStore
 from warp_vision.fileio import FileLock, atomic_copy, atomic_write, probe_writable, require_output, resolved
-from warp_vision.nn.trained import (TRAINING_LOCK, read_checkpoint, read_run_config, require_binding, run_identity,
-                                    saved_task, seal, task_command)
+from warp_vision.nn.trained import (
+    TRAINING_LOCK,
+    read_checkpoint,
+    read_run_config,
+    require_binding,
+    run_identity,
+    saved_task,
+    seal,
+    task_command,
+)
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
 RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
@@ -231,7 +239,8 @@ def preflight(task, out: Path, data_dir: Path, log) -> None:
     """Before any expensive work: ``out`` is a writable directory; the dataset (when it is not all
     there) fits in the free space of its directory; the dataset fits in memory. Prints the estimates;
     raises OSError (no space, read-only, permissions) or ValueError (memory) otherwise."""
-    from warp_vision.resources import available_memory_bytes, free_disk_bytes, human_bytes as _mib, require_disk, require_memory
+    from warp_vision.resources import available_memory_bytes, free_disk_bytes, require_disk, require_memory
+    from warp_vision.resources import human_bytes as _mib
 
     probe_writable(out)
     need = task.dataset_bytes()

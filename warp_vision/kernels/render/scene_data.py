@@ -27,7 +27,6 @@ from warp_vision.kernels.render.bvh import build_bvh_cached
 from warp_vision.kernels.render.packet import BvhData, concat_bvhs
 from warp_vision.kernels.render.shade import FLAG_SMOOTH, FLAG_VERTEX_COLORS, SceneData
 
-
 #: The shading values of a Material that may vary per batch element (the kernels' material arrays).
 MATERIAL_FIELDS = ("diffuse", "specular", "shininess", "reflectivity", "emission")
 

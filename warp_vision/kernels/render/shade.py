@@ -298,7 +298,7 @@ def packet_radiance(
     thg = vec8(1.0)
     thb = vec8(1.0)
     lim = live
-    for depth in range(sc.max_depth + 1):
+    for _depth in range(sc.max_depth + 1):
         t, tri = packet_closest(sc.bv, b, ox, oy, oz, dx, dy, dz, lim)
         R, G, Bc = _add_background(sc, lim, tri, thr, thg, thb, R, G, Bc)
         px, py, pz, nx, ny, nz, cr, cg, cb, obj = _hit_surfaces(sc, bt, bm, ox, oy, oz, dx, dy, dz, lim, t, tri)

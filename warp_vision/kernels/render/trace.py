@@ -26,7 +26,14 @@ from warp_vision.eye.optics import NavarroEye
 from warp_vision.kernels import launch as _launch
 from warp_vision.kernels.render.eye_rays import _check_samples, _retina_positions, eye_rays, eye_rays_bytes
 from warp_vision.kernels.render.scene_data import scene_data, to_warp_transforms
-from warp_vision.kernels.render.shade import SceneData, camera_kernel, closest_hit_kernel, photoreceptors_per_thread, radiance_kernel, render_onv_kernel
+from warp_vision.kernels.render.shade import (
+    SceneData,
+    camera_kernel,
+    closest_hit_kernel,
+    photoreceptors_per_thread,
+    radiance_kernel,
+    render_onv_kernel,
+)
 from warp_vision.resources import require_memory
 
 #: CPU launch splitting for tracing kernels (``launch_split`` keywords): threads are heavy and unequal
