@@ -53,7 +53,8 @@ def test_model_measures_match_the_constants(body):
     chain = [d.xpos[m.body(n).id] for n in ("humerus_l", "ulna_l", "lunate_l", "3proxph_l")]
     assert sum(np.linalg.norm(b - a) for a, b in zip(chain, chain[1:])) == pytest.approx(ARM_REACH, abs=0.005)
     parts = {part_name(*v) for v in geom_parts(m).values()}
-    assert parts == {"torso", "head", *(f"{p}_{s}" for p in ("hand", "forearm", "upper_arm") for s in ("left", "right"))}
+    assert parts == {"torso", "head",
+                     *(f"{p}_{s}" for p in ("hand", "forearm", "upper_arm") for s in ("left", "right"))}
     assert len(arm_actuators(body)) == 126  # myo-sim's 63 muscles per arm, no eye, neck or intraocular one
 
 

@@ -24,7 +24,8 @@ def test_region_log_means_match_a_plain_reference():
     region = retina_regions(xy, 3, 4)
     x = onv.double().numpy().reshape(5, -1, 3)
     for r in range(12):
-        np.testing.assert_allclose(got[:, r].numpy(), np.log10(x[:, region == r].mean(1) + LOG_FLOOR), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(got[:, r].numpy(), np.log10(x[:, region == r].mean(1) + LOG_FLOOR), rtol=1e-5,
+                                   atol=1e-5)
     np.testing.assert_allclose(got[:, 12].numpy(), np.log10(x.mean(1) + LOG_FLOOR), rtol=1e-5, atol=1e-5)
     counts = np.bincount(region, minlength=12).reshape(3, 4).sum(1)
     assert counts.max() - counts.min() <= 1  # rings of equal photoreceptor counts
@@ -38,7 +39,8 @@ def test_the_pupil_net_refuses_bad_inputs_and_answers_within_the_iris_range():
     out = net(onv, torch.tensor([2.0, 4.0, 8.0]))
     assert out.shape == (3,) and ((out > 2) & (out < 8)).all()
     for bad, match in [((torch.rand(3, 899), [4.0] * 3), r"\[B, 900\]"), ((torch.rand(900), [4.0]), r"\[B, 900\]"),
-                       ((-torch.rand(3, 900), [4.0] * 3), ">= 0"), ((torch.full((3, 900), float("nan")), [4.0] * 3), "finite"),
+                       ((-torch.rand(3, 900), [4.0] * 3), ">= 0"),
+                       ((torch.full((3, 900), float("nan")), [4.0] * 3), "finite"),
                        ((onv, [4.0, 4.0]), "one diameter per ONV"), ((onv, [4.0, 0.0, 4.0]), r"\(0, 10\]"),
                        ((onv, [4.0, 11.0, 4.0]), r"\(0, 10\]")]:
         with pytest.raises(ValueError, match=match):
@@ -75,7 +77,8 @@ def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
     from warp_vision.train.config_intraocular import PUPIL_PRESETS, PupilTrainConfig
     from warp_vision.train.pupil import run
 
-    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, PupilTrainConfig, PUPIL_PRESETS)
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, PupilTrainConfig,
+                  PUPIL_PRESETS)
     summary = run(cfg, progress=False, log=lambda *_a, **_k: None)
     held = summary["heldout"]
     assert set(held) >= {"median_error_mm", "p90_error_mm", "median_relative_error", "within_5pct"}
@@ -87,7 +90,8 @@ def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
 
     with pytest.raises(ValueError, match="expected a lens run"):
         load_lens(str(tmp_path / "run"))
-    with pytest.raises(ValueError, match=r"expected a foveation run \(python -m warp_vision.train\); it holds a net of kind 'pupil'"):
+    with pytest.raises(ValueError,
+                       match=r"expected a foveation run \(python -m warp_vision.train\); it holds a net of kind 'pupil'"):
         Foveator(str(tmp_path / "run"))
     with pytest.raises(ValueError, match="pupil_mm"):
         load_pupil(str(tmp_path / "run"))(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0]))
@@ -266,7 +270,8 @@ def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path, monkeypat
 
     monkeypatch.setattr(lens, "CALIBRATE_MIN_SAMPLES", 1)  # the smoke set is too small for the real threshold
 
-    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, LensTrainConfig, LENS_PRESETS)
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, LensTrainConfig,
+                  LENS_PRESETS)
     said = []
     summary = run(cfg, progress=False, log=lambda *a, **_k: said.append(" ".join(map(str, a))))
     assert {"median_error_D", "p90_error_D", "sign_correct_above_0.5D"} <= set(summary["heldout"])

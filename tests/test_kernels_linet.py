@@ -333,7 +333,8 @@ def test_a_plan_for_other_values_is_refused():
         (lambda a: a.update(x=a["x"].to(torch.int32)), "x: expected dtype float32, float64, float16 or bfloat16"),
         (lambda a: a.update(x=a["x"].half(), weight=a["weight"].half()),
          r"weight: expected dtype torch.float32 \(float32 weights go with a torch.float16 x\)"),
-        (lambda a: a.update(weight=a["weight"].double()), r"weight: expected dtype torch.float32 \(the dtype of x\), got "
+        (lambda a: a.update(weight=a["weight"].double()),
+         r"weight: expected dtype torch.float32 \(the dtype of x\), got "
                                                           r"torch.float64; convert x \(x.to\(torch.float64\)\) or the "
                                                           r"layer \(.to\(torch.float32\)\)"),
         (lambda a: a.update(bias=a["bias"].double()), "bias: expected dtype torch.float32"),

@@ -71,7 +71,8 @@ def test_locally_connected_buffers_init_and_forward():
     with pytest.raises(ValueError, match=r"x: expected shape \[B, 5\], got \(1, 6\)"):
         layer(torch.ones(1, 6, dtype=torch.float64))
     # a numpy batch was "expected shape [B, 5], got ndarray"
-    with pytest.raises(ValueError, match=r"x: expected a torch tensor \[B, 5\], got a ndarray \(torch.from_numpy\(x\)\)"):
+    with pytest.raises(ValueError,
+                       match=r"x: expected a torch tensor \[B, 5\], got a ndarray \(torch.from_numpy\(x\)\)"):
         layer(np.ones((1, 5)))
 
 

@@ -24,7 +24,8 @@ from warp_vision.train.rundir import run_config, save_checkpoint
 
 def cfg_for(tmp_path, **kw):
     return resolve("default", {"out": str(tmp_path / "left"), "data_dir": str(tmp_path / "data"), "gazes": 400,
-                               "transitions": 20_000, "epochs": 15, "seed": 3, "body_checks": 20, **kw}, OculomotorTrainConfig, OCULOMOTOR_PRESETS)
+                               "transitions": 20_000, "epochs": 15, "seed": 3, "body_checks": 20, **kw},
+                   OculomotorTrainConfig, OCULOMOTOR_PRESETS)
 
 
 def test_transition_pairs_mix_saccades_corrections_and_holds():

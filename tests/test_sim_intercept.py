@@ -109,14 +109,16 @@ def test_the_plan_adds_the_arm_and_both_limb_vision_nets(parsed):
 
     specs = net_specs(parsed())
     assert [(s.kind, s.eye) for s in specs] == [("foveation", "left"), ("foveation", "right"), ("oculomotor", "left"),
-                                                ("oculomotor", "right"), ("arm", "left"), ("limb", "left"), ("limb", "right")]
+                                                ("oculomotor", "right"), ("arm", "left"), ("limb", "left"),
+                                                ("limb", "right")]
     assert [s.run for s in specs[4:]] == [os.path.join("runs", "arm", "left"), os.path.join("runs", "limb", "left"),
                                           os.path.join("runs", "limb", "right")]
     quick = net_specs(parsed("--quick", "--side", "right", "--perception", "oracle"))
     assert [(s.kind, s.eye, s.preset) for s in quick[4:]] == [("arm", "right", "quick")]  # no limb nets with the oracle
     assert quick[4].run == os.path.join("runs", "quick", "arm", "right")
     a = parsed("--quick", "--limb", "L", "--arm", "A")
-    assert [s.run for s in net_specs(a)[4:]] == [os.path.join("A", "left"), os.path.join("L", "left"), os.path.join("L", "right")]
+    assert [s.run for s in net_specs(a)[4:]] == [os.path.join("A", "left"), os.path.join("L", "left"),
+                                                 os.path.join("L", "right")]
     assert strike_runs(a) == (os.path.join("A", "left"), {s: os.path.join("L", s) for s in SIDES})
     nets = net_specs(parsed("--intraocular", "nets"))
     assert [s.kind for s in nets] == ["foveation"] * 2 + ["oculomotor"] * 2 + ["pupil"] * 2 + ["lens"] * 2 + ["arm"] + ["limb"] * 2
@@ -127,8 +129,10 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
 
     arm, left, right = strike_plan("left", str(tmp_path / "arm"), str(tmp_path / "limb"))
     assert arm.command() == ["arm", "--preset", "default", "--side", "left", "--out", str(tmp_path / "arm" / "left")]
-    assert right.command() == ["limb", "--preset", "default", "--eye", "right", "--out", str(tmp_path / "limb" / "right")]
-    assert NetSpec("arm", "right", "r", "quick").command() == ["arm", "--preset", "quick", "--side", "right", "--out", "r"]
+    assert right.command() == ["limb", "--preset", "default", "--eye", "right", "--out",
+                               str(tmp_path / "limb" / "right")]
+    assert NetSpec("arm", "right", "r", "quick").command() == ["arm", "--preset", "quick", "--side", "right", "--out",
+                                                               "r"]
     assert (arm.what, left.what) == ("left arm's motor nets", "left eye's limb vision net")
     assert NetSpec("oculomotor", "left", "o", "quick").command()[3:5] == ["--eye", "left"]
     assert (MINUTES["arm", "default"], MINUTES["arm", "quick"], MINUTES["limb", "default"], MINUTES["limb", "quick"]) \
@@ -186,7 +190,8 @@ def test_the_comparison_figures_are_written(tmp_path):
 
     results = _fake_results()
     paths = stats_figures(results, str(tmp_path / "figs"))
-    assert [os.path.basename(p) for p in paths] == ["success_by_speed.png", "success_by_direction.png", "closest_approach.png"]
+    assert [os.path.basename(p) for p in paths] == ["success_by_speed.png", "success_by_direction.png",
+                                                    "closest_approach.png"]
     for p in paths:
         assert Path(p).read_bytes()[:8] == PNG and os.path.getsize(p) > 5000
     # one shot, one mode (and a shot that failed, at 10 m): still drawn
@@ -217,7 +222,8 @@ def test_the_hand_ball_distance_figure_is_written(tmp_path):
     t = np.arange(0, 0.4, 0.01)
     trace = {"t": t.tolist(), "true_m": np.abs(0.5 - 2 * t).tolist(), "frame_t": t[::4].tolist(),
              "estimate_m": (np.abs(0.5 - 2 * t[::4]) + 0.02).tolist()}
-    p = plot_hand_ball_distance(trace, str(tmp_path / "d.png"), contact_t=0.25, deflected=True, closest_t=0.25, title="x")
+    p = plot_hand_ball_distance(trace, str(tmp_path / "d.png"), contact_t=0.25, deflected=True, closest_t=0.25,
+                                title="x")
     assert Path(p).read_bytes()[:8] == PNG
     trace.update(frame_t=None, estimate_m=None)  # the oracle's: no estimate, no contact
     assert os.path.isfile(plot_hand_ball_distance(trace, str(tmp_path / "o.png"), closest_t=float("nan")))

@@ -213,7 +213,8 @@ def not_a_command(word: str, names, what: str = "a command") -> str:
     ``names`` to a mistyped ``word``, when one is near."""
     names = list(names)
     near = difflib.get_close_matches(word, names, n=1)
-    return f"{word!r} is not {what}{f' (did you mean {near[0]!r}?)' if near else ''}: expected one of {', '.join(names)}"
+    return (f"{word!r} is not {what}{f' (did you mean {near[0]!r}?)' if near else ''}: expected one of "
+            f"{', '.join(names)}")
 
 
 def add_debug_flag(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -255,7 +256,8 @@ def preset_defaults(presets: dict, name: str, value) -> str:
     """The default preset's value of field ``name`` and the other presets' where they differ, for --help:
     "default: 8; --preset smoke: 7" (``value``: the field's own default, kept by a preset that does not set it)."""
     shown = presets.get("default", {}).get(name, value)
-    others = [f"{k}: {v.get(name, value)!r}" for k, v in presets.items() if k != "default" and v.get(name, value) != shown]
+    others = [f"{k}: {v.get(name, value)!r}" for k,
+              v in presets.items() if k != "default" and v.get(name, value) != shown]
     return "; ".join([f"default: {shown!r}"] + [f"--preset {o}" for o in others])
 
 

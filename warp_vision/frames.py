@@ -36,7 +36,8 @@ def gaze_direction(yaw, pitch):
     if _is_tensor(yaw):
         import torch
 
-        return torch.stack([torch.cos(pitch) * torch.sin(yaw), torch.sin(pitch), torch.cos(pitch) * torch.cos(yaw)], dim=-1)
+        return torch.stack([torch.cos(pitch) * torch.sin(yaw), torch.sin(pitch), torch.cos(pitch) * torch.cos(yaw)],
+                           dim=-1)
     yaw, pitch = np.asarray(yaw, float), np.asarray(pitch, float)
     return np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
 
@@ -53,7 +54,8 @@ def gaze_angles(direction):
         import torch
 
         d = direction
-        return torch.stack([torch.atan2(d[..., 0], d[..., 2]), torch.atan2(d[..., 1], torch.hypot(d[..., 0], d[..., 2]))], -1)
+        return torch.stack([torch.atan2(d[..., 0], d[..., 2]),
+                            torch.atan2(d[..., 1], torch.hypot(d[..., 0], d[..., 2]))], -1)
     d = np.asarray(direction, float)
     return np.stack([np.arctan2(d[..., 0], d[..., 2]), np.arctan2(d[..., 1], np.hypot(d[..., 0], d[..., 2]))], -1)
 

@@ -56,9 +56,10 @@ def run(frame_every=(1, None), quick: bool = False, progress: bool = True, log=p
         loops[-1].step()  # compiles what the first frame needs (kernels, eye rays) outside the measurement
     results = experiments(loops, progress=progress)
     for n, res in zip(settings, results):
-        row = {"frame_every": n, "frames_per_s": res["timing"]["frames_per_s"], "sim_to_wall": res["timing"]["sim_to_wall"],
-               "share": res["timing"]["share"], "wall_s": res["timing"]["wall_s"], "sim_s": res["timing"]["sim_s"],
-               "accuracy": _accuracy(res), "experiments": res}
+        row = {"frame_every": n, "frames_per_s": res["timing"]["frames_per_s"],
+               "sim_to_wall": res["timing"]["sim_to_wall"], "share": res["timing"]["share"],
+               "wall_s": res["timing"]["wall_s"], "sim_s": res["timing"]["sim_s"], "accuracy": _accuracy(res),
+               "experiments": res}
         log(f"frame every {n} period(s) ({row['frames_per_s']:.0f} Hz): simulated/wall {row['sim_to_wall']:.3f}; "
             + ", ".join(f"{k} {100 * v:.0f}%" for k, v in row["share"].items())
             + f"; saccade settle median {row['accuracy']['saccade_settle_s_median']:.3f} s, tracking 30 deg/s median "

@@ -11,7 +11,8 @@ import numpy as np
 HIDDEN_FROM_EYES = ("head", "neck", "eye_left", "eye_right", "orbit_left", "orbit_right")
 #: Each arm's parts that move as one in a rendered scene: humerus, ulna, radius and hand (the carpals
 #: with the fingers, as posed when the meshes are taken).
-ARM_PARTS = {"right": ("humerus_r", "ulna_r", "radius_r", "lunate_r"), "left": ("humerus_l", "ulna_l", "radius_l", "lunate_l")}
+ARM_PARTS = {"right": ("humerus_r", "ulna_r", "radius_r", "lunate_r"),
+             "left": ("humerus_l", "ulna_l", "radius_l", "lunate_l")}
 
 
 def geom_mesh(m: mujoco.MjModel, g: int):

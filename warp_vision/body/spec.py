@@ -206,25 +206,30 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
     lat = {"left": 1.0, "right": -1.0}[side] * INTEROCULAR / 2  # world x of the eye centre
     centre_world = np.array([lat, -ORBIT_FORWARD_OF_HEAD, ORBIT_HEIGHT_ABOVE_HEAD])
     # an "orbit" frame in the head, aligned with the eye at rest; the eye body sits at its origin
-    orbit = head.add_body(name=f"orbit_{side}", pos=Rh.T @ centre_world, quat=quat_from_matrix(Rh.T @ EYE_REST_ROTATION))
+    orbit = head.add_body(name=f"orbit_{side}", pos=Rh.T @ centre_world,
+                          quat=quat_from_matrix(Rh.T @ EYE_REST_ROTATION))
     eye = orbit.add_body(name=f"eye_{side}")
     eye.add_joint(name=f"eye_{side}", type=mujoco.mjtJoint.mjJNT_BALL, stiffness=EYE_STIFFNESS, damping=EYE_DAMPING,
-                  range=[0, _angle(spec, np.radians(EYE_RANGE_DEG))], limited=mujoco.mjtLimited.mjLIMITED_TRUE, armature=1e-7)
+                  range=[0, _angle(spec, np.radians(EYE_RANGE_DEG))], limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                  armature=1e-7)
     eye.add_geom(name=f"globe_{side}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[EYE_RADIUS, 0, 0], mass=EYE_MASS,
                  rgba=[0.95, 0.95, 0.92, 1], contype=0, conaffinity=0, group=0)
     # the cornea and iris as a dark disc on the front pole, so a third-person view shows where it looks
-    eye.add_geom(name=f"iris_{side}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.006, 0.0015, 0], pos=[0, 0, EYE_RADIUS - 0.001],
-                 mass=1e-5, rgba=[0.25, 0.15, 0.08, 1], contype=0, conaffinity=0, group=0)
+    eye.add_geom(name=f"iris_{side}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.006, 0.0015, 0],
+                 pos=[0, 0, EYE_RADIUS - 0.001], mass=1e-5, rgba=[0.25, 0.15, 0.08, 1], contype=0, conaffinity=0,
+                 group=0)
     mirror = np.array([n, 1.0, 1.0])  # nasal-x table -> eye-frame x
     for name, (origin, via, insertion, wrap_side, _action) in EYE_MUSCLES.items():
         tag = f"{name}_{side}"
         orbit.add_site(name=f"{tag}_origin", pos=origin * mirror, size=[0.001, 0, 0], group=3)
         if via is not None:
             orbit.add_site(name=f"{tag}_trochlea", pos=via * mirror, size=[0.001, 0, 0], group=3)
-        orbit.add_site(name=f"{tag}_side", pos=0.02 * np.asarray(wrap_side, float) * mirror, size=[0.001, 0, 0], group=3)
+        orbit.add_site(name=f"{tag}_side", pos=0.02 * np.asarray(wrap_side, float) * mirror, size=[0.001, 0, 0],
+                       group=3)
         # half a millimetre off the surface (the tendon's thickness): MuJoCo's sphere wrapping needs its end
         # points outside the sphere, and one on the surface flips between wrapping and not
-        eye.add_site(name=f"{tag}_insertion", pos=insertion * mirror * (1 + INSERTION_LIFT / EYE_RADIUS), size=[0.001, 0, 0], group=3)
+        eye.add_site(name=f"{tag}_insertion", pos=insertion * mirror * (1 + INSERTION_LIFT / EYE_RADIUS),
+                     size=[0.001, 0, 0], group=3)
         t = spec.add_tendon(name=tag, width=0.0008, rgba=[0.8, 0.2, 0.2, 1], group=3)
         t.wrap_site(f"{tag}_origin")
         if via is not None:
@@ -237,7 +242,8 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
     # intraocular state: force-free filters that mirror the plants (ctrl = act = the plant's state, so
     # MuJoCo's filter holds it; the plants in eye/plants.py move it)
     for quantity, rng in (("pupil", PUPIL_RANGE_MM), ("accommodation", ACCOMMODATION_RANGE_D)):
-        a = spec.add_actuator(name=f"{quantity}_{side}", target=f"eye_{side}", trntype=mujoco.mjtTrn.mjTRN_JOINT, group=2)
+        a = spec.add_actuator(name=f"{quantity}_{side}", target=f"eye_{side}", trntype=mujoco.mjtTrn.mjTRN_JOINT,
+                              group=2)
         a.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
         a.dynprm[0] = 0.1
         a.gaintype = mujoco.mjtGain.mjGAIN_FIXED
@@ -253,13 +259,16 @@ def _add_neck(spec: mujoco.MjSpec, head) -> None:
     axes = {"yaw": [0, 0, 1.0], "pitch": [-1.0, 0, 0], "roll": [0, -1.0, 0]}  # world axes; + = left, up, right ear down
     for j in NECK_JOINTS:
         r = np.radians(NECK_RANGE_DEG[j])
-        head.add_joint(name=f"neck_{j}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=Rh.T @ axes[j], range=[_angle(spec, -r), _angle(spec, r)],
-                       limited=mujoco.mjtLimited.mjLIMITED_TRUE, stiffness=NECK_STIFFNESS, damping=NECK_DAMPING, armature=0.005)
+        head.add_joint(name=f"neck_{j}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=Rh.T @ axes[j],
+                       range=[_angle(spec, -r), _angle(spec, r)], limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                       stiffness=NECK_STIFFNESS, damping=NECK_DAMPING, armature=0.005)
         for s, sign in (("pos", -1.0), ("neg", 1.0)):  # a muscle shortens as its joint turns its way
             t = spec.add_tendon(name=f"neck_{j}_{s}")
             t.wrap_joint(f"neck_{j}", sign * NECK_MOMENT_ARM)
-            a = spec.add_actuator(name=f"neck_{j}_{s}", target=f"neck_{j}_{s}", trntype=mujoco.mjtTrn.mjTRN_TENDON, group=1)
-            a.set_to_muscle(timeconst=list(NECK_MUSCLE_TIMECONST), tausmooth=0.0, range=[0.75, 1.05], force=NECK_MUSCLE_FORCE)
+            a = spec.add_actuator(name=f"neck_{j}_{s}", target=f"neck_{j}_{s}", trntype=mujoco.mjtTrn.mjTRN_TENDON,
+                                  group=1)
+            a.set_to_muscle(timeconst=list(NECK_MUSCLE_TIMECONST), tausmooth=0.0, range=[0.75, 1.05],
+                            force=NECK_MUSCLE_FORCE)
 
 
 def _add_world(spec: mujoco.MjSpec, cfg: BodyConfig) -> None:
@@ -289,7 +298,8 @@ def _add_world(spec: mujoco.MjSpec, cfg: BodyConfig) -> None:
         # floor, not 5 mm above it
         spec.add_pair(name="ball_floor", geomname1="floor", geomname2="ball", condim=BALL_CONDIM, margin=0.0,
                       solref=list(BALL_SOLREF), solimp=list(BALL_SOLIMP),
-                      friction=[BALL_FRICTION[0], BALL_FRICTION[0], BALL_FRICTION[1], BALL_FRICTION[2], BALL_FRICTION[2]])
+                      friction=[BALL_FRICTION[0], BALL_FRICTION[0], BALL_FRICTION[1], BALL_FRICTION[2],
+                                BALL_FRICTION[2]])
 
 
 def _frame_z(z) -> np.ndarray:
@@ -347,7 +357,8 @@ def _eye_lengths() -> dict:
         tid = [model.tendon(f"{m}_{side}").id for m in EYE_MUSCLE_NAMES]
         L = np.empty((n, len(tid)))
         for k in range(n):
-            d = gaze_direction(np.arctan2(np.sin(ecc[k]) * np.cos(phi[k]), np.cos(ecc[k])), np.arcsin(np.sin(ecc[k]) * np.sin(phi[k])))
+            d = gaze_direction(np.arctan2(np.sin(ecc[k]) * np.cos(phi[k]), np.cos(ecc[k])),
+                               np.arcsin(np.sin(ecc[k]) * np.sin(phi[k])))
             yaw, pitch = gaze_angles(d)
             R = fick_rotation(yaw, pitch) @ _rot_z(tor[k])
             data.qpos[adr:adr + 4] = quat_from_matrix(R)

@@ -48,7 +48,8 @@ class MissingStoreError(ValueError):
 
     def __init__(self, root: os.PathLike | str):
         self.root = Path(root)
-        super().__init__(f"{self.root / MANIFEST_NAME} not found: {self.root} is not a ChunkedStore (or was never created)")
+        super().__init__(f"{self.root / MANIFEST_NAME} not found: {self.root} is not a ChunkedStore (or was never "
+                         "created)")
 
 
 class IncompleteStoreError(ValueError):
@@ -267,7 +268,8 @@ def read_record(path: Path, c: int, expect: Mapping[str, Any], data_files: Mappi
         with open(path, encoding="utf-8") as f:
             rec = json.load(f)
     except FileNotFoundError:
-        raise CorruptChunkError(path, c, "record missing: the chunk was never written or its write was interrupted") from None
+        raise CorruptChunkError(path, c,
+                                "record missing: the chunk was never written or its write was interrupted") from None
     except (OSError, ValueError) as e:
         raise CorruptChunkError(path, c, f"record unreadable: {e}") from None
     if not isinstance(rec, dict):
@@ -388,7 +390,8 @@ def read_npy(path: Path, c: int, entry: dict, want_shape: tuple, dtype: str, out
             out = np.empty(want_shape, dtype=np.dtype(dtype))
         nbytes = out.nbytes
         if offset + nbytes != size:
-            raise CorruptChunkError(path, c, f"{size} bytes, but header ({offset}) + data ({nbytes}) = {offset + nbytes}")
+            raise CorruptChunkError(path, c,
+                                    f"{size} bytes, but header ({offset}) + data ({nbytes}) = {offset + nbytes}")
         sha = hashlib.sha256()
         if check_hash:
             f.seek(0)

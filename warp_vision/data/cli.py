@@ -51,7 +51,8 @@ def config_of(kind: str, args: argparse.Namespace):
     """The dataset config of a parsed command line: its preset's settings with the flags given over them."""
     from warp_vision.data import faces, foveation
 
-    cls, presets = (FoveationDataConfig, foveation.PRESET_DATA) if kind == "foveation" else (faces.FaceDataConfig, faces.PRESET_DATA)
+    cls, presets = (FoveationDataConfig,
+                    foveation.PRESET_DATA) if kind == "foveation" else (faces.FaceDataConfig, faces.PRESET_DATA)
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if getattr(args, f.name) is not None}
     return cls(**{**presets[args.preset], **given})
 
@@ -62,7 +63,8 @@ def parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.data", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="kind", required=True)
     fov = sub.add_parser("foveation", help="ONVs of a ball in a room (--generator 7: a glowing white ball; 8: ordinary "
-                                           "balls among distractors; 9: and decoys), with the eye rotation that foveates it")
+                                           "balls among distractors; 9: and decoys), with the eye rotation that "
+                                           "foveates it")
     from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
 
     _add_config_flags(fov, FoveationDataConfig, foveation.PRESET_DATA,

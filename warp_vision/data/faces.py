@@ -310,7 +310,8 @@ def build_identities(n: int, seed: int = 0, progress: bool = True) -> FaceIdenti
         v = out["vertices"][0].cpu().numpy().astype(np.float64)
         eye_l, eye_r, mouth, pivot = _landmarks(v, masks)
         col, cpar = _colours(rng, v, masks, (eye_l, eye_r))
-        centre = np.array([0.5 * (eye_l[0] + eye_r[0]), 0.5 * (eye_l[1] + eye_r[1]), 0.5 * (0.5 * (eye_l[2] + eye_r[2]) + mouth[2])])
+        centre = np.array([0.5 * (eye_l[0] + eye_r[0]), 0.5 * (eye_l[1] + eye_r[1]),
+                           0.5 * (0.5 * (eye_l[2] + eye_r[2]) + mouth[2])])
         V.append(v.astype(np.float32))
         C.append(col)
         P.append(pivot)
@@ -343,7 +344,8 @@ def load_identities(n: int, seed: int = 0, cache: str | Path | None = None, prog
     log(f"building {n} identities with anny (its first model build in a fresh environment takes minutes)")
     ids = build_identities(n, seed, progress)
     ids.save(path)
-    log(f"built {n} identities in {time.perf_counter() - t0:.0f} s; cached in {path} ({path.stat().st_size / 2**20:.1f} MiB)")
+    log(f"built {n} identities in {time.perf_counter() - t0:.0f} s; cached in {path} "
+        f"({path.stat().st_size / 2**20:.1f} MiB)")
     return ids
 
 

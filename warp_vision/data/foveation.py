@@ -123,7 +123,8 @@ class FoveationDataConfig:
         if self.condition not in CONDITIONS:
             raise ValueError(f"condition: expected one of {list(CONDITIONS)}, got {self.condition!r}")
         if self.generator == 7 and (self.rooms, self.condition) != ("train", "mixed"):
-            raise ValueError("rooms and condition belong to generators 8 and 9; generator 7 has one room and one condition")
+            raise ValueError("rooms and condition belong to generators 8 and 9; generator 7 has one room and one "
+                             "condition")
         if self.generator == 8 and self.condition == "decoy":
             raise ValueError("condition 'decoy' belongs to generator 9 (v8 has no decoys)")
         self._check_field()
@@ -139,10 +140,11 @@ class FoveationDataConfig:
         if len(too_big):
             e = float(np.degrees(ecc[too_big[0]]))
             raise ValueError(
-                f"photoreceptors: {self.photoreceptors:,} are too few for balls out to max_field_deg={self.max_field_deg:g}: "
-                f"from {e:.1f} deg out they lie so far apart that the smallest ball seen there "
-                f"({np.degrees(least[too_big[0]]):.0f} deg across, {MIN_RECEPTORS_ACROSS:g} spacings) is larger than the "
-                f"largest allowed ({MAX_APPARENT_DIAMETER_DEG:g} deg); use more photoreceptors or a smaller --max-field-deg")
+                f"photoreceptors: {self.photoreceptors:,} are too few for balls out to "
+                f"max_field_deg={self.max_field_deg:g}: from {e:.1f} deg out they lie so far apart that the smallest "
+                f"ball seen there ({np.degrees(least[too_big[0]]):.0f} deg across, {MIN_RECEPTORS_ACROSS:g} spacings) "
+                f"is larger than the largest allowed ({MAX_APPARENT_DIAMETER_DEG:g} deg); use more photoreceptors or a "
+                "smaller --max-field-deg")
 
     @classmethod
     def saved(cls, d: dict) -> FoveationDataConfig:
@@ -240,7 +242,8 @@ def _spacing_profile(photoreceptors: int, eye: str, accommodation_D: float, pupi
 def min_apparent_diameter(cfg: FoveationDataConfig, eccentricity: float) -> float:
     """The smallest apparent diameter (rad) a ball may have at ``eccentricity`` rad from the axis."""
     ecc, spacing = _spacing_profile(cfg.photoreceptors, cfg.eye, cfg.accommodation_D, cfg.pupil_diameter_mm)
-    return max(np.radians(MIN_APPARENT_DIAMETER_DEG), MIN_RECEPTORS_ACROSS * float(np.interp(eccentricity, ecc, spacing)))
+    return max(np.radians(MIN_APPARENT_DIAMETER_DEG),
+               MIN_RECEPTORS_ACROSS * float(np.interp(eccentricity, ecc, spacing)))
 
 
 def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dict:
@@ -355,7 +358,8 @@ def _render_v7(cfg: FoveationDataConfig, indices, scene, retina, eye, device: st
             if attempts[k] > 50:  # pragma: no cover - the room is mostly empty; never seen
                 raise RuntimeError(f"sample {indices[k]}: no visible ball in 50 draws")
             ps[k] = sample_params(cfg, int(indices[k]), attempts[k])
-    onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed, device=device)
+    onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed,
+                     device=device)
     return {
         "onv": onv.cpu().numpy().astype(np.float16),
         "target": np.stack([p["target"] for p in ps]),
@@ -442,7 +446,8 @@ def _placed_v8(cfg: FoveationDataConfig, indices, device: str = "cpu"):
             for k in todo:
                 attempts[k] += 1
                 if attempts[k] > 50:  # pragma: no cover - never seen
-                    raise RuntimeError(f"sample {idx[k]}: no visible ball (or, condition decoy, no decoy in sight) in 50 draws")
+                    raise RuntimeError(f"sample {idx[k]}: no visible ball (or, condition decoy, no decoy in sight) in "
+                                       "50 draws")
                 ps[k] = draw(idx[k], attempts[k])
         yield scene, idx, ps
 
@@ -478,8 +483,8 @@ def _landed_class(name: str | None) -> str:
     return f"furniture: {furniture_shape(name)}" if name.startswith("object_") else "wall, floor or ceiling"
 
 
-def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu", with_onv: bool = False,
-                progress: bool = False, chance_directions=None) -> dict:
+def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu",
+                with_onv: bool = False, progress: bool = False, chance_directions=None) -> dict:
     """How much of each sample's ball its ONV holds: samples ``indices`` of ``cfg`` (v8 or v9) are rendered
     room by room as the dataset has them and again, everything placed alike, with the ball hidden. Per
     sample, in the order of ``indices``:
@@ -509,7 +514,8 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
     if len(set(indices)) != len(indices):
         raise ValueError("ball_signal: indices must be distinct")
     probes = {}  # out key -> [N, 2] directions followed from the eye
-    for key, name, v in (("landed_on", "directions", directions), ("chance_landed_on", "chance_directions", chance_directions)):
+    for key, name, v in (("landed_on", "directions", directions),
+                         ("chance_landed_on", "chance_directions", chance_directions)):
         if v is not None:
             probes[key] = np.asarray(v, dtype=np.float64)
             if probes[key].shape != (len(indices), 2):
@@ -562,8 +568,8 @@ def dataset_fields(cfg: FoveationDataConfig) -> dict:
     return {"onv": ((3 * cfg.photoreceptors,), "float16"), "target": ((2,), "float32"), "meta": ((meta,), "float32")}
 
 
-def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16, device: str = "cpu", progress: bool = True,
-               log=print) -> ChunkedStore:
+def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16, device: str = "cpu",
+               progress: bool = True, log=print) -> ChunkedStore:
     """Render the dataset ``cfg`` into ``out_dir`` (or this shard's part of it), resuming what is there.
 
     Chunks already written (and recorded) are kept; the rest are rendered ``batch`` samples per launch.
@@ -577,7 +583,8 @@ def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16,
     todo, mine = pending(store)
     if not todo:
         return store
-    log(f"synthesising {todo:,} of {mine:,} ONVs (P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into {out_dir}")
+    log(f"synthesising {todo:,} of {mine:,} ONVs (P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into "
+        f"{out_dir}")
     eye = make_eye(cfg)
     scene = make_scene(cfg.seed) if cfg.generator == 7 else None
     render_missing(store, lambda r: render_samples(cfg, r, scene, retina, eye, device), batch, progress, log)

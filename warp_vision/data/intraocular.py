@@ -242,7 +242,8 @@ class LensDataConfig:
 
     def heldout(self, samples: int | None = None) -> LensDataConfig:
         """The held-out set: new card textures, lamps and distances (seed + 1000)."""
-        return LensDataConfig(**{**asdict(self), "seed": self.seed + 1000, "samples": samples or max(200, self.samples // 6)})
+        return LensDataConfig(**{**asdict(self), "seed": self.seed + 1000,
+                                 "samples": samples or max(200, self.samples // 6)})
 
 
 def central_photoreceptors(retina, central_deg: float) -> np.ndarray:
@@ -352,8 +353,8 @@ def render_lens_samples(cfg: LensDataConfig, indices, positions_mm: np.ndarray, 
             light.color = np.stack([p["lamps"][j][1] for p in ps])
             light.intensity = np.array([p["lamps"][j][2] for p in ps])
         sc.set_ambient(np.stack([p["ambient"] for p in ps]))
-        onv = render_onv(sc, positions_mm, NavarroEye(acc, pupil), np.tile(np.eye(4), (B, 1, 1)), cfg.samples_per_receptor,
-                         seed=EYE_RAY_SEED, device=device)
+        onv = render_onv(sc, positions_mm, NavarroEye(acc, pupil), np.tile(np.eye(4), (B, 1, 1)),
+                         cfg.samples_per_receptor, seed=EYE_RAY_SEED, device=device)
         out["onv"].append(onv.cpu().numpy().astype(np.float16))
         out["defocus"].append(np.array([p["defocus"] for p in ps], np.float32))
         out["accommodation"].append(np.full(B, acc, np.float32))

@@ -472,7 +472,8 @@ class ChunkedStore:
             missing = self._all_missing()
         if missing:
             raise IncompleteStoreError(self.root, missing, self.num_chunks)
-        out = {name: np.empty((self.total, *self.fields[name][0]), dtype=np.dtype(self.fields[name][1])) for name in names}
+        out = {name: np.empty((self.total, *self.fields[name][0]),
+                              dtype=np.dtype(self.fields[name][1])) for name in names}
         for c in range(self.num_chunks):
             rec = self._read_record(c)
             start, stop = self.chunk_range(c)

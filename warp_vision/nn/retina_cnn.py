@@ -79,7 +79,8 @@ def native_bfloat16(device_type: str) -> bool:
     or AMX tiles, a CUDA GPU that torch says supports bfloat16 without emulation (compute capability 8.0 on).
     Elsewhere torch would emulate bfloat16, so "auto" keeps float32 there."""
     if device_type == "cpu":
-        probes = (getattr(torch.cpu, "_is_avx512_bf16_supported", None), getattr(torch.cpu, "_is_amx_tile_supported", None))
+        probes = (getattr(torch.cpu, "_is_avx512_bf16_supported", None),
+                  getattr(torch.cpu, "_is_amx_tile_supported", None))
         return any(bool(f()) for f in probes if f is not None)
     if device_type == "cuda" and torch.cuda.is_available():
         try:
@@ -246,7 +247,8 @@ class RetinaImageCNN(StandardisedTargets):
         if key not in self._matrices:
             parts = [self.binning(k) for k in key[0]]
             n2 = self.warp.size ** 2
-            idx = torch.stack([torch.cat([pix + v * n2 for v, (pix, _, _) in enumerate(parts)]), torch.cat([pr for _, pr, _ in parts])])
+            idx = torch.stack([torch.cat([pix + v * n2 for v, (pix, _, _) in enumerate(parts)]),
+                               torch.cat([pr for _, pr, _ in parts])])
             coo = torch.sparse_coo_tensor(idx, torch.cat([w for _, _, w in parts]), (len(parts) * n2, self.P),
                                           check_invariants=True).coalesce()
             with warnings.catch_warnings():  # "sparse CSR support is in beta": used here for sparse @ dense only
@@ -289,8 +291,9 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
     (yaw, pitch) [B, 2] of the ball: resampling to a foveated image, a CNN with a feature pyramid, a
     heat map and a local soft-arg-max (module docstring)."""
 
-    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
-                 power: float = 1.5, window: int = 5, window_deg: float = WINDOW_DEG, views: int = 1):
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16,
+                 max_ecc_deg: float = 50.0, power: float = 1.5, window: int = 5, window_deg: float = WINDOW_DEG,
+                 views: int = 1):
         consensus_transforms(views)  # (validates)
         if not (isinstance(window, int) and window >= 1 and window % 2 == 1):
             raise ValueError(f"window: expected an odd positive int, got {window!r}")
@@ -303,7 +306,8 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
         self.smooth = _cbr(lat, lat)
         self.heat = nn.Conv2d(lat, 1, 1)
         cells = size // 2
-        self.register_buffer("cell_dirs", torch.as_tensor(self.warp.uv_to_dirs(self.warp.grid_uv(cells)), dtype=torch.float32),
+        self.register_buffer("cell_dirs",
+                             torch.as_tensor(self.warp.uv_to_dirs(self.warp.grid_uv(cells)), dtype=torch.float32),
                              persistent=False)
 
     def logits(self, img: Tensor) -> Tensor:
@@ -376,7 +380,8 @@ class RetinaImageRegression(RetinaImageCNN):
                  hidden: int, outputs: int):
         super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=outputs)
         last = self.stage_channels[-1] * (size // 16) ** 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, outputs))
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True),
+                                  nn.Linear(hidden, outputs))
 
     def forward(self, x: Tensor, transform=0) -> Tensor:
         img = self.image(x, transform)
@@ -389,8 +394,8 @@ class RetinaCNNLimbNet(RetinaImageRegression):
     the right arm, eye frame; the limb vision task, :mod:`warp_vision.train.limb`): a
     :class:`RetinaImageRegression` of the whole foveated image."""
 
-    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
-                 power: float = 1.5, hidden: int = 128):
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16,
+                 max_ecc_deg: float = 50.0, power: float = 1.5, hidden: int = 128):
         super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, hidden, outputs=6)
 
     @staticmethod

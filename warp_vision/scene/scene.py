@@ -155,7 +155,8 @@ class Scene:
 
     # --- building -----------------------------------------------------------------------------
     def add(
-        self, name: str, mesh: trimesh.Trimesh, material: Material | None = None, transform=IDENTITY, static: bool = False
+        self, name: str, mesh: trimesh.Trimesh, material: Material | None = None, transform=IDENTITY,
+        static: bool = False
     ) -> int:
         """Add a mesh (object frame, metres). Returns the object's index.
 
@@ -204,7 +205,8 @@ class Scene:
 
     def add_light(self, position, color=(1.0, 1.0, 1.0), intensity=1.0) -> int:
         """A point light at ``position`` m; position [3] or [B, 3], color [3] or [B, 3], intensity scalar or [B]."""
-        self.lights.append(PointLight(np.asarray(position, float), np.asarray(color, float), np.asarray(intensity, float)))
+        self.lights.append(PointLight(np.asarray(position, float), np.asarray(color, float),
+                                      np.asarray(intensity, float)))
         return len(self.lights) - 1
 
     def index(self, name: str) -> int:
@@ -293,7 +295,8 @@ class Scene:
         sizes = {o.transform.shape[0] for o in self.objects} | {len(o.visible) for o in self.objects}
         sizes |= {len(o.batch_materials) for o in self.objects if o.batch_materials is not None}
         for li in self.lights:
-            sizes |= {np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0], np.atleast_1d(li.intensity).shape[0]}
+            sizes |= {np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0],
+                      np.atleast_1d(li.intensity).shape[0]}
         sizes.add(np.atleast_2d(self.ambient).shape[0])
         sizes.discard(1)
         if len(sizes) > 1:

@@ -279,7 +279,8 @@ def solve_postures(arm: Arm, cfg: ArmDataConfig, r: range) -> dict:
     return out
 
 
-def synthesize_arm(out_dir, cfg: ArmDataConfig, shard=(0, 1), progress: bool = True, log=print, body: Body | None = None):
+def synthesize_arm(out_dir, cfg: ArmDataConfig, shard=(0, 1), progress: bool = True, log=print,
+                   body: Body | None = None):
     """Solve the holding activations of ``cfg``'s postures into a chunked store in ``out_dir`` (resuming
     what is there); fields as :func:`solve_postures`. Returns the store."""
     from warp_vision.data.store import ChunkedStore
@@ -290,12 +291,14 @@ def synthesize_arm(out_dir, cfg: ArmDataConfig, shard=(0, 1), progress: bool = T
     fields = {"angles": ((7,), "float64"), "qpos": ((body_arm_joints,), "float64"), "act": ((63,), "float64"),
               "hand": ((3,), "float64"), "residual": ((), "float64"), "torque_A": ((27, 63), "float32"),
               "torque_b": ((27,), "float32")}
-    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.postures, cfg.chunk_size, fields, shard=tuple(shard))
+    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.postures, cfg.chunk_size, fields,
+                                          shard=tuple(shard))
     todo, mine = pending(store)
     if todo:
         log(f"solving the holding activations of {todo:,} of {mine:,} postures ({cfg.side} arm) into {out_dir}")
         arm = Arm(body or Body(), cfg.side)
-        render_missing(store, lambda r: solve_postures(arm, cfg, r), batch=50, progress=progress, log=log, what="postures")
+        render_missing(store, lambda r: solve_postures(arm, cfg, r), batch=50, progress=progress, log=log,
+                       what="postures")
     return store
 
 
@@ -418,7 +421,8 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
                 a = act[j[k]]
             elif mode == "teacher_feedback":
                 Ap, bp = projected_torques(arm, d.qpos.copy(), scratch)
-                a = least_effort(Ap, bp + demanded_torque(angles[j[k]] - arm.angles(d), arm.velocities(d), **(torque or {})), EFFORT)[0]
+                a = least_effort(Ap, bp + demanded_torque(angles[j[k]] - arm.angles(d), arm.velocities(d),
+                                                          **(torque or {})), EFFORT)[0]
             elif mode == "open" and t > 0:
                 return
             elif mode == "open":
@@ -427,7 +431,8 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
             else:
                 with torch.no_grad():
                     q = f32(arm.angles(d))
-                    a = net.voluntary(f32(gain * (target - arm.hand(d))), net.posture(q), q, f32(arm.velocities(d)))[0].double().numpy()
+                    a = net.voluntary(f32(gain * (target - arm.hand(d))), net.posture(q), q,
+                                      f32(arm.velocities(d)))[0].double().numpy()
             d.ctrl[arm.actuators] = np.clip(a, 0, 1)
 
         return np.linalg.norm(run_arm(body, arm, marks, control) - target, axis=1)

@@ -297,7 +297,8 @@ class DeflectionDetector:
             part, side = self.parts[other]
             name = part_name(part, side)
             if name not in self.first:
-                self.first[name] = Contact(self.t, self.body.model.geom(other).name, _floats(p), float(np.linalg.norm(v_prev)))
+                self.first[name] = Contact(self.t, self.body.model.geom(other).name, _floats(p),
+                                           float(np.linalg.norm(v_prev)))
             if part in DEFLECTING_PARTS:
                 touched_arm = True
                 if self.arm_contact is None:

@@ -101,7 +101,8 @@ def intercept_point(position, velocity, shoulder, hand, aim: str = "plane", plan
     taus = np.arange(0.0, horizon + step / 2, step)
     path = ballistic_path(position, velocity, taus)
     shoulder, hand = np.asarray(shoulder, float), np.asarray(hand, float)
-    ok = (np.linalg.norm(path - shoulder, axis=1) <= reach_fraction * ARM_REACH) & (path[:, 1] <= shoulder[1] - min_front)
+    ok = (np.linalg.norm(path - shoulder,
+                         axis=1) <= reach_fraction * ARM_REACH) & (path[:, 1] <= shoulder[1] - min_front)
     if not ok.any():
         return None
     if aim == "plane":
@@ -206,7 +207,8 @@ class ArmInterceptor:
         self.reach_fraction, self.min_front = float(reach_fraction), float(min_front)
         self.arm = Arm(body, side)
         self.shoulder = shoulder(side)
-        self.ready_hand = self.shoulder + _mirror(READY_OFFSET, side) if ready_hand is None else np.asarray(ready_hand, float)
+        self.ready_hand = self.shoulder + _mirror(READY_OFFSET,
+                                                  side) if ready_hand is None else np.asarray(ready_hand, float)
         self.plane_y = float(self.shoulder[1] - PLANE_FRONT) if plane_y is None else float(plane_y)
         self._scratch = mujoco.MjData(body.model)
         self.ready_q = ready_angles(self.arm, self.ready_hand, self._scratch)

@@ -296,8 +296,8 @@ def render_samples(cfg: LimbDataConfig, indices, poser: Poser, retina, device: s
     sc.set_transform("mj_ball", ball)
     rng = np.random.default_rng([13, cfg.seed, indices[0]])
     acc, pupil = float(rng.choice(ACCOMMODATIONS_D)), float(rng.choice(PUPILS_MM))
-    onv = render_onv(sc, retina, NavarroEye(acc, pupil), np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor,
-                     seed=cfg.seed, device=device).cpu().numpy()
+    onv = render_onv(sc, retina, NavarroEye(acc, pupil), np.stack([p["eye_pose"] for p in ps]),
+                     cfg.samples_per_receptor, seed=cfg.seed, device=device).cpu().numpy()
     light = np.array([p["light"] for p in ps])
     onv = onv * light[:, None]
     meta = np.array([[p["ball_eye"], *(np.linalg.norm(p["ball"] - p["hands"][s]) for s in SIDES), p["err_deg"],
@@ -318,7 +318,8 @@ def synthesize(out_dir, cfg: LimbDataConfig, shard=(0, 1), batch: int = 16, devi
     todo, mine = pending(store)
     if not todo:
         return store
-    log(f"synthesising {todo:,} of {mine:,} limb vision ONVs ({cfg.eye} eye, rooms {cfg.rooms}, shots {cfg.shots}) into {out_dir}")
+    log(f"synthesising {todo:,} of {mine:,} limb vision ONVs ({cfg.eye} eye, rooms {cfg.rooms}, shots {cfg.shots}) "
+        f"into {out_dir}")
     poser = Poser()
     render_missing(store, lambda r: render_samples(cfg, r, poser, retina, device), batch, progress, log)
     return store
@@ -461,16 +462,17 @@ class LimbVision(BallisticPerception):
         for s in SIDES:
             learnt = self.data[s].get("ball", "glowing")
             if learnt != ball:
-                raise ValueError(f"{self.run_dirs[s]}: the {s} eye's limb vision net learnt the {learnt} ball, the loop shows "
-                                 f"the {ball} one (--ball {learnt}, or train it again: python -m warp_vision.train limb "
-                                 f"--eye {s} --ball {ball} --out {self.run_dirs[s]})")
+                raise ValueError(f"{self.run_dirs[s]}: the {s} eye's limb vision net learnt the {learnt} ball, the "
+                                 f"loop shows the {ball} one (--ball {learnt}, or train it again: python -m "
+                                 f"warp_vision.train limb --eye {s} --ball {ball} --out {self.run_dirs[s]})")
 
     def check_retinas(self, retinas: dict) -> None:
         """ValueError unless each eye's net reads the photoreceptors of ``retinas[eye]`` (the loop's)."""
         for s in SIDES:
             P = int(self.data[s]["photoreceptors"])
             if retinas[s].P != P:
-                raise ValueError(f"limb vision net of the {s} eye: trained on P={P} photoreceptors, the loop renders {retinas[s].P}")
+                raise ValueError(f"limb vision net of the {s} eye: trained on P={P} photoreceptors, the loop renders "
+                                 f"{retinas[s].P}")
 
     def _predict(self, s: str, onv) -> np.ndarray:
         from warp_vision.nn.trained import predict_targets

@@ -71,7 +71,8 @@ def muscle_torques(body: Body, actuators, dofs, qpos, data: mujoco.MjData | None
     return A, tau0, rest
 
 
-def holding_activations(body: Body, actuators, dofs, qpos, effort=EFFORT, weights=None, data=None) -> tuple[np.ndarray, float]:
+def holding_activations(body: Body, actuators, dofs, qpos, effort=EFFORT, weights=None,
+                        data=None) -> tuple[np.ndarray, float]:
     """Least-effort activations in [0, 1] that hold joints ``dofs`` still at ``qpos``; returns
     (activations [len(actuators)], residual torque norm N m). ``effort``: a weight, or one per muscle;
     ``weights``: one per dof on the torque residual."""
@@ -113,9 +114,10 @@ def eye_holding_activations(body: Body, side: str, gazes, progress: bool = False
     d = mujoco.MjData(body.model)
     out = np.empty((len(gazes), len(EYE_MUSCLE_NAMES)))
     res = np.empty(len(gazes))
-    for k, (yaw, pitch) in enumerate(tqdm(gazes, desc=f"holding activations ({side} eye)", disable=not progress, leave=False)):
-        out[k], res[k] = holding_activations(body, body.eye_muscles[side], eye_dofs(body, side), eye_qpos(body, side, yaw, pitch),
-                                             weights=EYE_TORQUE_WEIGHTS, data=d)
+    for k, (yaw, pitch) in enumerate(tqdm(gazes, desc=f"holding activations ({side} eye)", disable=not progress,
+                                          leave=False)):
+        out[k], res[k] = holding_activations(body, body.eye_muscles[side], eye_dofs(body, side),
+                                             eye_qpos(body, side, yaw, pitch), weights=EYE_TORQUE_WEIGHTS, data=d)
     return out, res
 
 
@@ -169,7 +171,8 @@ def synthesize_holding(out_dir, cfg: HoldingDataConfig, shard=(0, 1), progress: 
 
     cfg.validate()
     fields = {"gaze": ((2,), "float64"), "act": ((len(EYE_MUSCLE_NAMES),), "float64"), "residual": ((), "float64")}
-    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.gazes, cfg.chunk_size, fields, shard=tuple(shard))
+    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.gazes, cfg.chunk_size, fields,
+                                          shard=tuple(shard))
     todo, mine = pending(store)
     if todo:
         log(f"solving the holding activations of {todo:,} of {mine:,} gazes ({cfg.eye} eye) into {out_dir}")
@@ -229,7 +232,8 @@ def evaluate_on_body(net: OculomotorNet, body: Body, side: str, gaze: np.ndarray
     i, j = transition_pairs(te, n, rng)
     g, acts = gaze, act
     with torch.no_grad():
-        pred = net(torch.as_tensor(g[j] - g[i], dtype=torch.float32), torch.as_tensor(acts[i], dtype=torch.float32)).numpy()
+        pred = net(torch.as_tensor(g[j] - g[i], dtype=torch.float32),
+                   torch.as_tensor(acts[i], dtype=torch.float32)).numpy()
     err = np.array([np.degrees(np.linalg.norm(settle_gaze(body, side, pred[k]) - g[j[k]])) for k in range(n)])
     exact = np.array([np.degrees(np.linalg.norm(settle_gaze(body, side, acts[j[k]]) - g[j[k]])) for k in range(n)])
     chain = []
@@ -243,7 +247,8 @@ def evaluate_on_body(net: OculomotorNet, body: Body, side: str, gaze: np.ndarray
         a = eye_holding_activations(body, side, start)[0][0]
         with torch.no_grad():
             for _ in range(30):
-                a = net(torch.as_tensor(step, dtype=torch.float32)[None], torch.as_tensor(a, dtype=torch.float32)[None])[0].numpy()
+                a = net(torch.as_tensor(step, dtype=torch.float32)[None],
+                        torch.as_tensor(a, dtype=torch.float32)[None])[0].numpy()
         chain.append(np.degrees(np.linalg.norm(settle_gaze(body, side, a) - (start + 30 * step))))
     return {
         "gaze_error_deg_median": float(np.median(err)),
@@ -266,7 +271,7 @@ def load_oculomotor(run_root) -> dict:
         # checkpoints saved before the version travelled with them learnt from v1
         version = int(ck["data"].get("generator_version", 1))
         if version != HOLDING_VERSION:
-            raise ValueError(f"{run}: an oculomotor net of holding data v{version}, solved on an eye plant since corrected "
-                             f"(now v{HOLDING_VERSION}: see HOLDING_VERSION); retrain it: python -m warp_vision.train "
-                             f"oculomotor --eye {side} --out {run} --overwrite")
+            raise ValueError(f"{run}: an oculomotor net of holding data v{version}, solved on an eye plant since "
+                             f"corrected (now v{HOLDING_VERSION}: see HOLDING_VERSION); retrain it: python -m "
+                             f"warp_vision.train oculomotor --eye {side} --out {run} --overwrite")
     return nets

@@ -142,7 +142,8 @@ def plan(left: str, right: str, oculomotor: str, quick: bool = False, pupil: str
     fov = {"left": left, "right": right}
     return ([NetSpec("foveation", s, fov[s], preset) for s in SIDES]
             + [NetSpec("oculomotor", s, os.path.join(oculomotor, s), preset) for s in SIDES]
-            + [NetSpec(kind, s, os.path.join(root, s), preset) for kind, root in (("pupil", pupil), ("lens", lens)) if root
+            + [NetSpec(kind, s, os.path.join(root, s), preset) for kind,
+               root in (("pupil", pupil), ("lens", lens)) if root
                for s in SIDES])
 
 

@@ -34,7 +34,8 @@ def run_scenario(loop, duration: float, ball=None, record=None, progress: bool =
 
     body = loop.body
     t0 = body.time
-    tr = {"t": [], "ball": [], "neck": [], "eye_in_head": [], **{f"error_{s}": [] for s in SIDES}, **{f"line_{s}": [] for s in SIDES}}
+    tr = {"t": [], "ball": [], "neck": [], "eye_in_head": [], **{f"error_{s}": [] for s in SIDES},
+          **{f"line_{s}": [] for s in SIDES}}
     for _ in tqdm(range(int(round(duration / CONTROL_DT))), desc="closed loop", disable=not progress, leave=False):
         if ball is not None:
             body.set_ball(ball(body.time - t0))
@@ -63,7 +64,8 @@ def _scenarios():
     for d in SACCADE_DIRECTIONS_DEG:
         ang = np.radians(d)
         out.append((f"saccade_{d}", 0.8,
-                    lambda body, ang=ang: _fixed(point_at(body, SACCADE_DEG * np.cos(ang), SACCADE_DEG * np.sin(ang), 1.0))))
+                    lambda body,
+                    ang=ang: _fixed(point_at(body, SACCADE_DEG * np.cos(ang), SACCADE_DEG * np.sin(ang), 1.0))))
     for omega in TRACKING_SPEEDS:
         for way in TRACKING_WAYS:
             out.append((f"tracking_{omega:g}_{way}", 1.2, lambda body, omega=omega, way=way: _orbit(body, omega, way)))
@@ -140,7 +142,8 @@ def goal_lines(result: dict) -> list[str]:
     when = (f"after {slowest:.2f} s at the slowest" if np.isfinite(slowest) else
             "not in every direction within the run")
     lines = [f"saccades to {SACCADE_DEG:g} deg, {len(sac['trials'])} directions: both eyes within "
-             f"{SACCADE_WITHIN_DEG:g} deg {when} (goal: by {SACCADE_BY_S:g} s): {verdict(sac['all_within_1deg_by_0.3s'])}",
+             f"{SACCADE_WITHIN_DEG:g} deg {when} (goal: by {SACCADE_BY_S:g} s): "
+             f"{verdict(sac['all_within_1deg_by_0.3s'])}",
              f"vergence at 1 m: the gaze lines {verg['gaze_line_distance_cm_max']:.2f} cm apart at the most (goal: "
              f"< {VERGENCE_WITHIN_CM:g} cm): {verdict(verg['gaze_line_distance_cm_max'] < VERGENCE_WITHIN_CM)}"]
     for omega in TRACKING_SPEEDS:
@@ -162,12 +165,14 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
         tr = st["traces"][f"saccade_{d}"]
         both = np.maximum(tr["error_left"], tr["error_right"])
         within = both < SACCADE_WITHIN_DEG
-        trials.append({"direction_deg": float(d), "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
+        trials.append({"direction_deg": float(d),
+                       "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
                        "error_at_0.3s_deg": float(np.interp(SACCADE_BY_S, tr["t"], both)),
                        "max_error_after_0.3s_deg": float(both[tr["t"] >= SACCADE_BY_S].max()),
                        "gaze_line_distance_cm": 100 * float(max(tr["line_left"][-1], tr["line_right"][-1])),
                        # the eye-head synergy: the eyes' eccentricity in the head falls as the head turns
-                       "eye_in_head_deg_peak": float(tr["eye_in_head"].max()), "eye_in_head_deg_end": float(tr["eye_in_head"][-1]),
+                       "eye_in_head_deg_peak": float(tr["eye_in_head"].max()),
+                       "eye_in_head_deg_end": float(tr["eye_in_head"][-1]),
                        "head_turn_deg_end": float(np.degrees(np.linalg.norm(tr["neck"][-1][:2])))})
     times = [tt["time_both_within_1deg_s"] for tt in trials]
     out = {"saccade_20deg": {"trials": trials,
@@ -188,8 +193,9 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
     share["other"] = max(0.0, 1.0 - sum(share.values()))  # traces, progress bars, Python between the stages
     out["ball"] = loop.ball
     out["gaze_perception"] = loop.perception
-    out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall, "frame_every": loop.frame_every,
-                     "frames_per_s": 1.0 / (loop.frame_every * control_dt), "share": share}
+    out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall,
+                     "frame_every": loop.frame_every, "frames_per_s": 1.0 / (loop.frame_every * control_dt),
+                     "share": share}
     return out
 
 
@@ -218,7 +224,8 @@ def plot_experiments(traces: dict, path: str, title: str | None = None) -> str:
              title=f"saccades to {SACCADE_DEG:g} deg (goal: within {SACCADE_WITHIN_DEG:g} deg by {SACCADE_BY_S:g} s)")
     ax_s.legend(title="direction", fontsize=7, ncol=2)
     ax_v.axhline(VERGENCE_WITHIN_CM, color="k", ls=":", lw=1)
-    ax_v.set(yscale="log", xlabel="time after the ball appears (s)", ylabel="larger gaze line's distance from the ball (cm)",
+    ax_v.set(yscale="log", xlabel="time after the ball appears (s)",
+             ylabel="larger gaze line's distance from the ball (cm)",
              title=f"vergence at 1 m, the same runs (goal: < {VERGENCE_WITHIN_CM:g} cm at the end)")
     for j, (w, way) in enumerate(itertools.product(TRACKING_SPEEDS, TRACKING_WAYS)):
         tr = traces[f"tracking_{w:g}_{way}"]
@@ -339,8 +346,8 @@ class FixationOracle:
         return np.asarray(gaze_angles(d / np.linalg.norm(d)))[None]
 
 
-def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True, card_vertices: int | None = None,
-                card_seed: int = FOCUS_CARD_SEED) -> dict:
+def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True,
+                card_vertices: int | None = None, card_seed: int = FOCUS_CARD_SEED) -> dict:
     """The eyes fixate a textured card straight ahead while it steps through the distances of
     ``phases`` (a card per distance, sized as the lens data size theirs: :func:`warp_vision.data.intraocular.card_size_for`); per period each eye's accommodation, its command, the card's vergence from the eye (D)
     and the defocus (accommodation minus that vergence). Per step and eye: the latency (until the
@@ -376,7 +383,8 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
     H = body.head_pose()
     parked = H[:3, 3] - 1.5 * H[:3, 2]  # the ball is not in this scenario: 1.5 m behind the head, out of sight
     body.set_ball(parked)
-    tr = {"t": [], "distance": [], **{f"{k}_{s}": [] for k in ("accommodation", "command", "vergence", "defocus") for s in SIDES}}
+    tr = {"t": [], "distance": [],
+          **{f"{k}_{s}": [] for k in ("accommodation", "command", "vergence", "defocus") for s in SIDES}}
     shots = []
     n = int(round(starts[-1] / CONTROL_DT))
     t0 = body.time
@@ -450,5 +458,6 @@ def focus_step_metrics(t: np.ndarray, acc: np.ndarray, vergence: np.ndarray, sta
     frac = (a - before) / (goal - before)
     off = np.abs(a - v) > FOCUS_TOLERANCE_D
     in_focus = float(tt[np.nonzero(off)[0][-1] + 1]) if off.any() and not off[-1] else (0.0 if not off.any() else None)
-    return {"from_D": float(before), "to_D": float(goal), "latency_s": float(tt[np.argmax(frac >= 0.05)]) if (frac >= 0.05).any() else None,
-            "in_focus_s": in_focus, "end_defocus_D": float(a[-1] - v[-1])}
+    return {"from_D": float(before), "to_D": float(goal),
+            "latency_s": float(tt[np.argmax(frac >= 0.05)]) if (frac >= 0.05).any() else None, "in_focus_s": in_focus,
+            "end_defocus_D": float(a[-1] - v[-1])}

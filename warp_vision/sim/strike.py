@@ -214,17 +214,19 @@ def _intercept_one(args, loop, interceptor, vision, shot) -> dict:
     plot_hand_ball_distance(trace, os.path.join(args.out, "hand_ball_distance.png"), res["arm_contact_t"],
                             result.deflected, result.closest_t,
                             seen_by="limb vision nets'" if args.perception == "vision" else "the eyes' fixation",
-                            title=f"shot {shot.seed}: {shot.speed:.1f} m/s, {'deflected' if result.deflected else 'missed'}; "
-                                  f"closest approach {result.closest:.3f} m")
+                            title=f"shot {shot.seed}: {shot.speed:.1f} m/s, "
+                                  f"{'deflected' if result.deflected else 'missed'}; closest approach "
+                                  f"{result.closest:.3f} m")
     out = {"shot": shot_dict(shot), "perception": args.perception, "side": args.side, "result": res,
            "limb_vision": limb, "wall_s": wall, "timing_s": timing, "timing_shares": time_shares(timing, wall),
            "video": {"path": video, "frames": writer.frames, "fps": fps}, "trace": trace}
     write_json(os.path.join(args.out, "shot.json"), out)
     print(f"shot {shot.seed} ({shot.speed:.1f} m/s, flight {shot.flight_time:.3f} s), {args.side} arm, perception "
-          f"{args.perception}: {'DEFLECTED' if result.deflected else 'missed'}; closest approach {result.closest:.3f} m "
-          f"at {result.closest_t:.3f} s ({result.closest_part}); first arm contact {result.arm_contact}")
+          f"{args.perception}: {'DEFLECTED' if result.deflected else 'missed'}; closest approach {result.closest:.3f} "
+          f"m at {result.closest_t:.3f} s ({result.closest_part}); first arm contact {result.arm_contact}")
     if limb:
-        print(f"{args.perception}: {limb['frames']} frames, median ball position error {limb['median_position_error_m']:.3f} m")
+        print(f"{args.perception}: {limb['frames']} frames, median ball position error "
+              f"{limb['median_position_error_m']:.3f} m")
     print(f"wall {wall:.1f} s: " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in out["timing_shares"].items()))
     print(f"wrote {video}, {os.path.join(args.out, 'hand_ball_distance.png')} and {os.path.join(args.out, 'shot.json')}")
     return out
@@ -299,7 +301,8 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
            "figures": figures, "software": software()}
     write_json(os.path.join(args.out, "intercept_stats.json"), out)
     print(f"\n{len(shots)} held-out shot(s) at the {args.side} arm (seeds {shots[0].seed}..{shots[-1].seed}):")
-    print(f"{'mode':28s} {'deflected':>10s} {'fraction':>9s} {'median miss':>12s} {'median closest':>15s} {'wall s/shot':>12s}")
+    print(f"{'mode':28s} {'deflected':>10s} {'fraction':>9s} {'median miss':>12s} {'median closest':>15s} "
+          f"{'wall s/shot':>12s}")
     for m, r in results.items():
         hits = f"{sum(bool(x['deflected']) for x in r['shots'])}/{r['n']}"
         miss = "-" if r["median_closest_miss_m"] is None else f"{r['median_closest_miss_m']:.3f} m"
@@ -308,14 +311,18 @@ def _intercept_many(args, loop, interceptor, vision, nets, shots) -> dict:
     for m, e in seen.items():
         if e["all"]["frames"]:
             near = e["near"]
-            near_text = (f"; within {e['near_m']:g} m of the hand ({near['frames']} frames): median {near['median_cm']:.1f} cm, "
-                         f"p90 {near['p90_cm']:.1f} cm, {near['median_relative']:.2f} of the distance") if near["frames"] else ""
-            print(f"{mode_label(m)}: the ball's position per frame in flight, median error {e['all']['median_cm']:.1f} cm "
-                  f"(p90 {e['all']['p90_cm']:.1f}, {e['all']['frames']} frames){near_text}")
+            near_text = (f"; within {e['near_m']:g} m of the hand ({near['frames']} frames): median "
+                         f"{near['median_cm']:.1f} cm, p90 {near['p90_cm']:.1f} cm, {near['median_relative']:.2f} of "
+                         "the distance") if near["frames"] else ""
+            print(f"{mode_label(m)}: the ball's position per frame in flight, median error {e['all']['median_cm']:.1f} "
+                  f"cm (p90 {e['all']['p90_cm']:.1f}, {e['all']['frames']} frames){near_text}")
     for s, e in (heldout or {}).items():
-        print(f"limb vision, {s} eye, held-out ONVs ({e['seen_within_gate']} of {e['samples']} with the ball seen near the "
-              f"line of sight): hand-ball error within 0.6 m median {e['near_median_cm']:.2f} cm, p90 {e['near_p90_cm']:.2f} cm, "
-              f"{e['near_median_relative']:.3f} of the distance; every ball {e['all_median_cm']:.2f} cm")
-    print(f"{mode_label(loop_mode)}, wall time: " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in out["timing_shares"].items()))
-    print(f"wrote {os.path.join(args.out, 'intercept_stats.json')} and {', '.join(os.path.basename(f) for f in figures)}")
+        print(f"limb vision, {s} eye, held-out ONVs ({e['seen_within_gate']} of {e['samples']} with the ball seen near "
+              f"the line of sight): hand-ball error within 0.6 m median {e['near_median_cm']:.2f} cm, p90 "
+              f"{e['near_p90_cm']:.2f} cm, {e['near_median_relative']:.3f} of the distance; every ball "
+              f"{e['all_median_cm']:.2f} cm")
+    print(f"{mode_label(loop_mode)}, wall time: " + ", ".join(f"{k} {100 * v:.0f}%" for k,
+                                                              v in out["timing_shares"].items()))
+    print(f"wrote {os.path.join(args.out, 'intercept_stats.json')} and "
+          f"{', '.join(os.path.basename(f) for f in figures)}")
     return out

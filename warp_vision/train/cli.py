@@ -37,14 +37,14 @@ def _run_flags(p: argparse.ArgumentParser, groups: dict) -> argparse.ArgumentPar
                      help="continue the stopped run in RUN_DIR exactly, with the settings of its config.json (other "
                           "settings are refused; one stopped before its first epoch ended starts "
                           "again); with --epochs N, under a new epoch cap (N = the epochs done ends it now: the best "
-                          "checkpoint is evaluated, figures written; fewer is refused). A run that early stopping ended "
-                          "trains further only under a higher cap, its patience counted afresh")
+                          "checkpoint is evaluated, figures written; fewer is refused). A run that early stopping "
+                          "ended trains further only under a higher cap, its patience counted afresh")
     run.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     run.add_argument("--no-progress", action="store_true", help="no progress bars")
     run.add_argument("--workers", type=_workers, default="auto", metavar="N",
-                     help="processes that synthesise a missing dataset (foveation and limb runs; the dataset is the same "
-                          "for any N); default auto: one per CPU core, at most 8, for a dataset of 1,000 samples or more (else 1; "
-                          "1 on a GPU; under torchrun each rank renders its own shard)")
+                     help="processes that synthesise a missing dataset (foveation and limb runs; the dataset is the "
+                          "same for any N); default auto: one per CPU core, at most 8, for a dataset of 1,000 samples "
+                          "or more (else 1; 1 on a GPU; under torchrun each rank renders its own shard)")
     _debug_flag(run)
     return p
 
@@ -67,13 +67,13 @@ def _train_parser() -> argparse.ArgumentParser:
         prog="python -m warp_vision.train",
         description=(
             "Train a foveation net: synthesise (or reuse) a dataset of ONVs of a ball in a room (the default "
-            "preset: generator v9's ordinary balls among distractors and decoys, and the retina CNN; --generator 7 --model linet: v7's glowing "
-            "ball and the paper's liNet), train the net to predict the eye rotation (yaw, pitch) that foveates "
-            "the ball, evaluate, and "
+            "preset: generator v9's ordinary balls among distractors and decoys, and the retina CNN; --generator 7 "
+            "--model linet: v7's glowing ball and the paper's liNet), train the net to predict the eye rotation (yaw, "
+            "pitch) that foveates the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
-            "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'oculomotor --eye left|right' (an eye's "
-            "oculomotor net), 'arm --side left|right' (an arm's motor nets), 'limb|pupil|lens --eye left|right' (an "
-            "eye's limb vision, pupil or lens net), 'evaluate RUN_DIR' and "
+            "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'oculomotor --eye left|right' "
+            "(an eye's oculomotor net), 'arm --side left|right' (an arm's motor nets), 'limb|pupil|lens --eye "
+            "left|right' (an eye's limb vision, pupil or lens net), 'evaluate RUN_DIR' and "
             "'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )
@@ -113,8 +113,8 @@ TASKS = {
     "limb": ("limb", body.LimbTrainConfig, body.LIMB_PRESETS,
              "An eye's limb vision net (the paper's nets 3-10): synthesise (or reuse) ONVs of the closed loop's world "
              "with the body's arms at random postures and the cannon's ball near a hand or on a shot's path, the eye "
-             "tracking it; train the ranging net (default: the ball's distance from its apparent size, for balls near the "
-             "line of sight; the loop adds the foveation net's direction and the hand's proprioception) or, with "
+             "tracking it; train the ranging net (default: the ball's distance from its apparent size, for balls near "
+             "the line of sight; the loop adds the foveation net's direction and the hand's proprioception) or, with "
              "--model linet|fc|cnn, a net from the ONV to each arm's hand-to-ball discrepancy (eye frame, m); "
              "measure it on rooms and shots training never saw, and write config, checkpoints, metrics, summary and "
              "figures to --out (default runs/limb/<eye>)."),
@@ -141,17 +141,18 @@ def _task_parser(name: str) -> argparse.ArgumentParser:
 
 def _eval_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.train evaluate",
-                       description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular error "
-                                   "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
-                                   "the pose error.")
-    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="training run directories (with best.pt; latest.pt for --checkpoint latest)")
+                       description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular "
+                                   "error (median, 90th percentile, degrees), for a faces run the identity accuracy "
+                                   "and the pose error.")
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR",
+                   help="training run directories (with best.pt; latest.pt for --checkpoint latest)")
     p.add_argument("--split", choices=["test", "val", "train"], default="test", help="which split (default test)")
     p.add_argument("--conditions", action="store_true",
                    help="foveation runs: render (or reuse) one held-out set per test condition (v8 scenes in rooms "
-                        "training never saw: glowing ball in a dim room, lit white ball, coloured matte ball, a lamp or "
-                        "brighter object in view, the body's arm in view; v9's: a round decoy in view) and print one "
-                        "table with every run side by side (median / 90th percentile, degrees, and the share more than "
-                        "5 degrees off); writes RUN_DIR/conditions.json and "
+                        "training never saw: glowing ball in a dim room, lit white ball, coloured matte ball, a lamp "
+                        "or brighter object in view, the body's arm in view; v9's: a round decoy in view) and print "
+                        "one table with every run side by side (median / 90th percentile, degrees, and the share more "
+                        "than 5 degrees off); writes RUN_DIR/conditions.json and "
                         "RUN_DIR/figures/conditions.png")
     p.add_argument("--misses", action="store_true",
                    help="foveation runs: also print where the balls more than 5 degrees off lie (the share off per "
@@ -159,11 +160,11 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "decoy), drawn in RUN_DIR/figures/misses_<split>.png")
     p.add_argument("--signal", action="store_true",
                    help="with --misses, v8 and v9 runs: render the split again with and without its balls (about 0.1 s "
-                        "an ONV on a 2-core CPU) and add the share off per band of photoreceptors that see the ball and "
-                        "of its contrast with its surround, and what the estimates land on (the ball, a decoy by kind, "
-                        "a bright object, the arm, the panel, a box or cylinder of the furniture, a wall, the floor or "
-                        "the ceiling), beside what each class would get by chance (each scene probed along another "
-                        "ball's direction)")
+                        "an ONV on a 2-core CPU) and add the share off per band of photoreceptors that see the ball "
+                        "and of its contrast with its surround, and what the estimates land on (the ball, a decoy by "
+                        "kind, a bright object, the arm, the panel, a box or cylinder of the furniture, a wall, the "
+                        "floor or the ceiling), beside what each class would get by chance (each scene probed along "
+                        "another ball's direction)")
     p.add_argument("--agreement", action="store_true",
                    help="two or more foveation runs on one dataset: whether they miss the same balls of the split (per "
                         "pair: both more than 5 degrees off, against what independent nets would give; the share of "
@@ -192,7 +193,8 @@ def _module(task: str):
 
 def _compare_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.train compare",
-                       description="Plot several foveation (or face) runs' training and validation MSE curves in one figure.")
+                       description="Plot several foveation (or face) runs' training and validation MSE curves in one "
+                                   "figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="figure path; its suffix picks the format (.png, .pdf, .svg, ...; "
                                                  "none: PNG)")

@@ -27,10 +27,12 @@ from warp_vision.train.foveation import OFF_DEG  # the table's third figure: the
 HELD_OUT_SEED = 1000
 #: The test conditions and their goals (median deg), from issue 17; "decoy" (generator v9) is not one of
 #: its conditions and is held to the distractors' goal.
-GOALS = {"own test split": None, "glow_dim": 0.6, "white": 1.0, "matte": 1.0, "distractor": 1.5, "arm": 1.5, "decoy": 1.5}
+GOALS = {"own test split": None, "glow_dim": 0.6, "white": 1.0, "matte": 1.0, "distractor": 1.5, "arm": 1.5,
+         "decoy": 1.5}
 LABELS = {"own test split": "its own test split (in-sample generator)", "glow_dim": "glowing ball, dim room (v7's)",
-          "white": "lit white ball, no glow", "matte": "coloured matte ball", "distractor": "a lamp or brighter object in view",
-          "arm": "the body's arm in view", "decoy": "a round decoy in view (a cylinder end-on)"}
+          "white": "lit white ball, no glow", "matte": "coloured matte ball",
+          "distractor": "a lamp or brighter object in view", "arm": "the body's arm in view",
+          "decoy": "a round decoy in view (a cylinder end-on)"}
 
 
 def condition_config(data, condition: str, samples: int):
@@ -114,8 +116,10 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
             k = int(torch.argsort(err)[len(err) // 2])  # the median sample
             examples[run][c] = (ddir, onv[k].float(), target[k].numpy(), pred[k].numpy(), float(err[k]))
         results[read_label(run, checkpoint, ck["epoch"], views)] = row
-        atomic_write(out / f"conditions{suffix}.json", json.dumps({"samples_per_condition": samples, "checkpoint": checkpoint,
-                                                                   "epoch": ck["epoch"] + 1, "views": getattr(model, "views", None),
+        atomic_write(out / f"conditions{suffix}.json",
+                     json.dumps({"samples_per_condition": samples, "checkpoint": checkpoint,
+                                                                   "epoch": ck["epoch"] + 1,
+                                 "views": getattr(model, "views", None),
                                                                    "results": row}, indent=2))
         _figure(out, cfg, examples[run], suffix)
     log(table(results))

@@ -36,7 +36,8 @@ def check_net_sizes(cfg) -> None:
         layer_sizes(3 * cfg.photoreceptors, cfg.layers, cfg.receptive_field, cfg.reduction)
     elif cfg.model == "conv":
         if not cfg.reduction > 1:
-            raise ValueError(f"reduction: the conv net's stride between its layers' sites, expected > 1, got {cfg.reduction}")
+            raise ValueError("reduction: the conv net's stride between its layers' sites, expected > 1, got "
+                             f"{cfg.reduction}")
         site_counts(cfg.photoreceptors, cfg.layers, cfg.reduction)
 
 
@@ -54,7 +55,8 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
     for name, allowed in getattr(cfg, "CHOICES", CHOICES).items():
         if hasattr(cfg, name) and getattr(cfg, name) not in allowed:
             raise ValueError(f"{name}: expected one of {allowed}, got {getattr(cfg, name)!r}")
-    require_positive(cfg, [n for n in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience")
+    require_positive(cfg,
+                     [n for n in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience")
                            if hasattr(cfg, n)], flags=False)
     require_seeds(cfg)
     if not cfg.lr > 0:
@@ -77,8 +79,8 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
     if hasattr(cfg, "onv_dtype") and cfg.model == "fc" and cfg.onv_dtype not in ("auto", "float32"):
         raise ValueError(f"onv_dtype: the fc baseline reads float32 ONVs, got {cfg.onv_dtype!r}")
     if hasattr(cfg, "precision") and cfg.precision == "bfloat16" and cfg.model not in ("cnn", "range"):
-        raise ValueError(f"precision: bfloat16 training is the cnn and range nets'; the {cfg.model} net trains in float32 "
-                         "(use --precision auto or float32)")
+        raise ValueError(f"precision: bfloat16 training is the cnn and range nets'; the {cfg.model} net trains in "
+                         "float32 (use --precision auto or float32)")
 
 
 def check_splits(n: int, val_fraction: float, test_fraction: float, min_test: int = 0, name: str = "samples",
@@ -166,7 +168,8 @@ class TrainConfig:
                        "channels": 16, "init": "", "views": 8, "no_augment": False, "plain_epochs": 0}
     #: the net settings only some models read: {field: those models} (a flag given for another is refused)
     MODEL_FIELDS: ClassVar[dict] = {"layers": ("linet", "fc", "conv"), "receptive_field": ("linet", "fc"),
-                                    "reduction": ("linet", "fc", "conv"), "channels": ("conv", "cnn"), "views": ("cnn",)}
+                                    "reduction": ("linet", "fc", "conv"), "channels": ("conv", "cnn"),
+                                    "views": ("cnn",)}
 
     def per_sample_input(self) -> bool:
         """Whether the net's input is scaled by each ONV's own mean irradiance (``input_norm``, "auto" resolved)."""
@@ -199,18 +202,21 @@ class TrainConfig:
         if self.model == "fc" and self.head == "softargmax":
             raise ValueError("head: the fc baseline has no unit positions to vote with; use --head linear")
         if self.model in ("conv", "cnn") and self.head == "linear":
-            raise ValueError(f"head: the {self.model} net reads out by a soft-argmax of its heat map; use --head auto or softargmax")
+            raise ValueError(f"head: the {self.model} net reads out by a soft-argmax of its heat map; use --head auto "
+                             "or softargmax")
         if self.model in ("conv", "cnn") and self.onv_dtype not in ("auto", "float32"):
             raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
         if self.channels < 1:
             raise ValueError(f"channels: expected a positive integer, got {self.channels}")
         if self.no_augment and self.model != "cnn":
-            raise ValueError(f"no_augment: the turned and mirrored copies are the cnn's; the {self.model} net trains without them")
+            raise ValueError(f"no_augment: the turned and mirrored copies are the cnn's; the {self.model} net trains "
+                             "without them")
         if self.no_augment and self.views != 1:
-            raise ValueError(f"views: a net trained without the turned and mirrored copies reads the plain image alone; "
-                             f"use --views 1 with --no-augment (got {self.views})")
+            raise ValueError("views: a net trained without the turned and mirrored copies reads the plain image "
+                             f"alone; use --views 1 with --no-augment (got {self.views})")
         if self.plain_epochs and self.model != "cnn":
-            raise ValueError(f"plain_epochs: the turned and mirrored copies are the cnn's; the {self.model} net trains without them")
+            raise ValueError(f"plain_epochs: the turned and mirrored copies are the cnn's; the {self.model} net trains "
+                             "without them")
         if not 0 <= self.plain_epochs <= self.epochs:
             raise ValueError(f"plain_epochs: expected 0 to the {self.epochs} epochs, got {self.plain_epochs}")
         if self.plain_epochs == self.epochs and not self.no_augment:
@@ -291,9 +297,10 @@ class FaceTrainConfig:
     def data_config(self):
         from warp_vision.data.faces import FaceDataConfig
 
-        return FaceDataConfig(identities=self.identities, pose_step_deg=self.pose_step_deg, max_pose_deg=self.max_pose_deg,
-                              photoreceptors=self.photoreceptors, eye=self.eye, samples_per_receptor=self.samples_per_receptor,
-                              distance_m=self.distance_m, identity_seed=self.identity_seed, seed=self.data_seed)
+        return FaceDataConfig(identities=self.identities, pose_step_deg=self.pose_step_deg,
+                              max_pose_deg=self.max_pose_deg, photoreceptors=self.photoreceptors, eye=self.eye,
+                              samples_per_receptor=self.samples_per_receptor, distance_m=self.distance_m,
+                              identity_seed=self.identity_seed, seed=self.data_seed)
 
     def validate(self) -> None:
         _check_common(self, FACE_PRESETS)
@@ -354,7 +361,8 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
         if f.name == "task":  # fixed per config class, not a choice
             continue
         if f.name == "preset":
-            group(f.name).add_argument("--preset", choices=sorted(presets), default="default", help=field_help(cls, f.name))
+            group(f.name).add_argument("--preset", choices=sorted(presets), default="default",
+                                       help=field_help(cls, f.name))
             continue
         value = getattr(defaults, f.name)
         choices = getattr(cls, "CHOICES", CHOICES)
@@ -382,8 +390,8 @@ def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
     for name, models in getattr(cls, "MODEL_FIELDS", {}).items():
         if getattr(args, name, None) is not None and cfg.model not in models:
             which = f"the {models[0]} net does" if len(models) == 1 else f"the {', '.join(models[:-1])} and {models[-1]} nets do"
-            raise ValueError(f"--{name.replace('_', '-')}: the {cfg.model} net does not read it ({which}); leave it out, "
-                             f"or choose {'that' if len(models) == 1 else 'one of those'} with --model")
+            raise ValueError(f"--{name.replace('_', '-')}: the {cfg.model} net does not read it ({which}); leave it "
+                             f"out, or choose {'that' if len(models) == 1 else 'one of those'} with --model")
     return cfg
 
 

@@ -48,8 +48,9 @@ def load_for_evaluation(task: Task, log=print, progress: bool = True, ck: dict |
     if dataset_mismatch(ck, digest):
         trained = binding(ck)["dataset"][:12]
         if not again:
-            raise ValueError(f"{task.training_store()} holds other samples (dataset {digest[:12]}) than {task.cfg.out}'s "
-                             f"net was trained on (dataset {trained}): its config.json's data_dir names another dataset")
+            raise ValueError(f"{task.training_store()} holds other samples (dataset {digest[:12]}) than "
+                             f"{task.cfg.out}'s net was trained on (dataset {trained}): its config.json's data_dir "
+                             "names another dataset")
         log(f"the dataset rendered again differs from the one the net was trained on (dataset {digest[:12]}, "
             f"trained on {trained}; rendered by another machine or version): evaluating on it all the same")
 

@@ -416,7 +416,8 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
     task.dataset = task.dataset_digest()
     if ck is not None and dataset_mismatch(ck, task.dataset):
         raise ValueError(f"--resume {out}: its dataset {task.training_store()} holds other samples (dataset "
-                         f"{task.dataset[:12]}) than its checkpoints were trained on (dataset {ck['binding']['dataset'][:12]})")
+                         f"{task.dataset[:12]}) than its checkpoints were trained on (dataset "
+                         f"{ck['binding']['dataset'][:12]})")
     tr, va, te = task.splits()
     norm = task.fit_norm(tr)
     model = build_net(task.net_spec(), device)
@@ -458,8 +459,8 @@ def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: D
     def checkpoint(epoch):
         history = [{k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in state.history]
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "history": history,
-                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": reproducible_config(cfg), "task": task.name,
-                "net": spec, "data": task.data_config(), "binding": task.binding()}
+                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": reproducible_config(cfg),
+                "task": task.name, "net": spec, "data": task.data_config(), "binding": task.binding()}
 
     if state.ended:
         return state.ended
@@ -579,7 +580,8 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
     if dd.rank == 0:
         check_checkpoint_space(model, out, say)
     net = torch.nn.parallel.DistributedDataParallel(model) if dd.on else model
-    say(f"{task.describe(model)}; {len(ids[0]):,} train / {len(ids[1]):,} val / {len(ids[2]):,} test samples; device {device}")
+    say(f"{task.describe(model)}; {len(ids[0]):,} train / {len(ids[1]):,} val / {len(ids[2]):,} test samples; device "
+        f"{device}")
     try:
         stopped = _epochs(task, net, model, opt, ids, norm, state, device, dd, progress, out, spec, stop_after_epoch)
     except (KeyboardInterrupt, _Interrupt) as e:

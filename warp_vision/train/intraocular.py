@@ -41,7 +41,8 @@ class ShallowNetTask(harness.Task):
         d = self._render_set(dcfg, ddir, shard, progress, synthesize)
         net = self._net()
         with torch.no_grad():
-            d["raw"] = torch.cat([net.raw_features(d["onv"][s:s + 256].float(), d["pupil"][s:s + 256], **self.raw_kwargs)
+            d["raw"] = torch.cat([net.raw_features(d["onv"][s:s + 256].float(), d["pupil"][s:s + 256],
+                                                   **self.raw_kwargs)
                                   for s in range(0, len(d["onv"]), 256)])
         del d["onv"]
         return d

@@ -123,12 +123,13 @@ class LensTask(ShallowNetTask):
         return _errors(pred, true)
 
     def describe(self, model):
-        return (f"lens net ({self.cfg.eye} eye, {len(self.central):,} central photoreceptors, hidden {self.cfg.hidden}): "
-                f"{sum(p.numel() for p in model.parameters()):,} parameters")
+        return (f"lens net ({self.cfg.eye} eye, {len(self.central):,} central photoreceptors, hidden "
+                f"{self.cfg.hidden}): {sum(p.numel() for p in model.parameters()):,} parameters")
 
     def epoch_line(self, row):
-        return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.3e}  val median error {row['val_median_error_D']:.3f} D, "
-                f"sign right beyond 0.5 D: {100 * row['val_sign_correct_above_0.5D']:.1f}%")
+        return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.3e}  val median error "
+                f"{row['val_median_error_D']:.3f} D, sign right beyond 0.5 D: "
+                f"{100 * row['val_sign_correct_above_0.5D']:.1f}%")
 
     def figures(self, out, history, test, idx):
         import matplotlib
@@ -143,14 +144,15 @@ class LensTask(ShallowNetTask):
         fig.colorbar(sc, ax=ax[0], label="log10 card distance (m)")
         lim = [float(min(true.min(), pred.min())), float(max(true.max(), pred.max()))]
         ax[0].plot(lim, lim, "k-", lw=0.8)
-        ax[0].set(xlabel="true defocus (D)", ylabel="lens net's estimate (D)", title=f"{self.cfg.eye} eye, held-out cards")
+        ax[0].set(xlabel="true defocus (D)", ylabel="lens net's estimate (D)",
+                  title=f"{self.cfg.eye} eye, held-out cards")
         ax[1].hist(pred - true, bins=60, color="C1")
         ax[1].set(xlabel="error (D)", ylabel="held-out ONVs")
         self.save_figure(fig, out, "lens.png")
 
     def eval_line(self, run_dir, split, n, ev):
-        return (f"{run_dir} ({split}, {n:,} ONVs): median error {ev['median_error_D']:.3f} D, p90 {ev['p90_error_D']:.3f} D, "
-                f"sign right beyond 0.5 D: {100 * ev['sign_correct_above_0.5D']:.1f}%")
+        return (f"{run_dir} ({split}, {n:,} ONVs): median error {ev['median_error_D']:.3f} D, p90 "
+                f"{ev['p90_error_D']:.3f} D, sign right beyond 0.5 D: {100 * ev['sign_correct_above_0.5D']:.1f}%")
 
 
 def run(cfg: LensTrainConfig | None = None, **kw) -> dict:

@@ -98,7 +98,8 @@ def warm_start(model: torch.nn.Module, run_dir, task: str | None = None) -> None
         require_binding(ck, {"task": task}, best, f"this {task} run's --init")
     config = read_run_config(best.parent)
     if config is not None:  # (what check_new_run read of the run is what the checkpoint is)
-        require_binding(ck, run_identity(saved_task(best.parent, config), config), best, f"the run in {best.parent}", config)
+        require_binding(ck, run_identity(saved_task(best.parent, config), config), best, f"the run in {best.parent}",
+                        config)
     state = ck["model"]
     try:
         model.load_state_dict(state)
@@ -147,7 +148,8 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
     if resume:
         out = resolved(resume, "--resume")
         if not (out / "config.json").exists():
-            raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
+            raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory",
+                                    str(out / "config.json"))
         task = saved_task(out)
         if task != task_cls.name:
             raise ValueError(f"--resume {resume}: {a_run(task)}, not {a_run(task_cls.name)}; resume it with "
@@ -359,7 +361,8 @@ def saved_config(task_cls, run_dir):
     """The config of the run in ``run_dir`` as its config.json holds it, read as ``task_cls.config_cls``."""
     saved = read_run_config(run_dir)
     if saved is None:
-        raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(Path(run_dir) / "config.json"))
+        raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory",
+                                str(Path(run_dir) / "config.json"))
     return config_from_saved(task_cls.config_cls, saved, Path(run_dir) / "config.json")
 
 
@@ -394,8 +397,9 @@ def config_from_saved(cls, saved: dict, source, optional=()):
     kinds = {f.name: f.type for f in fields(cls)}
     unknown = [k for k in saved if k not in kinds]
     if unknown:
-        raise ValueError(f"{source}: {', '.join(map(repr, unknown))}: not {'a setting' if len(unknown) == 1 else 'settings'} "
-                         f"of this run's task (edited by hand, or written by another version?)")
+        raise ValueError(f"{source}: {', '.join(map(repr, unknown))}: not "
+                         f"{'a setting' if len(unknown) == 1 else 'settings'} of this run's task (edited by hand, or "
+                         "written by another version?)")
     missing = missing_settings(cls, saved, optional)
     if missing:
         raise ValueError(f"{source}: the setting{'s' if len(missing) > 1 else ''} {', '.join(map(repr, missing))} "

@@ -148,5 +148,6 @@ def render_in_processes(task, workers: int, progress: bool) -> bool:
     failed = [h.exitcode for h in helpers if h.exitcode != 0]
     if failed:
         raise RuntimeError(f"{len(failed)} of {workers - 1} synthesis helper(s) failed (exit code {failed[0]}); the "
-                           "chunks written are kept: run the same command again to resume, or with --workers 1 to see the error")
+                           "chunks written are kept: run the same command again to resume, or with --workers 1 to see "
+                           "the error")
     return True

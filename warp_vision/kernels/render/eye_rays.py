@@ -283,7 +283,8 @@ def _retina_positions(retina) -> np.ndarray:
 def surface_table(eye: NavarroEye) -> np.ndarray:
     """[3, 4, 6] float32: per RGB channel and surface, (z0, R, Q, n_front, n_back, semi_diameter)."""
     return np.array(
-        [[[s.z0, s.R, s.Q, s.n_front, s.n_back, s.semi_diameter] for s in eye.surfaces(wl)] for wl in CHANNEL_WAVELENGTHS_NM],
+        [[[s.z0, s.R, s.Q, s.n_front, s.n_back,
+           s.semi_diameter] for s in eye.surfaces(wl)] for wl in CHANNEL_WAVELENGTHS_NM],
         dtype=np.float32,
     )
 

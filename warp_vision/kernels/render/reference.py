@@ -199,7 +199,8 @@ def radiance_ref(scene, origins, directions, batch: int = 0, max_depth: int = 2)
     return result
 
 
-def render_onv_ref(scene, retina_mm, eye: NavarroEye, eye_poses, samples_per_receptor: int = 1, seed: int = 0, max_depth: int = 2):
+def render_onv_ref(scene, retina_mm, eye: NavarroEye, eye_poses, samples_per_receptor: int = 1, seed: int = 0,
+                   max_depth: int = 2):
     """The ONV [B, 3P] by the references above (float64)."""
     O, D, W = eye_rays_ref(retina_mm, eye, samples_per_receptor, seed)
     T = np.asarray(eye_poses, dtype=np.float64).reshape(-1, 4, 4)

@@ -242,13 +242,15 @@ def _light_arrays(scene) -> tuple[np.ndarray, np.ndarray]:
     """The point lights' positions and radiant intensities (colour * intensity), [B or 1, n_lights, 3]."""
     if scene.lights:
         Bl = max(
-            max(np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0], np.atleast_1d(li.intensity).shape[0])
+            max(np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0],
+                np.atleast_1d(li.intensity).shape[0])
             for li in scene.lights
         )
         pos = np.stack([np.broadcast_to(np.atleast_2d(li.position), (Bl, 3)) for li in scene.lights], axis=1)
         rad = np.stack(
             [
-                np.broadcast_to(np.atleast_2d(li.color), (Bl, 3)) * np.broadcast_to(np.atleast_1d(li.intensity), (Bl,))[:, None]
+                np.broadcast_to(np.atleast_2d(li.color),
+                                (Bl, 3)) * np.broadcast_to(np.atleast_1d(li.intensity), (Bl,))[:, None]
                 for li in scene.lights
             ],
             axis=1,
