@@ -641,7 +641,9 @@ def test_a_training_run_refuses_a_dataset_the_disk_cannot_hold_before_rendering(
     data = tmp_path / "d"
     code, err = cli(["--preset", "smoke", "--samples", "1000", "--out", str(tmp_path / "run"), "--data-dir", str(data)],
                     capsys)
-    assert code == 2 and "error: " + str(data) + ": No space left for the dataset: about 2 MiB needed, 488 KiB free" in err, err
+    assert (
+        code == 2 and "error: " + str(data) + ": No space left for the dataset: about 2 MiB needed, 488 KiB free" in err
+    ), err
     assert not data.exists()
 
 
@@ -1132,8 +1134,9 @@ def test_render_onv_refuses_rays_that_cannot_fit_before_allocating():
     from warp_vision.kernels.render import render_onv
 
     retina, eye, pose = _eye_and_pose()
-    with pytest.raises(ValueError,
-                       match=r"render_onv \(B=1, P=50, S=1,000,000,000\) needs about .* GiB.*lower samples_per_receptor"):
+    with pytest.raises(
+        ValueError, match=r"render_onv \(B=1, P=50, S=1,000,000,000\) needs about .* GiB.*lower samples_per_receptor"
+    ):
         render_onv(_tiny_scene(), retina, eye, pose[None], samples_per_receptor=10**9)
 
 

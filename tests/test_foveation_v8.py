@@ -75,7 +75,10 @@ def test_the_mixture_and_the_conditions_follow_their_rules():
     assert len({tuple(np.round(p["ball_material"]["diffuse"], 3)) for p in mixed}) > 200
     by = {c: [params(FoveationDataConfig(condition=c, rooms="heldout", **SMALL),
                      i) for i in range(30)] for c in V.CONDITIONS[1:]}
-    assert all(p["kind"]["glow"] and p["kind"]["dim"] and p["ball_material"]["emission"].max() == V.GLOW for p in by["glow_dim"])
+    assert all(
+        p["kind"]["glow"] and p["kind"]["dim"] and p["ball_material"]["emission"].max() == V.GLOW
+        for p in by["glow_dim"]
+    )
     for p in by["white"]:
         d = p["ball_material"]["diffuse"]
         assert d.min() >= 0.8 and np.ptp(d) == 0 and not p["ball_material"]["emission"].any()
@@ -198,7 +201,8 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     assert f"{runs[1]} (latest.pt, epoch 1)" in capsys.readouterr().out
     latest = json.loads((tmp_path / runs[1] / "conditions_latest.json").read_text())
     assert latest["checkpoint"] == "latest" and latest["epoch"] == 1
-    assert latest["results"] == json.loads((tmp_path / runs[1] / "conditions.json").read_text())["results"]  # one epoch: the same net
+    # one epoch: the same net
+    assert latest["results"] == json.loads((tmp_path / runs[1] / "conditions.json").read_text())["results"]
     assert (tmp_path / runs[1] / "figures" / "conditions_latest.png").exists()
 
 
@@ -211,7 +215,10 @@ def test_furniture_shape_names_each_piece_of_a_room():
     for o in pieces:  # a box has 8 corners; a cylinder is round
         assert (len(o.mesh.vertices) == 8) == (furniture_shape(o.name) == "box"), o.name
     assert [furniture_shape(o.name) for o in pieces] == ["box", "cylinder", "box", "cylinder", "box"]
-    assert F._landed_class("object_1") == "furniture: cylinder" and F._landed_class("wall_north") == "wall, floor or ceiling"
+    assert (
+        F._landed_class("object_1") == "furniture: cylinder"
+        and F._landed_class("wall_north") == "wall, floor or ceiling"
+    )
     assert [F._landed_class(n) for n in ("decoy_barrel", "decoy_drum",
                                          "decoy_plate")] == ["decoy: barrel", "decoy: drum", "decoy: plate"]
     for bad in ("wall_north", "object_", "object_x"):

@@ -54,7 +54,8 @@ def test_intercept_point_lies_on_the_predicted_path_within_reach():
             assert hit is not None, (shot.seed, aim)
             point, tau = hit
             assert np.allclose(point, ballistic_path(p0, v0, [tau])[0], atol=1e-9)
-            assert np.linalg.norm(point - sh) <= REACH_FRACTION * ARM_REACH + 0.02  # the plane crossing: within a path step
+            # the plane crossing: within a path step
+            assert np.linalg.norm(point - sh) <= REACH_FRACTION * ARM_REACH + 0.02
             assert point[1] <= sh[1] - MIN_FRONT + 0.02
         # the plane through the shot's target: the path (with gravity) crosses it at the target, at the flight time
         point, tau = intercept_point(p0, v0, sh, hand, "plane", plane_y=shot.target[1])

@@ -90,8 +90,9 @@ def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
 
     with pytest.raises(ValueError, match="expected a lens run"):
         load_lens(str(tmp_path / "run"))
-    with pytest.raises(ValueError,
-                       match=r"expected a foveation run \(python -m warp_vision.train\); it holds a net of kind 'pupil'"):
+    with pytest.raises(
+        ValueError, match=r"expected a foveation run \(python -m warp_vision.train\); it holds a net of kind 'pupil'"
+    ):
         Foveator(str(tmp_path / "run"))
     with pytest.raises(ValueError, match="pupil_mm"):
         load_pupil(str(tmp_path / "run"))(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0]))
@@ -254,7 +255,8 @@ def test_lens_samples_fill_the_central_field_with_a_card_at_the_stated_defocus()
     pos = np.asarray(retina.positions_optical_mm)[central]
     d = render_lens_samples(cfg, range(12, 20), pos)
     np.testing.assert_allclose(d["defocus"], d["accommodation"] - 1.0 / d["distance"], atol=1e-5)
-    assert np.all(np.abs(d["defocus"]) <= cfg.defocus_range_D + 1e-6) and np.all((d["distance"] >= 0.2) & (d["distance"] <= 5.0))
+    assert np.all(np.abs(d["defocus"]) <= cfg.defocus_range_D + 1e-6)
+    assert np.all((d["distance"] >= 0.2) & (d["distance"] <= 5.0))
     onv = d["onv"].astype(np.float32).reshape(len(d["onv"]), -1, 3)
     assert (onv.sum(2) > 0).all()  # every central photoreceptor sees the card (the background is black)
     again = render_lens_samples(cfg, [13], pos)
@@ -316,7 +318,8 @@ def test_the_lens_bias_table_is_the_median_error_near_focus():
     table = fit_bias(pred, true, acc)
     inside = LENS_BIAS_KNOTS_D <= 4.0
     np.testing.assert_allclose(table[inside], 0.05 * LENS_BIAS_KNOTS_D[inside] - 0.1, atol=0.01)
-    np.testing.assert_allclose(table[LENS_BIAS_KNOTS_D > 4.5], table[LENS_BIAS_KNOTS_D == 4.0][0], atol=1e-12)  # held flat
+    # held flat
+    np.testing.assert_allclose(table[LENS_BIAS_KNOTS_D > 4.5], table[LENS_BIAS_KNOTS_D == 4.0][0], atol=1e-12)
     assert np.all(fit_bias(pred, true + 5.0, acc) == 0.0)  # nothing near focus: no correction
     with pytest.raises(ValueError, match="as many"):
         fit_bias(pred, true[:-1], acc)

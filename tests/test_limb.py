@@ -53,7 +53,9 @@ def test_balls_lie_near_a_hand_or_on_a_shot_and_in_front_of_the_body(poser):
     for p in near:
         assert min(np.linalg.norm(p["ball"] - h) for h in p["hands"].values()) <= NEAR_M + 1e-9
     for p in ps:
-        assert p["ball"][1] < SHOULDER_LEFT[1] and min(np.linalg.norm(p["ball"] - h) for h in p["hands"].values()) > 0.05
+        assert (
+            p["ball"][1] < SHOULDER_LEFT[1] and min(np.linalg.norm(p["ball"] - h) for h in p["hands"].values()) > 0.05
+        )
     assert {round(p["light"], 6) for p in ps}.__len__() > 30 and all(10 ** -0.5 <= p["light"] <= 10 ** 0.5 for p in ps)
 
 
@@ -159,7 +161,8 @@ def test_smoke_run_trains_and_reports_held_out_errors(tmp_path):
     assert ck["net"]["kind"] == "limb" and ck["data"]["eye"] == "left"
     x = torch.rand(2, 3 * 400, dtype=torch.float16)
     assert net(x.float() if ck["net"]["onv_dtype"] == "float32" else x).shape == (2, 6)
-    assert train_main(["limb", "--preset", "smoke", "--near-weight-m", "0", "--no-progress"]) == 2  # refused in one line
+    # refused in one line
+    assert train_main(["limb", "--preset", "smoke", "--near-weight-m", "0", "--no-progress"]) == 2
 
 
 def test_the_gaze_lines_cross_at_the_ball_and_fixation_vision_sees_it_there():

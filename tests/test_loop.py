@@ -435,7 +435,8 @@ def test_experiments_measure_and_draw_every_scenario(bare_body, tmp_path):
     assert sac["all_within_1deg_by_0.3s"], sac
     assert result["vergence_1m"]["gaze_line_distance_cm_max"] < 2.0, result["vergence_1m"]
     for omega in (15, 30):
-        assert max(result[f"tracking_{omega}deg_s"]["median_error_deg"].values()) < 1.0, result[f"tracking_{omega}deg_s"]
+        tracking = result[f"tracking_{omega}deg_s"]
+        assert max(tracking["median_error_deg"].values()) < 1.0, tracking
     # each trace starts with the ball away from the gaze: a saccade is measured, not a ball already fixated
     assert min(max(tr["error_left"][0], tr["error_right"][0]) for tr in traces.values()) > 10
     path = plot_experiments(traces, str(tmp_path / "experiments.png"), title="oracle")

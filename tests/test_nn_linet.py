@@ -242,7 +242,8 @@ def test_plot_receptive_fields(in_pos):
     assert ax.get_aspect() == 1.0
     # A circle's radius is its unit's receptive-field radius, centred at the unit.
     conns = net.connectivity()
-    radius = receptive_field_radius(in_pos.astype(np.float32).astype(np.float64), conns[0])  # the net's float32 positions
+    # the net's float32 positions
+    radius = receptive_field_radius(in_pos.astype(np.float32).astype(np.float64), conns[0])
     unit_of = {tuple(p): n for n, p in enumerate(conns[0].positions)}
     for c in circles:
         n = unit_of[tuple(c.center)]

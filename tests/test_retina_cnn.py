@@ -175,8 +175,10 @@ def test_the_consensus_averages_the_largest_agreeing_group_and_outvotes_the_rest
     two = torch.stack([dirs([[0.0, 0.0], [20.0, 0.0]])])
     assert np.allclose(consensus_of(two).numpy(), 0.0, atol=1e-12)
     c = CONSENSUS_DEG
-    edge = torch.stack([dirs([[0.0, 0.0], [0.95 * c, 0.0], [-0.95 * c, 0.0], [1.05 * c, 0.0]])])  # the first two tie at 3
-    assert np.degrees(float(consensus_of(edge)[0, 0])) == pytest.approx(0.0, abs=1e-9)  # 1.05 c is not in view 0's group
+    # the first two tie at 3
+    edge = torch.stack([dirs([[0.0, 0.0], [0.95 * c, 0.0], [-0.95 * c, 0.0], [1.05 * c, 0.0]])])
+    # 1.05 c is not in view 0's group
+    assert np.degrees(float(consensus_of(edge)[0, 0])) == pytest.approx(0.0, abs=1e-9)
 
 
 def test_eval_mode_reads_out_by_the_consensus_of_views_as_a_plain_reference_does(net):
@@ -319,7 +321,8 @@ def test_a_cnn_limb_run_saves_a_net_the_simulation_can_load(tmp_path):
 def test_a_plateau_at_the_magnified_centre_reads_out_at_its_middle(net):
     """A near ball at the centre spans many cells of equal heat: the angular window takes them all, so
     the estimate is the plateau's middle, not whichever of its cells peaks by a hair."""
-    wide = RetinaCNNFoveationNet(gaze_angles(net._dirs), size=32, channels=4, window=1, window_deg=12.0)  # wider than the plateau
+    # wider than the plateau
+    wide = RetinaCNNFoveationNet(gaze_angles(net._dirs), size=32, channels=4, window=1, window_deg=12.0)
     target = torch.tensor([0.02, -0.03], dtype=torch.float64)  # rad, near the axis
     ang = torch.rad2deg(torch.arccos((wide.cell_dirs.double() @ gaze_directions(target)).clamp(-1, 1)))
     plateau = ang < 5.0

@@ -121,7 +121,8 @@ def test_the_plan_adds_the_arm_and_both_limb_vision_nets(parsed):
                                                  os.path.join("L", "right")]
     assert strike_runs(a) == (os.path.join("A", "left"), {s: os.path.join("L", s) for s in SIDES})
     nets = net_specs(parsed("--intraocular", "nets"))
-    assert [s.kind for s in nets] == ["foveation"] * 2 + ["oculomotor"] * 2 + ["pupil"] * 2 + ["lens"] * 2 + ["arm"] + ["limb"] * 2
+    assert [s.kind for s in nets] == (["foveation"] * 2 + ["oculomotor"] * 2 + ["pupil"] * 2 + ["lens"] * 2 + ["arm"]
+                                      + ["limb"] * 2)
 
 
 def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
@@ -157,7 +158,9 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
 
     assert provide([arm, left, right], progress=False, log=lines.append, runner=fake) == [arm, left, right]
     assert [c[3] for c in calls] == ["arm", "limb", "limb"] and all("--no-progress" in c for c in calls)
-    assert "about 28 min" in lines[0] and "left arm's motor nets" in lines[1] and "right eye's limb vision net" in lines[3]
+    assert (
+        "about 28 min" in lines[0] and "left arm's motor nets" in lines[1] and "right eye's limb vision net" in lines[3]
+    )
     with pytest.raises(SystemExit, match="left arm's motor nets failed"):
         provide(strike_plan("left", str(tmp_path / "arm2"), None), progress=False, log=lambda _m: None,
                 runner=lambda cmd: 1)
@@ -212,7 +215,10 @@ def test_the_target_offset_is_in_the_shoulders_frame():
         assert np.allclose(target_offset(shot), [0.1, 0.3, -0.2])
         for sh in sample_shots(5, seed=0, split="heldout", side=side):
             o, f, u = target_offset(sh)
-            assert ENVELOPE["outward"][0] <= o <= ENVELOPE["outward"][1] and ENVELOPE["forward"][0] <= f <= ENVELOPE["forward"][1]
+            assert (
+                ENVELOPE["outward"][0] <= o <= ENVELOPE["outward"][1]
+                and ENVELOPE["forward"][0] <= f <= ENVELOPE["forward"][1]
+            )
             assert ENVELOPE["up"][0] <= u <= ENVELOPE["up"][1]
 
 
@@ -239,7 +245,8 @@ def test_projection_and_the_strike_frame():
     assert np.allclose(c, (160, 120)) and behind is None
     assert plus_x[0] < 160  # the camera looks along -y: world +x is on the image's left
     img = np.zeros((241, 320, 3), np.uint8)
-    hand = np.array([[0.1, 0.0, 1.0], [0.05, 0.0, 1.05], [0.0, 0.0, 1.1], [0.0, 3.0, 1.0]])  # the last: behind the camera
+    # the last: behind the camera
+    hand = np.array([[0.1, 0.0, 1.0], [0.05, 0.0, 1.05], [0.0, 0.0, 1.1], [0.0, 3.0, 1.0]])
     out = draw_strike(img, cam, 50.0, hand, ball_path=hand[:2] - 0.1, aim=[0.0, 0.0, 1.0])
     assert out.shape == img.shape and out.any() and not img.any()
     frame = compose_strike_frame(out, np.full((50, 50, 3), 200, np.uint8), "t = 0.100 s\nhand-ball 0.2 m")

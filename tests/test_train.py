@@ -193,7 +193,9 @@ def test_bad_config_is_refused():
      "photoreceptors: 3 are too few for balls out to max_field_deg=45"),
     (["--preset", "smoke", "--photoreceptors", "60", "--layers", "2"], "from 18.5 deg out"),
 ])
-def test_a_net_or_retina_too_small_for_its_settings_is_refused_before_any_data_is_rendered(argv, said, tmp_path, capsys):
+def test_a_net_or_retina_too_small_for_its_settings_is_refused_before_any_data_is_rendered(
+    argv, said, tmp_path, capsys
+):
     assert train_main([*argv, "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "data")]) == 2
     err = capsys.readouterr().err
     assert said in err and err.count("\n") == 1, err
@@ -237,7 +239,8 @@ def test_a_run_of_another_task_is_refused_by_resume_compare_and_the_foveation_ev
     (arm / "metrics.jsonl").write_text(json.dumps({"epoch": 1, "train_loss": 1.0, "val_loss": 1.0}) + "\n")
     fov = tmp_path / "fov"
     fov.mkdir()
-    (fov / "config.json").write_text(json.dumps({"model": "cnn", "out": str(fov)}))  # foveation: the config names no task
+    # foveation: the config names no task
+    (fov / "config.json").write_text(json.dumps({"model": "cnn", "out": str(fov)}))
     capsys.readouterr()
     for argv, said in ((["--resume", str(arm)], f"an arm run, not a foveation run; resume it with "
                                                  f"python -m warp_vision.train arm --resume {arm}"),
@@ -549,8 +552,8 @@ def test_the_misses_are_broken_down_by_the_balls_signal_and_where_the_estimates_
     assert rows[("estimate lands on",
                  "decoy: plate")]["chance"] == 0.25 and rows[("estimate lands on", "ball")]["chance"] == 0.0
     assert "| 50.0% (chance 25.0%) |" in foveation.miss_table([rows[("estimate lands on", "decoy: plate")]])
-    assert "chance" not in rows[("ball's contrast",
-                                 ">= 10")] and "chance" not in foveation.miss_table([rows[("ball's contrast", ">= 10")]])
+    assert "chance" not in rows[("ball's contrast", ">= 10")]
+    assert "chance" not in foveation.miss_table([rows[("ball's contrast", ">= 10")]])
     b = foveation.barely_seen(err, signal)  # the first (3 photoreceptors) and third (NaN contrast) are barely seen
     assert b == {"share": 0.5, "off": 1.0, "of_misses": 1.0, "others_off": 0.0}
     assert foveation.barely_seen(err,
@@ -656,10 +659,14 @@ def test_a_run_too_small_for_a_test_split_names_the_split_it_evaluates(tmp_path,
     said = []
     summary = foveation.run(smoke(tmp_path, tmp_path / "data", samples=3), progress=False, log=said.append)
     assert summary["evaluated_split"] == "val"
-    assert f"{tmp_path / 'run'} (val, 1 ONVs): " in said[-1] and "(no test split: the summary's test_* are" in said[-1], said[-1]
+    assert (
+        f"{tmp_path / 'run'} (val, 1 ONVs): " in said[-1] and "(no test split: the summary's test_* are" in said[-1]
+    ), said[-1]
     assert train_main(["evaluate", str(tmp_path / "run")]) == 0
     out = capsys.readouterr().out
-    assert "no test split (--test-fraction 0, or too few samples)" in out and f"{tmp_path / 'run'} (val, 1 ONVs): " in out, out
+    assert (
+        "no test split (--test-fraction 0, or too few samples)" in out and f"{tmp_path / 'run'} (val, 1 ONVs): " in out
+    ), out
 
 
 def test_fewer_than_two_to_train_is_refused():
@@ -757,12 +764,19 @@ def test_miss_agreement_tells_shared_misses_from_independent_ones():
     assert r["off"] == [0.4, 0.4, 0.2] and r["n"] == 5
     ab, ac, bc = r["pairs"]
     assert (ab["a"], ab["b"]) == ("a", "b")
-    assert ab["both"] == 0.4 and ab["shared"] == 1.0 and ab["same_wrong"] == 0.2 and ab["independent"] == pytest.approx(0.16)
+    assert (
+        ab["both"] == 0.4
+        and ab["shared"] == 1.0
+        and ab["same_wrong"] == 0.2
+        and ab["independent"] == pytest.approx(0.16)
+    )
     assert ac["both"] == 0.0 and ac["shared"] == 0.0 and bc["same_wrong"] == 0.0
     assert r["best_of"] == 0.0  # C finds the first two, A the third
     assert foveation.miss_agreement(["a", "b"], [a, b], target)["best_of"] == 0.4
     table = foveation.agreement_table(r)
-    assert "| a | b | 40.0% | 40.0% | 40.0% | 16.0% | 100% | 20.0% |" in table and "oracle): 0.0% of the 5 balls" in table
+    assert (
+        "| a | b | 40.0% | 40.0% | 40.0% | 16.0% | 100% | 20.0% |" in table and "oracle): 0.0% of the 5 balls" in table
+    )
     with pytest.raises(ValueError, match="two or more"):
         foveation.miss_agreement(["a"], [a], target)
     with pytest.raises(ValueError, match="shaped like"):
@@ -842,9 +856,13 @@ def test_the_data_commands_help_reads_by_section_and_names_each_fields_values(ki
     shown = capsys.readouterr().out
     shown = shown[shown.index("\noptions:"):]  # (past the usage lines, which name every flag)
     dataset, built = shown.index("the dataset:"), shown.index("where and how it is built:")
-    assert dataset < shown.index("--eye {left,right}") < shown.index("--chunk-size") < built < shown.index("--shard SHARD")
+    assert (
+        dataset < shown.index("--eye {left,right}") < shown.index("--chunk-size") < built < shown.index("--shard SHARD")
+    )
     if kind == "foveation":
-        assert "--condition {mixed,glow_dim,white,matte,distractor,arm,decoy}" in shown and "--generator {7,8,9}" in shown
+        assert (
+            "--condition {mixed,glow_dim,white,matte,distractor,arm,decoy}" in shown and "--generator {7,8,9}" in shown
+        )
     else:
         assert built < shown.index("--identities-cache")
     with pytest.raises(SystemExit):

@@ -225,13 +225,21 @@ def add_debug_flag(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 def field_help(cls, name: str) -> str:
     """The comment after field ``name`` in the source of dataclass ``cls`` (``samples: int = 4000  # number of
-    ONVs``): a config's --help text, written once beside the field."""
+    ONVs``): a config's --help text, written once beside the field. A comment too long for one line goes on in the
+    comment lines below whose ``#`` stands in the same column, joined with a space."""
     import inspect
 
-    for line in inspect.getsource(cls).splitlines():
+    lines = inspect.getsource(cls).splitlines()
+    for i, line in enumerate(lines):
         s = line.strip()
         if s.startswith(f"{name}:") and "#" in s:
-            return s.split("#", 1)[1].strip()
+            col = line.index("#")
+            words = [line[col + 1:].strip()]
+            for more in lines[i + 1:]:
+                if len(more) <= col or more[col] != "#" or more[:col].strip():
+                    break
+                words.append(more[col + 1:].strip())
+            return " ".join(words)
     return ""
 
 

@@ -279,7 +279,9 @@ def half_onv(inp: dict, repeats: int, log) -> dict:
             out["median_ms"].setdefault(name, {})[phase] = ms
             out["GBps_vs_min_bytes"].setdefault(name, {})[phase] = mb[phase] / (ms * 1e-3) / 1e9
     for phase in ("forward", "forward_backward"):
-        out["ratio_float32_over_float16"][phase] = out["median_ms"]["float32"][phase] / out["median_ms"]["float16"][phase]
+        out["ratio_float32_over_float16"][phase] = (
+            out["median_ms"]["float32"][phase] / out["median_ms"]["float16"][phase]
+        )
     m, g = out["median_ms"], out["GBps_vs_min_bytes"]
     log(f" first layer, batch-major ONV, no grad x: float32 fwd {m['float32']['forward']:.2f} ms, fwd+bwd "
         f"{m['float32']['forward_backward']:.2f} ms ({g['float32']['forward_backward']:.2f} GB/s of its floor); "

@@ -179,13 +179,17 @@ def closest_hit_rates(repeats: int = 5, P: int = 14_400, S: int = 16, seed: int 
         elif cpu:
             m = median_ms(lambda: embree.run(o, d, output=0), repeats, warmup=1)
             res["embree_1thread"] = {**m, "mrays_per_s": n / m["median_ms"] / 1e3}
-            res["packet_1thread_over_embree"] = res["warp_packet_1thread"]["mrays_per_s"] / res["embree_1thread"]["mrays_per_s"]
+            res["packet_1thread_over_embree"] = (
+                res["warp_packet_1thread"]["mrays_per_s"] / res["embree_1thread"]["mrays_per_s"]
+            )
         else:
             res["embree_1thread"] = CUDA_SKIPPED["embree_1thread"]
         if embree is not None:  # Embree's hits, on the CPU, are the reference on any device
             res["agree_with_embree"] = _agree(tp, _embree_t(embree, o, d))
         if cpu:
-            res["packet_2threads_over_1"] = res["warp_packet_2thread"]["mrays_per_s"] / res["warp_packet_1thread"]["mrays_per_s"]
+            res["packet_2threads_over_1"] = (
+                res["warp_packet_2thread"]["mrays_per_s"] / res["warp_packet_1thread"]["mrays_per_s"]
+            )
         res["packet_over_warp_mesh"] = res[packet_key]["mrays_per_s"] / res[mesh_key]["mrays_per_s"]
         res["hit_fraction"] = float(np.isfinite(t.numpy()).mean())
         line = ", ".join(f"{k} {v['mrays_per_s']:.2f}" for k, v in res.items() if isinstance(v, dict))

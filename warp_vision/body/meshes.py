@@ -39,8 +39,8 @@ def geom_mesh(m: mujoco.MjModel, g: int):
 
 
 def visible_parts(body, anchors, exclude=()) -> dict[int, list]:
-    """The :class:`~warp_vision.body.Body`'s visible geoms (group 0, not transparent) as meshes with their RGBA as vertex colours,
-    grouped by anchor: {body id: [meshes in that body's frame]}. A geom belongs to the nearest of its
+    """The :class:`~warp_vision.body.Body`'s visible geoms (group 0, not transparent) as meshes with their RGBA as
+    vertex colours, grouped by anchor: {body id: [meshes in that body's frame]}. A geom belongs to the nearest of its
     body's ancestors (itself included) named in ``anchors``, else to the world (id 0: meshes in the
     world frame at the current pose). Bodies named in ``exclude`` (and their geoms) are left out."""
     m, d = body.model, body.data

@@ -101,7 +101,8 @@ class FoveationDataConfig:
     pupil_diameter_mm: float = 4.0  # the pupil's diameter (mm)
     seed: int = 0  # seed of the scenes (the training command's --data-seed)
     chunk_size: int = 256  # ONVs per stored chunk (a shard's unit)
-    generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room), 8 (ordinary balls: foveation_scenes) or 9 (v8 + decoys)
+    generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room), 8 (ordinary
+                                        # balls: foveation_scenes) or 9 (v8 + decoys)
     rooms: str = "train"  # v8: the room family, "train" or "heldout" (disjoint seeds)
     condition: str = "mixed"  # v8: "mixed" (training) or one held-out test condition
 
@@ -333,7 +334,8 @@ def ball_visible(scene, p: dict, batch: int, device: str = "cpu") -> bool:
 
 def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device: str = "cpu") -> dict:
     """Render samples ``indices`` of ``cfg`` (v7 in one batch of ``scene``; v8 and v9 per room, building each
-    room's scene, ``scene`` unused): {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3 (v7), 7 (v8) or 8 (v9)]}."""
+    room's scene, ``scene`` unused):
+    {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3 (v7), 7 (v8) or 8 (v9)]}."""
     if cfg.generator >= 8:
         return _render_v8(cfg, indices, retina, eye, device)
     return _render_v7(cfg, indices, scene, retina, eye, device)

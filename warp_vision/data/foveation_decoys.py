@@ -94,7 +94,8 @@ def draw_decoys(cfg, p: dict, index: int, attempt: int, max_tries: int = 200) ->
         for _ in range(max_tries):
             a_dec = a_ball * rng.uniform(*APPARENT_RATIO)
             behind = rng.uniform() < BEHIND_SHARE
-            if behind:  # the disc's centre up to 1.5 summed radii from the ball's (0: the ball at the muzzle), farther away
+            # the disc's centre up to 1.5 summed radii from the ball's (0: the ball at the muzzle), farther away
+            if behind:
                 sep = (a_ball + a_dec) * rng.uniform(0.0, 1.5)
                 u = np.cos(sep) * u_ball + np.sin(sep) * _unit_perp(u_ball, rng)
             else:

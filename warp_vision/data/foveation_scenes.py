@@ -25,9 +25,10 @@ glow). v8 draws every sample from a family:
 
 ``FoveationDataConfig.condition`` picks the mixture: "mixed" (training) or one held-out test condition
 ("glow_dim": v7's glowing ball in a dim room; "white": a lit white ball; "matte": a coloured matte ball;
-"distractor": a lamp or brighter object in view; "arm": the body's arm in view; "decoy", generator v9's: a round decoy in view, :mod:`warp_vision.data.foveation_decoys`). Every sample's
-parameters come from a generator seeded with (dataset seed, sample index, attempt) and its room's from
-(family, dataset seed, block), so a sample never depends on how it is batched.
+"distractor": a lamp or brighter object in view; "arm": the body's arm in view; "decoy", generator v9's: a round decoy
+in view, :mod:`warp_vision.data.foveation_decoys`). Every sample's parameters come from a generator seeded with (dataset
+seed, sample index, attempt) and its room's from (family, dataset seed, block), so a sample never depends on how it is
+batched.
 """
 
 from __future__ import annotations
@@ -218,7 +219,9 @@ def ball_radiance(light: dict, mat: dict, ball) -> float:
     """A rough upper estimate of the ball's brightest radiance: its albedo (and specular peak) under the
     lamps' irradiance at its centre (no shadows, normal incidence) and the ambient light, plus its emission."""
     d2 = np.sum((light["pos"] - ball) ** 2, axis=1)
-    E = float(np.max(light["ambient"])) + float(np.sum(light["intensity"] * light["colour"].max(axis=1) / np.maximum(d2, 1e-4)))
+    E = float(np.max(light["ambient"])) + float(
+        np.sum(light["intensity"] * light["colour"].max(axis=1) / np.maximum(d2, 1e-4))
+    )
     return float(np.max(mat["diffuse"]) * E / np.pi * (1 + mat["specular"]) + np.max(mat["emission"]))
 
 

@@ -411,7 +411,9 @@ class ChunkedStore:
             if a.shape != want:
                 raise ValueError(f"chunk {c} field {name!r}: expected shape {want}, got {a.shape}")
             if a.dtype != np.dtype(dtype):
-                raise ValueError(f"chunk {c} field {name!r}: expected dtype {dtype}, got {a.dtype} (no casting is done)")
+                raise ValueError(
+                    f"chunk {c} field {name!r}: expected dtype {dtype}, got {a.dtype} (no casting is done)"
+                )
             if a.dtype.kind in "fc" and not np.isfinite(a).all():
                 bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
                 raise ValueError(f"chunk {c} field {name!r}: {bad} non-finite values (NaN or inf)")

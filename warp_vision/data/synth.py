@@ -51,7 +51,8 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
     todo, mine = pending(store)
     if todo:
         probe_writable(store.root)  # a read-only or full directory fails now, not after the first chunk
-        require_disk(dataset_bytes(store.fields, todo), store.root, "the dataset's missing chunks")  # (a small disk, too)
+        # (a small disk, too)
+        require_disk(dataset_bytes(store.fields, todo), store.root, "the dataset's missing chunks")
     t0, skipped = time.perf_counter(), 0
     unit = "ONV" if what == "ONVs" else "sample"
     with tqdm(total=mine, initial=mine - todo, unit=unit, desc="synthesis", disable=not progress,

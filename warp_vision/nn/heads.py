@@ -37,7 +37,9 @@ def unit_directions(linet: LiNet, input_angles: np.ndarray | Tensor) -> list[Ten
     then for each hidden unit the mean over its receptive field of the previous layer's."""
     a = torch.as_tensor(np.asarray(input_angles, dtype=np.float64))
     if a.shape != (linet.in_features, 2) or not torch.isfinite(a).all():
-        raise ValueError(f"input_angles: expected finite values of shape ({linet.in_features}, 2), got {tuple(a.shape)}")
+        raise ValueError(
+            f"input_angles: expected finite values of shape ({linet.in_features}, 2), got {tuple(a.shape)}"
+        )
     out = [a]
     for layer in linet.layers:
         a = a[layer.index.cpu().long()].mean(1)

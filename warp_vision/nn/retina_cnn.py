@@ -273,7 +273,8 @@ class RetinaImageCNN(StandardisedTargets):
             raise ValueError(f"onv: expected [B, {3 * self.P}], got {tuple(x.shape)}")
         b, n, v = x.shape[0], self.warp.size, len(ks)
         cols = x.reshape(b, self.P, 3).permute(1, 0, 2).reshape(self.P, b * 3).float()
-        with torch.autocast(x.device.type, enabled=False):  # float32 under any caller's autocast (no bfloat16 CSR product)
+        # float32 under any caller's autocast (no bfloat16 CSR product)
+        with torch.autocast(x.device.type, enabled=False):
             img = self.binning_matrix(tuple(ks), x.device) @ cols  # [V n^2, B*3]
         # [V, n, n, B, 3] -> [V, B, n, n, 3] (the one copy) -> [V B, 3, n, n] with channels_last strides
         return img.reshape(v, n, n, b, 3).permute(0, 3, 1, 2, 4).reshape(v * b, n, n, 3).permute(0, 3, 1, 2)
@@ -327,7 +328,9 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
         peak = logits.detach().argmax(1)
         r = self.window // 2
         cell = torch.arange(m * m, device=logits.device)
-        near_cells = ((cell[None] // m - (peak // m)[:, None]).abs() <= r) & ((cell[None] % m - (peak % m)[:, None]).abs() <= r)
+        near_cells = ((cell[None] // m - (peak // m)[:, None]).abs() <= r) & (
+            (cell[None] % m - (peak % m)[:, None]).abs() <= r
+        )
         near_angle = self.cell_dirs[peak] @ self.cell_dirs.T >= math.cos(math.radians(self.window_deg))
         w = logits.masked_fill(~(near_cells | near_angle), float("-inf")).softmax(1)
         return gaze_angles(w @ self.cell_dirs)

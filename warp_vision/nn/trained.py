@@ -199,7 +199,8 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such checkpoint")
-    if path.is_file() and not zipfile.is_zipfile(path):  # (torch's own words for a text file advised weights_only=False)
+    # (torch's own words for a text file advised weights_only=False)
+    if path.is_file() and not zipfile.is_zipfile(path):
         raise ValueError(f"{path}: not a readable checkpoint: not a whole zip archive as torch.save writes "
                          f"(truncated, or another kind of file)")
     try:

@@ -177,9 +177,9 @@ class Scene:
         return len(self.objects) - 1
 
     def add_sphere(self, name, radius, centre=(0, 0, 0), material=None, subdivisions: int = 3, static=False) -> int:
-        """An icosphere of ``radius`` m at ``centre``; smooth-shaded unless the material says otherwise. ``subdivisions``
-        (:data:`warp_vision.limits.SUBDIVISIONS`) is refused, before the mesh is built, where its triangles would not
-        fit in memory."""
+        """An icosphere of ``radius`` m at ``centre``; smooth-shaded unless the material says otherwise.
+        ``subdivisions`` (:data:`warp_vision.limits.SUBDIVISIONS`) is refused, before the mesh is built, where its
+        triangles would not fit in memory."""
         from warp_vision.limits import SUBDIVISIONS, icosphere_bytes, require_int
         from warp_vision.resources import require_memory
 
@@ -221,7 +221,9 @@ class Scene:
         T = _as_transforms(f"transform of {name!r}", transform)
         if self.objects[i].static:
             if T.shape[0] != 1:
-                raise ValueError(f"transform of {name!r}: a static object has one [4, 4] pose; add it with static=False")
+                raise ValueError(
+                    f"transform of {name!r}: a static object has one [4, 4] pose; add it with static=False"
+                )
             self._version += 1  # the merged static BVH must be rebuilt
         self.objects[i].transform = T
 

@@ -5,12 +5,12 @@ predicted path, and the arm's motor nets driving the hand there.
   :func:`warp_vision.sim.cannon.run_shot`. Every :data:`~warp_vision.sim.arm.CONTROL_PERIOD` (10 ms) it
   (a) asks its *perception* for the ball's position and velocity: ``"oracle"`` reads the simulation's true
   state; any callable ``(body, t) -> (position [3], velocity [3])`` or None (nothing seen yet: hold) can
-  stand in for it, as the limb vision nets do (:class:`warp_vision.sim.limb.LimbVision`); (b) predicts the ball's ballistic path under gravity (no drag, no spin:
-  ``p(tau) = p + v tau + g tau^2 / 2``) and picks an interception point on it with :func:`intercept_point`;
-  (c) feeds the arm's voluntary net (:class:`warp_vision.nn.arm.ArmNets`) the desired hand displacement,
-  ``gain`` x (point - hand), as :func:`warp_vision.sim.arm.evaluate_on_body` runs it in closed loop (the true
-  main joint angles and velocities, and the posture net's holding activations at the current angles as
-  the "current activations"), and sets the arm's 63 muscle controls from its output. Without a reachable
+  stand in for it, as the limb vision nets do (:class:`warp_vision.sim.limb.LimbVision`); (b) predicts the ball's
+  ballistic path under gravity (no drag, no spin: ``p(tau) = p + v tau + g tau^2 / 2``) and picks an interception point
+  on it with :func:`intercept_point`; (c) feeds the arm's voluntary net (:class:`warp_vision.nn.arm.ArmNets`) the
+  desired hand displacement, ``gain`` x (point - hand), as :func:`warp_vision.sim.arm.evaluate_on_body` runs it in
+  closed loop (the true main joint angles and velocities, and the posture net's holding activations at the current
+  angles as the "current activations"), and sets the arm's 63 muscle controls from its output. Without a reachable
   point on the path (the ball gone past, or flying wide) it holds the arm with the posture net.
   Before the launch (:meth:`ArmInterceptor.ready`, ``run_shot``'s ``ready``) it puts the arm at a *ready
   posture*: main joint angles found by :func:`ready_angles` (least squares on the arm's kinematics) that
@@ -320,7 +320,10 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
     if runner is None:
         body = body or Body()
         ctrl = controller_factory(body) if controller_factory is not None else None
-        runner = lambda shot: run_shot(body, shot, ctrl, settle, frontal_y, ready=getattr(ctrl, "ready", None))  # noqa: E731
+
+        def runner(shot):
+            return run_shot(body, shot, ctrl, settle, frontal_y, ready=getattr(ctrl, "ready", None))
+
     rows = []
     for shot in tqdm(shots, desc=desc, unit="shot", disable=not progress, dynamic_ncols=True):
         t0 = time.perf_counter()
@@ -333,8 +336,10 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
                      "direction": [float(x) for x in shot.direction], "wall_s": time.perf_counter() - t0})
     out = {"shots": rows, **_summary(rows)}
     edges = list(speed_bins)
-    out["by_speed"] = {f"{lo:g}-{hi:g}": _summary([r for r in rows if lo <= r["speed"] < hi or (hi == edges[-1] and r["speed"] == hi)])
-                       for lo, hi in zip(edges, edges[1:])}
+    out["by_speed"] = {
+        f"{lo:g}-{hi:g}": _summary([r for r in rows if lo <= r["speed"] < hi or (hi == edges[-1] and r["speed"] == hi)])
+        for lo, hi in zip(edges, edges[1:])
+    }
     out["wall_s_per_shot"] = float(np.mean([r["wall_s"] for r in rows])) if rows else None
     return out
 

@@ -79,7 +79,8 @@ class LimbDataConfig:
     rooms: str = "train"  # "train" or "heldout" room family
     shots: str = "train"  # the cannon's seed split the on-path balls come from
     chunk_size: int = ROOM_CHUNK
-    ball: str = "ordinary"  # the loop's ball (warp_vision.sim.loop.BALLS): ordinary, or glowing (the datasets before it)
+    ball: str = "ordinary"  # the loop's ball (warp_vision.sim.loop.BALLS):
+                            # ordinary, or glowing (the datasets before it)
 
     def validate(self) -> None:
         require_seeds(self)
@@ -221,7 +222,11 @@ def sample_params(cfg: LimbDataConfig, index: int, poser: Poser) -> dict:
         else:
             ball = hands[near] + rng.uniform(0.06, NEAR_M) * _unit(rng)
         # in front of the body, above the stool, clear of both hands
-        if ball[1] < SHOULDER_LEFT[1] - 0.12 and ball[2] > 0.55 and min(np.linalg.norm(ball - h) for h in hands.values()) > 0.05:
+        if (
+            ball[1] < SHOULDER_LEFT[1] - 0.12
+            and ball[2] > 0.55
+            and min(np.linalg.norm(ball - h) for h in hands.values()) > 0.05
+        ):
             break
     # the head turned toward the ball by a random share of its direction (the neck's synergy)
     mid = 0.5 * (poser.eye_centre("left") + poser.eye_centre("right"))
@@ -446,7 +451,8 @@ class LimbVision(BallisticPerception):
                                  f"{ck.get('net', {}).get('kind')!r} net")
             if ck["data"]["eye"] != s:
                 raise ValueError(f"{rd}: a net of the {ck['data']['eye']} eye, given for the {s} eye")
-            self.nets[s], self.norms[s], self.dtypes[s], self.data[s] = model, ck["norm"], onv_dtype(ck["net"]), ck["data"]
+            self.nets[s], self.norms[s] = model, ck["norm"]
+            self.dtypes[s], self.data[s] = onv_dtype(ck["net"]), ck["data"]
             models[s] = ck["net"]["model"]
         ranging = {s: m == "range" for s, m in models.items()}
         if len(set(ranging.values())) > 1:

@@ -10,10 +10,10 @@ least squares). For an eye the pose is a gaze (yaw, pitch) with no torsion (the 
 The oculomotor net of each eye (:class:`warp_vision.nn.heads.OculomotorNet`, trained by
 ``python -m warp_vision.train oculomotor``, :mod:`warp_vision.train.oculomotor`) maps (desired change of
 gaze, current six activations) to the next six activations. Its data (:func:`synthesize_holding`): gazes
-sampled in a disc, their holding activations, and transitions between them (:func:`transition_pairs`) (the current activations hold gaze g, the next ones
-hold g + change): a tenth stay put, 36% go to a gaze within 3 deg (the small corrections the loop asks
-for every period) and the rest, 54%, to a random gaze (saccades); the fit weighs each error by the
-inverse square of (1 deg + the change). Its held-out accuracy is measured where it matters, on the body:
+sampled in a disc, their holding activations, and transitions between them (:func:`transition_pairs`) (the current
+activations hold gaze g, the next ones hold g + change): a tenth stay put, 36% go to a gaze within 3 deg (the small
+corrections the loop asks for every period) and the rest, 54%, to a random gaze (saccades); the fit weighs each error by
+the inverse square of (1 deg + the change). Its held-out accuracy is measured where it matters, on the body:
 the gaze the eye settles at under the net's activations against the gaze asked for, after one saccade
 and after 30 small steps with the net fed its own output (:func:`evaluate_on_body`).
 """

@@ -175,13 +175,19 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
                        "eye_in_head_deg_end": float(tr["eye_in_head"][-1]),
                        "head_turn_deg_end": float(np.degrees(np.linalg.norm(tr["neck"][-1][:2])))})
     times = [tt["time_both_within_1deg_s"] for tt in trials]
-    out = {"saccade_20deg": {"trials": trials,
-                             "all_within_1deg_by_0.3s": all(tt is not None and tt <= SACCADE_BY_S for tt in times),
-                             "time_both_within_1deg_s_max": max(tt if tt is not None else np.inf for tt in times),
-                             "error_at_0.3s_deg_max": max(tt["error_at_0.3s_deg"] for tt in trials),
-                             "max_error_after_0.3s_deg_median": float(np.median([tt["max_error_after_0.3s_deg"] for tt in trials]))},
-           "vergence_1m": {"gaze_line_distance_cm_max": max(tt["gaze_line_distance_cm"] for tt in trials),
-                           "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials]))}}
+    out = {
+        "saccade_20deg": {
+            "trials": trials,
+            "all_within_1deg_by_0.3s": all(tt is not None and tt <= SACCADE_BY_S for tt in times),
+            "time_both_within_1deg_s_max": max(tt if tt is not None else np.inf for tt in times),
+            "error_at_0.3s_deg_max": max(tt["error_at_0.3s_deg"] for tt in trials),
+            "max_error_after_0.3s_deg_median": float(np.median([tt["max_error_after_0.3s_deg"] for tt in trials])),
+        },
+        "vergence_1m": {
+            "gaze_line_distance_cm_max": max(tt["gaze_line_distance_cm"] for tt in trials),
+            "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials])),
+        },
+    }
     for omega in TRACKING_SPEEDS:
         trs = [st["traces"][f"tracking_{omega:g}_{way}"] for way in TRACKING_WAYS]
         # after the first saccade onto it, both ways round pooled
@@ -323,7 +329,8 @@ FOCUS_PHASES = ((1.5, 2.0), (2.0, 1.0 / 3.0), (2.0, 2.0))
 FOCUS_TOLERANCE_D = 0.25
 #: The cards' texture seed: none of the lens datasets' (their seeds are 0 and 1000).
 FOCUS_CARD_SEED = 2024
-#: The goal a focus step is measured against (docs/RESULTS.md): in focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
+#: The goal a focus step is measured against (docs/RESULTS.md): in
+#: focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
 FOCUS_GOAL_S = 1.2
 
 
@@ -349,12 +356,13 @@ class FixationOracle:
 def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True,
                 card_vertices: int | None = None, card_seed: int = FOCUS_CARD_SEED) -> dict:
     """The eyes fixate a textured card straight ahead while it steps through the distances of
-    ``phases`` (a card per distance, sized as the lens data size theirs: :func:`warp_vision.data.intraocular.card_size_for`); per period each eye's accommodation, its command, the card's vergence from the eye (D)
-    and the defocus (accommodation minus that vergence). Per step and eye: the latency (until the
-    accommodation has moved 5% of the way), the time until it is within ``FOCUS_TOLERANCE_D`` of the
-    card's vergence for good, and the defocus at the phase's end. With ``snapshots``, the left eye's ONV
-    just after each step and at the phase's end (blurred, then sharp). ``card_vertices``: the cards' grid
-    (default the lens data's); ``card_seed``: their textures' seed."""
+    ``phases`` (a card per distance, sized as the lens data size theirs:
+    :func:`warp_vision.data.intraocular.card_size_for`); per period each eye's accommodation, its command, the card's
+    vergence from the eye (D) and the defocus (accommodation minus that vergence). Per step and eye: the latency (until
+    the accommodation has moved 5% of the way), the time until it is within ``FOCUS_TOLERANCE_D`` of the card's vergence
+    for good, and the defocus at the phase's end. With ``snapshots``, the left eye's ONV just after each step and at the
+    phase's end (blurred, then sharp). ``card_vertices``: the cards' grid (default the lens data's); ``card_seed``:
+    their textures' seed."""
     from tqdm import tqdm
 
     from warp_vision.data.intraocular import CARD_VERTICES, card_size_for
@@ -414,7 +422,10 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
                 tr[f"defocus_{s}"].append(acc - verg)
             if snapshots and loop.period % loop.frame_every == 1 and phase > 0:
                 since = t - starts[phase]
-                if since < loop.frame_every * CONTROL_DT or abs(t - (starts[phase + 1] - 0.1)) < loop.frame_every * CONTROL_DT / 2:
+                if (
+                    since < loop.frame_every * CONTROL_DT
+                    or abs(t - (starts[phase + 1] - 0.1)) < loop.frame_every * CONTROL_DT / 2
+                ):
                     shots.append({"t": float(tr["t"][-1]), "defocus_D": float(tr["defocus_left"][-1]),
                                   "onv": loop.onv["left"][0].numpy().copy()})
     finally:

@@ -228,7 +228,9 @@ def _intercept_one(args, loop, interceptor, vision, shot) -> dict:
         print(f"{args.perception}: {limb['frames']} frames, median ball position error "
               f"{limb['median_position_error_m']:.3f} m")
     print(f"wall {wall:.1f} s: " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in out["timing_shares"].items()))
-    print(f"wrote {video}, {os.path.join(args.out, 'hand_ball_distance.png')} and {os.path.join(args.out, 'shot.json')}")
+    print(
+        f"wrote {video}, {os.path.join(args.out, 'hand_ball_distance.png')} and {os.path.join(args.out, 'shot.json')}"
+    )
     return out
 
 

@@ -72,7 +72,8 @@ class ArmTask(harness.Task):
                                      dtype=torch.float32) for k in ("angles", "act", "hand", "torque_A", "torque_b")}
 
     def splits(self):
-        """Kept postures split into train / validation / test; the samples are transitions among each split's postures."""
+        """Kept postures split into train / validation / test; the samples are transitions among each split's
+        postures."""
         from warp_vision.sim.arm import reach_pairs
 
         c = self.cfg

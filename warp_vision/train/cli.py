@@ -1,18 +1,18 @@
-"""Command line of ``python -m warp_vision.train``.
+"""Command line of ``python -m warp_vision.train``, each line below after ``python -m warp_vision.train``:
 
-    python -m warp_vision.train [--preset smoke|quick|default|paper] [--flag value ...]   train (the default)
-    python -m warp_vision.train --resume RUN_DIR [--epochs N]                          continue a stopped run
-    python -m warp_vision.train faces [--preset smoke|default|paper] [--flag value ...]  active face recognition
-    python -m warp_vision.train faces --resume RUN_DIR [--epochs N]                    continue a stopped AFR run
-    python -m warp_vision.train oculomotor --eye left|right [--preset smoke|quick|default]   an eye's oculomotor net
-    python -m warp_vision.train arm --side left|right [--preset smoke|quick|default]         an arm's motor nets
-    python -m warp_vision.train limb|pupil|lens --eye left|right [--preset ...]            an eye's limb vision, pupil or lens net
-    python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
-    python -m warp_vision.train evaluate RUN_DIR --misses                              where a foveation net's misses lie
-    python -m warp_vision.train evaluate RUN_DIR --misses --signal                     ... and how much of each ball the ONV holds
-    python -m warp_vision.train evaluate RUN_DIR [RUN_DIR ...] --conditions            foveation nets on held-out conditions
-    python -m warp_vision.train evaluate RUN_DIR RUN_DIR [...] --agreement             do foveation nets miss the same balls?
-    python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
+    [--preset smoke|quick|default|paper] [--flag value ...]           train (the default task, foveation)
+    --resume RUN_DIR [--epochs N]                                     continue a stopped run
+    faces [--preset smoke|default|paper] [--flag value ...]           active face recognition
+    faces --resume RUN_DIR [--epochs N]                               continue a stopped AFR run
+    oculomotor --eye left|right [--preset smoke|quick|default]        an eye's oculomotor net
+    arm --side left|right [--preset smoke|quick|default]              an arm's motor nets
+    limb|pupil|lens --eye left|right [--preset ...]                   an eye's limb vision, pupil or lens net
+    evaluate RUN_DIR [--split test|val|train]                         re-evaluate a run (any task)
+    evaluate RUN_DIR --misses                                         where a foveation net's misses lie
+    evaluate RUN_DIR --misses --signal                                ... and how much of each ball the ONV holds
+    evaluate RUN_DIR [RUN_DIR ...] --conditions                       foveation nets on held-out conditions
+    evaluate RUN_DIR RUN_DIR [...] --agreement                        do foveation nets miss the same balls?
+    compare RUN_DIR [RUN_DIR ...] --out FIG.png                       loss curves together
 """
 
 from __future__ import annotations
@@ -93,7 +93,8 @@ def _siblings(name: str) -> dict:
     return {FOVEATION if other == "foveation" else other: make() for other, make in makers.items() if other != name}
 
 
-#: the commands that train a task besides the default (foveation): name -> (module, config class, its presets, description)
+#: the commands that train a task besides the default (foveation):
+#: name -> (module, config class, its presets, description)
 TASKS = {
     "faces": ("faces", C.FaceTrainConfig, C.FACE_PRESETS,
               "Active face recognition (the paper's Section VI.B): build identities with anny, synthesise (or reuse) "
@@ -175,7 +176,8 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="foveation CNN runs: read the net out by the consensus of N turned and mirrored views instead "
                         "of its own (default: its spec's, 8; 1: the plain image alone)")
-    p.add_argument("--checkpoint", choices=["best", "latest"], default="best",  # = nn.trained.CHECKPOINTS (a test checks)
+    # = nn.trained.CHECKPOINTS (a test checks)
+    p.add_argument("--checkpoint", choices=["best", "latest"], default="best",
                    help="the weights read (on the run's split or, with --conditions, the held-out sets): the best "
                         "validation epoch's (best.pt) or the last epoch's (latest.pt: what a run that memorises its "
                         "training set has learnt by its end; --conditions then writes conditions_latest.json) "
@@ -225,9 +227,11 @@ def _compare(argv: list[str]) -> int:
             task = saved_task(r, cfg)
             if task not in ("foveation", "faces"):
                 raise ValueError(f"runs: {r} is {a_run(task)}; compare plots foveation and face runs' MSE curves")
-            name = names[i] if names.count(names[i]) == 1 else str(r)  # the directory's name, its path where names repeat
+            # the directory's name, its path where names repeat
+            name = names[i] if names.count(names[i]) == 1 else str(r)
             p = cfg.get("photoreceptors")
-            label = f"{name} ({cfg.get('model', 'linet')}{f', P={p:,}' if isinstance(p, int) else ''})"  # (linet: before the choice)
+            # (linet: before the choice)
+            label = f"{name} ({cfg.get('model', 'linet')}{f', P={p:,}' if isinstance(p, int) else ''})"
             if label in hists:
                 raise ValueError(f"runs: {r} is given twice")
             hists[label] = read_metrics(m, need=("epoch", "train_mse", "val_mse"))

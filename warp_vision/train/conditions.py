@@ -135,7 +135,11 @@ def table(results: dict) -> str:
     """The results as a Markdown table: a row per condition, a column per run (median / p90, degrees, and
     the share of the samples more than :data:`OFF_DEG` off: another object found)."""
     runs = list(results)
-    head = "| condition | goal (median) | " + " | ".join(f"{r}: median / p90 (deg), > {OFF_DEG:g} deg" for r in runs) + " |"
+    head = (
+        "| condition | goal (median) | "
+        + " | ".join(f"{r}: median / p90 (deg), > {OFF_DEG:g} deg" for r in runs)
+        + " |"
+    )
     lines = [head, "|" + "---|" * (2 + len(runs))]
     for c in GOALS:
         if not any(c in results[r] for r in runs):

@@ -133,26 +133,50 @@ class TrainConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
     data_seed: int = 0  # seed of the dataset (scenes) and of the train/val/test split
-    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room), 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms) or 9 (v8 plus decoys, round things that are not the ball, such as a cannon's muzzle; the quick, default and paper presets' choice)
+    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room), 8 (ordinary balls in a family of
+                        # everyday rooms, distractors, the body's arms) or 9 (v8 plus decoys, round things that are not
+                        # the ball, such as a cannon's muzzle; the quick, default and paper presets' choice)
     # the model
-    input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset); auto: sample for generators 8 and 9, dataset for 7
-    model: str = "linet"  # linet (the smoke and paper presets'); fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the ball-finder for generators 8 and 9, the quick and default presets')
-    head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig. 5), or auto (softargmax for a liNet, linear for fc)
+    input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own
+                              # mean irradiance (sample: a brighter room reads the same) or the training set's
+                              # (dataset); auto: sample for generators 8 and 9, dataset for 7
+    model: str = "linet"  # linet (the smoke and paper presets'); fc: the fully-connected baseline with the same hidden
+                          # sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction
+                          # = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled
+                          # to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the
+                          # ball-finder for generators 8 and 9, the quick and default presets')
+    head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig.
+                        # 5), or auto (softargmax for a liNet, linear for fc)
     layers: int = 4  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units (conv: of its sites)
-    channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
-    no_augment: bool = False  # cnn only: train on the plain image alone, without the turned and mirrored copies (an ablation: the net then memorises its training set, docs/RESULTS.md "Where the paper's MSE goal stands")
-    plain_epochs: int = 0  # cnn only: the last N epochs (of the epoch cap) train on the plain image alone, after the turned and mirrored copies (an ablation between the copies throughout and no_augment: docs/RESULTS.md "Copies first, the plain image last"); 0: copies throughout
-    views: int = 8  # cnn only: its read-out at inference (the test, evaluate, the simulation; the epochs' validation reads one view) is the consensus of this many turned and mirrored views (nn/retina_cnn.py: CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
+    channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling
+                        # per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
+    no_augment: bool = False  # cnn only: train on the plain image alone, without the turned and
+                              # mirrored copies (an ablation: the net then memorises its training
+                              # set, docs/RESULTS.md "Where the paper's MSE goal stands")
+    plain_epochs: int = 0  # cnn only: the last N epochs (of the epoch cap) train on the plain image alone, after the
+                           # turned and mirrored copies (an ablation between the copies throughout and no_augment:
+                           # docs/RESULTS.md "Copies first, the plain image last"); 0: copies throughout
+    views: int = 8  # cnn only: its read-out at inference (the test, evaluate, the simulation; the epochs' validation
+                    # reads one view) is the consensus of this many turned and mirrored views (nn/retina_cnn.py:
+                    # CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
     # optimisation
-    init: str = ""  # a foveation run directory (or its best.pt) whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
-    loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls too small or hidden to localise) or mse (the paper's)
+    init: str = ""  # a foveation run directory (or its best.pt) whose best weights start this run (the same model and
+                    # sizes, e.g. the other eye's cnn); empty: the seed's initialisation
+    loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls
+                         # too small or hidden to localise) or mse (the paper's)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
-    lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs), plateau (x0.3 after every 3 epochs without a better validation loss) or constant
-    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored; standardised in the first layer), bfloat16, float32 (a standardised float32 copy of each batch), or auto (float16 for a liNet, float32 for the fc, conv, cnn and range nets)
-    precision: str = "auto"  # cnn only: the CNN's layers in training run in bfloat16 (autocast; the image, loss and read-out stay float32) or float32; auto: bfloat16 where the device computes it natively (a CPU with AVX512-BF16 or AMX, a GPU of compute capability 8 on), else float32. Evaluation is float32
+    lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs), plateau (x0.3 after
+                                 # every 3 epochs without a better validation loss) or constant
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored; standardised in the first layer),
+                             # bfloat16, float32 (a standardised float32 copy of each batch), or auto (float16 for a
+                             # liNet, float32 for the fc, conv, cnn and range nets)
+    precision: str = "auto"  # cnn only: the CNN's layers in training run in bfloat16 (autocast; the
+                             # image, loss and read-out stay float32) or float32; auto: bfloat16
+                             # where the device computes it natively (a CPU with AVX512-BF16 or AMX,
+                             # a GPU of compute capability 8 on), else float32. Evaluation is float32
     epochs: int = 40  # at most
     patience: int = 8  # early stopping: epochs without a better validation loss
     val_fraction: float = 0.1
@@ -279,7 +303,8 @@ class FaceTrainConfig:
     reduction: int = 2  # f, each layer has 1/f of the previous layer's units
     # optimisation
     loss_lambda: float = 6.0  # loss = cross-entropy + loss_lambda * MSE(standardised pose)
-    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for fc)
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16,
+                             # float32, or auto (float16 for a liNet, float32 for fc)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (betas 0.9, 0.999)
     epochs: int = 60  # at most
@@ -389,7 +414,11 @@ def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
     cfg = resolve(args.preset, {f.name: getattr(args, f.name, None) for f in fields(cls)}, cls, presets)
     for name, models in getattr(cls, "MODEL_FIELDS", {}).items():
         if getattr(args, name, None) is not None and cfg.model not in models:
-            which = f"the {models[0]} net does" if len(models) == 1 else f"the {', '.join(models[:-1])} and {models[-1]} nets do"
+            which = (
+                f"the {models[0]} net does"
+                if len(models) == 1
+                else f"the {', '.join(models[:-1])} and {models[-1]} nets do"
+            )
             raise ValueError(f"--{name.replace('_', '-')}: the {cfg.model} net does not read it ({which}); leave it "
                              f"out, or choose {'that' if len(models) == 1 else 'one of those'} with --model")
     return cfg

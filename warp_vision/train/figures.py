@@ -1,4 +1,5 @@
-"""Figures of training runs: foveation (Fig. 6 curves, predicted vs true angles, retina images) and face recognition (Figs. 11 and 12)."""
+"""Figures of training runs: foveation (Fig. 6 curves, predicted vs true angles, retina images) and face recognition
+(Figs. 11 and 12)."""
 
 from __future__ import annotations
 

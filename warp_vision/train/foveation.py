@@ -267,8 +267,10 @@ class FoveationTask(harness.OnvTask):
         keys = ("model",) if there["model"] != cfg.model else SHAPE_SETTINGS[cfg.model]
         differ = [k for k in keys if k in there and there[k] != getattr(cfg, k)]
         if differ:
-            raise ValueError(f"init: {run} trained another net than this run's: "
-                             + ", ".join(f"--{k.replace('_', '-')} {there[k]} there, {getattr(cfg, k)} here" for k in differ))
+            raise ValueError(
+                f"init: {run} trained another net than this run's: "
+                + ", ".join(f"--{k.replace('_', '-')} {there[k]} there, {getattr(cfg, k)} here" for k in differ)
+            )
 
     def dataset_dirs(self):
         return [harness.dataset_dir(self.cfg, "foveation", self.cfg.data_config())]
@@ -490,7 +492,9 @@ def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool
     if signal:
         cfg = task.cfg.data_config()
         if cfg.generator < 8:
-            raise ValueError(f"signal: generator {cfg.generator}: v8 and v9 runs only (v7's ball glows in a fixed room)")
+            raise ValueError(
+                f"signal: generator {cfg.generator}: v8 and v9 runs only (v7's ball glows in a fixed room)"
+            )
         # chance: each scene probed along the next sample's ball direction, drawn as the targets are
         chance = task.target[torch.as_tensor(np.roll(idx, -1))].numpy()
         sig = ball_signal(cfg, idx, task.retina, make_eye(cfg), directions=ev["pred"].numpy(), progress=progress,

@@ -542,7 +542,8 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     (:func:`warp_vision.train.workers.render_in_processes`; "auto": :func:`~warp_vision.train.workers.auto_workers`)."""
     if workers != "auto" and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
         raise ValueError(f"workers: expected a positive integer or 'auto', got {workers!r}")
-    if workers != "auto" and workers > 1 and task_cls.dataset_dirs is Task.dataset_dirs:  # (it was dropped without a word)
+    # (it was dropped without a word)
+    if workers != "auto" and workers > 1 and task_cls.dataset_dirs is Task.dataset_dirs:
         raise ValueError(f"workers: {a_run(task_cls.name)} renders its dataset in one process (foveation and limb "
                          f"runs render in several); leave --workers out")
     rank0 = int(os.environ.get("RANK", "0")) == 0  # (torchrun's; Dist reads it again below)

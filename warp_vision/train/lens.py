@@ -57,10 +57,15 @@ def fit_bias(pred: np.ndarray, defocus: np.ndarray, accommodation: np.ndarray) -
 def _errors(pred: torch.Tensor, true: torch.Tensor) -> dict:
     e = (pred - true).abs()
     big = true.abs() > SIGN_ABOVE_D
-    return {"loss": float(torch.nn.functional.huber_loss(pred, true)), "median_error_D": float(e.median()),
-            "p90_error_D": float(torch.quantile(e, 0.9)),
-            "sign_correct_above_0.5D": float((torch.sign(pred[big]) == torch.sign(true[big])).float().mean()) if big.any() else float("nan"),
-            "median_error_D_within_0.5D": float(e[~big].median()) if (~big).any() else float("nan")}
+    return {
+        "loss": float(torch.nn.functional.huber_loss(pred, true)),
+        "median_error_D": float(e.median()),
+        "p90_error_D": float(torch.quantile(e, 0.9)),
+        "sign_correct_above_0.5D": float((torch.sign(pred[big]) == torch.sign(true[big])).float().mean())
+        if big.any()
+        else float("nan"),
+        "median_error_D_within_0.5D": float(e[~big].median()) if (~big).any() else float("nan"),
+    }
 
 
 class LensTask(ShallowNetTask):

@@ -6,10 +6,10 @@ range``, the default preset's) to the ball's distance.
 The dataset is :mod:`warp_vision.sim.limb` (the closed loop's world: the body's arms at random postures,
 the cannon's ball near a hand or on a shot's path, the eye tracking it). The net
 (:func:`warp_vision.nn.heads.limb_vision_net`, or with ``--model cnn``
-:class:`warp_vision.nn.retina_cnn.RetinaCNNLimbNet`, trained on turned and mirrored copies) reads the ONV as the foveation net does and outputs six
-values: ``ball - hand`` of the left and of the right arm, in the eye frame (m; the loop turns them into
-the head and world frames with the eye's orientation, which the oculomotor system knows). The loss is a
-Huber loss on the standardised targets, each arm's weighted by ``1 / (near_weight_m + distance)`` so the
+:class:`warp_vision.nn.retina_cnn.RetinaCNNLimbNet`, trained on turned and mirrored copies) reads the ONV as the
+foveation net does and outputs six values: ``ball - hand`` of the left and of the right arm, in the eye frame (m; the
+loop turns them into the head and world frames with the eye's orientation, which the oculomotor system knows). The loss
+is a Huber loss on the standardised targets, each arm's weighted by ``1 / (near_weight_m + distance)`` so the
 balls near a hand, the ones that matter for striking, count most. The best epoch has the smallest
 validation median error on balls within 0.6 m of the hand; the summary gives that error (median and 90th
 percentile, cm, and relative to the true distance) on the test split and on the held-out set (rooms and

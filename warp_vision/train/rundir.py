@@ -269,7 +269,8 @@ def check_checkpoint_space(model, out: Path, log) -> None:
 
 def dataset_dir(cfg, kind: str, data_config) -> Path:
     """``cfg.data_dir``, or the cache directory ``runs/datasets/<kind>-<data config hash>`` (relative to the
-    working directory: a new run records it as an absolute path, see :meth:`warp_vision.train.harness.Task.resolve_paths`)."""
+    working directory: a new run records it as an absolute path, see
+    :meth:`warp_vision.train.harness.Task.resolve_paths`)."""
     return Path(cfg.data_dir) if cfg.data_dir else Path("runs/datasets") / f"{kind}-{data_config.key()}"
 
 

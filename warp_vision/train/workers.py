@@ -114,9 +114,9 @@ def _render_shard(task_cls, cfg, shard: tuple[int, int], threads: int) -> None:
 
 
 def render_in_processes(task, workers: int, progress: bool) -> bool:
-    """Synthesise ``task``'s (a :class:`warp_vision.train.harness.Task`) missing dataset in ``workers`` processes: this one renders shard 0 of
-    ``workers`` (with the progress bar), ``workers - 1`` spawned helpers the others, all at once (the
-    samples do not depend on the shard that renders them: the dataset is the same as one process's).
+    """Synthesise ``task``'s (a :class:`warp_vision.train.harness.Task`) missing dataset in ``workers`` processes: this
+    one renders shard 0 of ``workers`` (with the progress bar), ``workers - 1`` spawned helpers the others, all at once
+    (the samples do not depend on the shard that renders them: the dataset is the same as one process's).
     Returns False, doing nothing, when there is nothing to render, one worker, or a task that renders
     in one process only. A helper that fails is a RuntimeError after the others finish (the chunks
     written stay: run again to resume)."""

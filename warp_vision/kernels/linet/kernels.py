@@ -209,8 +209,8 @@ def linet_forward_fm(
     Every array is flat (1D): ``xT`` and ``yT_out`` hold ``chunks`` = B / 64 vectors per feature,
     ``weight`` and ``index`` are [N, R] flattened. Flat arrays cost one address computation per
     access (2D arrays add a stride multiply and a negative-index wrap per dimension), and the while
-    loops are leaner than range()'s runtime-step iterator. Thread t = n loops over the row's vectors (no integer division per
-    thread: on the CPU a division costs more than a unit's 20 vector FMAs).
+    loops are leaner than range()'s runtime-step iterator. Thread t = n loops over the row's vectors (no integer
+    division per thread: on the CPU a division costs more than a unit's 20 vector FMAs).
     """
     n = offset + wp.tid()
     e0 = n * receptive_field

@@ -161,8 +161,10 @@ class _SceneGeometry:
         self.normals = arr(np.concatenate(normals).astype(np.float32), wp.vec3)
         self.colors = arr(np.concatenate(colors).astype(np.float32), wp.vec3)
         self.vert_offset = arr(np.array(v_off, np.int32), wp.int32)
-        flags = [(FLAG_VERTEX_COLORS if _vertex_colors(o) is not None else 0) | (FLAG_SMOOTH if o.material.smooth else 0)
-                 for o in scene.objects]
+        flags = [
+            (FLAG_VERTEX_COLORS if _vertex_colors(o) is not None else 0) | (FLAG_SMOOTH if o.material.smooth else 0)
+            for o in scene.objects
+        ]
         self.flags = arr(np.array(flags, np.int32), wp.int32)
         self.device = device
         self.materials_version = None  # the scene._materials_version of the shared materials below

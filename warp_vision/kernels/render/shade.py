@@ -12,8 +12,8 @@ lights (``bl``), materials (``bm``: diffuse, specular, shininess, reflectivity, 
 n_obj]``; the smooth / vertex-colour flags are per object) and ambient light (``ba``, ``[1 or B]``).
 
 The kernels launch one thread per group of G photoreceptors (``render_onv_kernel``: their rays, 8 at a
-time in full packets, summed by their weights into the ONV; G = 2 at S = 4), per 4 x 2 pixel tile (``camera_kernel``) or per 8 rays
-(``radiance_kernel``, ``closest_hit_kernel``). Every thread writes only its own outputs, so there are
+time in full packets, summed by their weights into the ONV; G = 2 at S = 4), per 4 x 2 pixel tile (``camera_kernel``) or
+per 8 rays (``radiance_kernel``, ``closest_hit_kernel``). Every thread writes only its own outputs, so there are
 no atomics and CPU launches split over threads give bit-identical results. The host side (scene
 upload, argument checks, launches) is :mod:`warp_vision.kernels.render.scene_data` and
 :mod:`warp_vision.kernels.render.trace`.
