@@ -53,15 +53,15 @@ def conic_hit(o: wp.vec3, d: wp.vec3, z0: float, R: float, Q: float, semi: float
     b = 2.0 * (o[0] * d[0] + o[1] * d[1] + k * oz * d[2] - R * d[2])
     c = o[0] * o[0] + o[1] * o[1] + k * oz * oz - 2.0 * R * oz
     disc = b * b - 4.0 * a * c
-    best = 1.0e30
+    best = float(1.0e30)
     if disc >= 0.0:
         sq = wp.sqrt(disc)
-        sgn = 1.0
+        sgn = float(1.0)
         if b < 0.0:
             sgn = -1.0
         q = -0.5 * (b + sgn * sq)  # stable roots: q / a and c / q
         for i in range(2):
-            t = 1.0e30
+            t = float(1.0e30)
             if i == 0:
                 if a != 0.0:
                     t = q / a
@@ -75,7 +75,7 @@ def conic_hit(o: wp.vec3, d: wp.vec3, z0: float, R: float, Q: float, semi: float
                 if (k * ps - R) * R < 0.0 and px * px + py * py <= semi * semi:
                     best = t
     ok = best < 1.0e29
-    t = 0.0
+    t = float(0.0)
     if ok:
         t = best
     p = o + t * d
@@ -128,7 +128,7 @@ def retina_to_stop(q: wp.vec3, aim: wp.vec2, surf: wp.array3d(dtype=float), c: i
     ok1, p1, d1 = through_surface(q, d, surf, c, 3, 1, clip)
     ok2, p2, d2 = through_surface(p1, d1, surf, c, 2, 1, clip)
     ok = ok1 and ok2 and d2[2] < 0.0
-    t = 0.0
+    t = float(0.0)
     if ok:
         t = (pupil_z - p2[2]) / d2[2]
     return ok, p2 + t * d2, d2
@@ -162,11 +162,11 @@ def eye_rays_kernel(
     f = (z_aim - q[2]) / (pupil_z - q[2])
     aim = wp.vec2(q[0] + (target[0] - q[0]) * f, q[1] + (target[1] - q[1]) * f)
     h = AIM_STEP_MM
-    ok = True
-    j00 = 1.0
-    j01 = 0.0
-    j10 = 0.0
-    j11 = 1.0
+    ok = bool(True)
+    j00 = float(1.0)
+    j01 = float(0.0)
+    j10 = float(0.0)
+    j11 = float(1.0)
     for it in range(AIM_ITERATIONS + 1):
         ok0, s0, d0 = retina_to_stop(q, aim, surf, c, pupil_z, 0)
         okx1, sx1, dx1 = retina_to_stop(q, aim + wp.vec2(h, 0.0), surf, c, pupil_z, 0)
@@ -189,7 +189,7 @@ def eye_rays_kernel(
             ok = False
             break
         aim = aim - wp.vec2((j11 * ex - j01 * ey) / det, (-j10 * ex + j00 * ey) / det)
-    w = 0.0
+    w = float(0.0)
     o = wp.vec3(0.0)
     dout = wp.vec3(0.0, 0.0, 1.0)
     if ok:

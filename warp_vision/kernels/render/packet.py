@@ -278,8 +278,8 @@ def _packet_traverse(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8
         node = bv.inst_root[inst]
         if not box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[node], bv.node_hi[node], tb):
             continue
-        sp = 0
-        done = False
+        sp = int(0)
+        done = bool(False)
         while True:
             c0 = bv.node_left[node]
             if c0 < 0:
