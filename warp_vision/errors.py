@@ -36,8 +36,8 @@ _NEGATIVE_NUMBER = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$")
 
 class ArgumentParser(argparse.ArgumentParser):
     """Every command's parser: argparse's, without its matching of abbreviated options, so that a flag a
-    command lacks is an error rather than another flag it begins (``data faces --samples 10`` was taken as
-    ``--samples-per-receptor 10``). Its subcommands' parsers are of this class too."""
+    command lacks is an error rather than another flag it begins (argparse would take ``data faces --samples
+    10`` for ``--samples-per-receptor 10``). Its subcommands' parsers are of this class too."""
 
     #: A callable giving other commands' parsers by name, for commands that are separate parsers rather than
     #: subcommands (train's tasks, evaluate and compare): a flag this parser lacks is named as theirs
@@ -398,7 +398,7 @@ def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, in
             print("stopped (SIGTERM)", file=sys.stderr)
         return 128 + signal.SIGTERM
     except KeyboardInterrupt as e:
-        if not getattr(e, "told", False):  # (it used to end without a word)
+        if not getattr(e, "told", False):  # every interruption ends with a line, the command's or this one
             print("interrupted (Ctrl-C)", file=sys.stderr)
         return 130
     except (ValueError, OSError, *codes) as e:

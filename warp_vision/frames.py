@@ -157,7 +157,7 @@ def _spread_bits(v: np.ndarray) -> np.ndarray:
 def check_positions(name: str, positions) -> np.ndarray:
     """Validate [N, 2] finite real positions (N >= 1); returns them as a float64 array, or raises a
     ``ValueError`` that names ``name``."""
-    if hasattr(positions, "domain_xy"):  # a Retina: it was "expected shape [N, 2] with N >= 1, got shape ()"
+    if hasattr(positions, "domain_xy"):  # a Retina: say which of its positions to pass, not its shape
         raise ValueError(f"{name}: expected positions [N, 2], got a {type(positions).__name__}: pass retina.domain_xy "
                          f"(its photoreceptors' positions) or onv_positions(retina.domain_xy) (its ONV's, three per "
                          f"photoreceptor)")

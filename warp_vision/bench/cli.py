@@ -63,7 +63,7 @@ def _parser() -> argparse.ArgumentParser:
     lop = sub.add_parser("loop", help="the closed loop: simulated/wall, time shares and accuracy per visual frame rate")
     lop.add_argument("--frame-every", type=int, nargs="+", default=None,
                      help="settings: the eyes render every N control periods of 10 ms (default: 1, a render every "
-                          "period as the loop used to, and the loop's default)")
+                          "period, and the loop's default)")
     lop.add_argument("--quick", action="store_true", help="the --quick nets of python -m warp_vision.sim")
     lop.add_argument("--no-progress", action="store_true", help="no progress bars")
     rdo = sub.add_parser("readout", help="the foveation CNN's inference: the consensus of N views vs the plain image, "

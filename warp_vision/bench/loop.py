@@ -1,7 +1,7 @@
 """``python -m warp_vision.bench loop``: the closed loop's speed and accuracy at several visual frame rates.
 
 For each setting (the eyes render every N control periods of 10 ms; N = 1 renders every
-period, as the loop used to), one run of :func:`warp_vision.sim.scenarios.experiments` on the same nets (trained first
+period), one run of :func:`warp_vision.sim.scenarios.experiments` on the same nets (trained first
 when missing, as ``python -m warp_vision.sim`` does): simulated/wall, the wall time's shares (render, nets,
 MuJoCo, control, other) and the experiments' accuracy (saccade settle time in eight directions, tracking
 errors, vergence). The settings share one process and take turns scenario by scenario, so they meet the

@@ -47,19 +47,19 @@ BALL_MASS = 0.06
 #: The ball's contacts (with ``BodyConfig.ball_contacts``). The ball has contype 0 and conaffinity 1
 #: (``BODY_CONTYPE``): myo-sim's collision geoms (contype 1, conaffinity 0, so never with one another)
 #: touch it; the floor does by an explicit pair with the same settings but no margin. Its priority (1, over
-#: everything's 0) makes its solref, solimp, friction and condim the contact's. Settings, measured with
+#: everything's 0) makes its solref, solimp, friction and condim the contact's. The settings were chosen with
 #: 60 g balls shot at 3-25 m/s at a wall and at the torso, head, upper arm, forearm and hand (1 ms steps,
-#: implicitfast; no MuJoCo warning anywhere):
+#: implicitfast), and what they do is in docs/RESULTS.md ("The arms: ...", "Contacts", and "Figures behind the
+#: code's constants"):
 #: - solref (time constant 4 ms, damping ratio 0.3): as stiff as 1 ms steps allow (MuJoCo holds time
-#:   constants at >= 2 steps), with a coefficient of restitution of 0.4 +- 0.1 (a ball on a body).
-#:   Critically damped contacts stop the ball dead (e ~ 0.1); a damping ratio of 0.2 or less, or a direct
-#:   (negative) solref, throws it back faster than it came: a contact starts a random fraction of a step
-#:   deep (a 15 m/s ball moves 15 mm a step) and a stiffer spring gives that depth back as energy.
+#:   constants at >= 2 steps), with the restitution of a ball on a body. A damping ratio near critical stops
+#:   the ball dead; a lower one, or a direct (negative) solref, throws it back faster than it came: a contact
+#:   starts a random fraction of a step deep (a 15 m/s ball moves 15 mm a step) and a stiffer spring gives
+#:   that depth back as energy.
 #: - solimp (0.95, 0.99, 1 mm): impedance near 1 at once, so the ball is stopped within a few steps.
 #: - margin 5 mm: the contact acts from 5 mm off the body's surface, which takes 5 mm off the depth at
-#:   which a fast ball is first caught. Deepest penetrations measured (shots at 11 collision geoms of the
-#:   torso, head and left arm): 6 mm at 15 m/s, 11 mm at 20 m/s, 17 mm at 25 m/s (``max_penetration`` is
-#:   20 mm; against a wall, without the margin, 19 mm at 20 m/s).
+#:   which a fast ball is first caught, and keeps the deepest penetration of a 25 m/s shot below
+#:   ``max_penetration``.
 #: - no tunnelling at these speeds: the thinnest collision geom (a fingertip, 2 mm half-thickness) and
 #:   the ball (radius 40 mm) overlap along at least 84 mm of path: 5.6 steps at 15 m/s, 4.2 at 20 m/s.
 #: - condim 3, sliding friction 0.5 (a ball on skin or clothes): glancing hits take some spin.
@@ -113,7 +113,8 @@ class BodyConfig:
     timestep: float = TIMESTEP  # s
     cannon_position: tuple = (1.2, -2.6, 0.9)  # m, the barrel's muzzle
     #: m: deeper contacts raise SimulationError. myo-sim's rest pose already has each humerus's collision
-    #: capsule 11.4 mm inside the thorax's (measured), hence 2 cm.
+    #: capsule inside the thorax's (by how much: docs/RESULTS.md, "Figures behind the code's constants"); 2 cm
+    #: leaves room above that.
     max_penetration: float = 0.02
     #: The ball collides with the arms, torso and head (myo-sim's collision geoms; the bare torso of
     #: ``arms=False`` has none, so there it flies through). False: only with the floor.
@@ -294,8 +295,8 @@ def _add_world(spec: mujoco.MjSpec, cfg: BodyConfig) -> None:
         geom.friction, geom.condim = list(BALL_FRICTION), BALL_CONDIM
         geom.margin = BALL_MARGIN
         # the floor by an explicit pair, without the margin (a contact takes the larger of its geoms'
-        # margins; a geom's gap did not offset it in MuJoCo 3.17, as measured): the ball lands on the
-        # floor, not 5 mm above it
+        # margins, and in MuJoCo 3.17 a geom's gap does not offset it): the ball lands on the floor, not
+        # 5 mm above it
         spec.add_pair(name="ball_floor", geomname1="floor", geomname2="ball", condim=BALL_CONDIM, margin=0.0,
                       solref=list(BALL_SOLREF), solimp=list(BALL_SOLIMP),
                       friction=[BALL_FRICTION[0], BALL_FRICTION[0], BALL_FRICTION[1], BALL_FRICTION[2],

@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg.validate()
         out = a.out or str(Path("runs/datasets") / f"{a.kind}-{cfg.key()}")
         # a whole dataset may lie on a read-only disk; one still to be rendered needs a directory that can be
-        # written (/proc/x was "No such file or directory" from the first mkdir)
+        # written, checked before the first mkdir (which would name a missing file, not the option)
         require_output(out, "--out", writable=not ChunkedStore.whole_at(out))
         cache = getattr(a, "identities_cache", None)
         if cache:  # (read where it holds the identities, written where it does not)

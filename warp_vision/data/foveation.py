@@ -50,7 +50,7 @@ GENERATOR_VERSION = 7
 
 
 def generator_flag(text: str) -> int:
-    """``--generator``'s value: a version as the docs name it, ``9`` or ``v9`` (``v9`` was "invalid int value")."""
+    """``--generator``'s value: a version as the docs name it, ``9`` or ``v9`` (a plain int type refuses ``v9``)."""
     import argparse
 
     t = text.strip()
@@ -197,7 +197,7 @@ def make_scene(seed: int):
     sc.set_visible("ball", False)  # the room's own ball: the sized ones above replace it
     # 25 x 25 cm, 2 cm thick along its local z: posed face-on to the eye (z along the line of sight)
     panel = trimesh.creation.box((0.25, 0.25, 0.02))
-    # as dim as the room: v5's panel had the undimmed albedo and outshone the room beside the ball
+    # as dim as the room: with the undimmed albedo it would outshine the room beside the ball
     sc.add("occluder", panel, Material(tuple(ROOM_ALBEDO * np.array([0.35, 0.3, 0.25]))))
     sc.lights[0].position = np.array([0.0, 0.0, ROOM_SIZE[2] - 0.6])  # a hanging lamp, not a hot spot on the ceiling
     return sc
@@ -205,12 +205,13 @@ def make_scene(seed: int):
 
 #: The ball's apparent diameter is at least this (deg), and at least MIN_RECEPTORS_ACROSS times the
 #: photoreceptor spacing where it lies (v7): a smaller ball falls between the periphery's photoreceptors
-#: and leaves no trace in the ONV, making its target noise. With v6's flat 1.5 deg, small balls far in the
-#: periphery (where the spacing is about 1.8 deg) were most of a trained net's worst training errors.
+#: and leaves no trace in the ONV, making its target noise: such balls far in the periphery, under a flat
+#: 1.5 deg floor alone, were most of a trained net's worst training errors (docs/RESULTS.md, "Figures behind
+#: the code's constants").
 MIN_APPARENT_DIAMETER_DEG = 1.5
 MIN_RECEPTORS_ACROSS = 3.0
-#: ... and at most this (deg, v7): a ball 0.3 m away filled up to 84 deg of the field, and those, mostly
-#: half hidden, were the rest of the worst errors (its centre is where nothing of it is seen).
+#: ... and at most this (deg, v7): a ball near the eye fills much of the field, mostly half hidden, and its
+#: centre is where nothing of it is seen; such balls were the rest of the worst errors (the same entry).
 MAX_APPARENT_DIAMETER_DEG = 30.0
 
 

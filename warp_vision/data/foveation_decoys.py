@@ -68,7 +68,7 @@ def _material(rng: np.random.Generator) -> tuple[np.ndarray, float]:
         colour = np.full(3, level)
     else:
         colour = level * rng.uniform(0.5, 1.0, 3)
-    glossy = rng.uniform() < 0.3  # drawn before the specular level, as it always was
+    glossy = rng.uniform() < 0.3  # drawn before the specular level: the draws' order fixes every sample
     return np.clip(colour, 0.0, 1.0), (float(rng.uniform(0.0, 0.4)) if glossy else 0.0)
 
 

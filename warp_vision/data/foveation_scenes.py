@@ -287,8 +287,8 @@ def _distractors(kind, R, eye, u_ball, ball_angle, size, light, mat, ball, rng) 
 def occluder_pose(rng, eye, ball, R, phi: float, radius: float, occluded: bool) -> np.ndarray:
     """The occluding panel's [4, 4] pose (v7's rule, shared by v8): between the eye and the ball, its near
     edge crossing the ball's disc from 0.2 of its apparent radius beyond the centre to 0.8 short of it (so
-    it hides about 5% to 60% of the ball); face-on to the eye (its thin local z along the line of sight;
-    generator v4 had it edge-on, hiding at most a 2 cm strip), its local x along the side direction so its
+    it hides about 5% to 60% of the ball); face-on to the eye (its thin local z along the line of sight:
+    edge-on, it would hide at most a 2 cm strip), its local x along the side direction so its
     near edge runs straight past the ball. Parked out of sight when not ``occluded`` (the same two draws
     from ``rng`` either way)."""
     side = R @ np.array([np.cos(phi + np.pi / 2), np.sin(phi + np.pi / 2), 0.0])

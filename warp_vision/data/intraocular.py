@@ -185,7 +185,7 @@ EYE_RAY_SEED = 0
 #: set of textures (same geometry, so the cards' BVHs are built once) every TEXTURE_SET_BLOCKS blocks of
 #: 16 samples: the default 16,000 samples see 400 textures. The texel's angular size (card size / CARD_VERTICES / d)
 #: tells the distance within a size bin; the nets are therefore not given the accommodation, which with
-#: the distance would give the defocus away (docs/RESULTS.md: measured).
+#: the distance would give the defocus away (docs/RESULTS.md, "The pupil and the lens: the intraocular nets").
 CARD_SIZES_M = tuple(float(s) for s in 3 * 0.021 * 1.58 ** np.arange(8))
 CARD_TEXTURES = 2
 CARD_VERTICES = 384

@@ -301,7 +301,7 @@ TRAINING_LOCK = ".training.lock"
 
 def read_run_config(run_dir) -> dict | None:
     """``run_dir/config.json`` as a dict, or None where there is none. A file that is not a JSON object (cut
-    short, edited by hand) is a ValueError naming it, where it was a bare JSON error or a traceback."""
+    short, edited by hand) is a ValueError naming it, not a bare JSON error or a traceback."""
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         return None

@@ -36,7 +36,7 @@ activations, trained on transitions between held postures (:func:`reach_pairs`).
 **Why feedback.** The least-effort holding activations of a posture hold it (the hand drifts by tens of
 micrometres in a second for most postures), but they are a poor command for *reaching* it: with so little
 co-contraction the arm has almost no stiffness, and from another posture it swings past and settles
-elsewhere (measured: a median 0.2 m from the target after 0.6 s). So what both nets learn is the static
+elsewhere (how far: docs/RESULTS.md, "Figures behind the code's constants"). So what both nets learn is the static
 optimisation of a torque beyond holding (:func:`demanded_torque`): a saturating spring toward the goal
 posture's joints and a damper, which, solved exactly on the body every 10 ms, reaches to a few cm. The
 nets learn it from each posture's torque balance (A, b, stored with the dataset) without solving it per

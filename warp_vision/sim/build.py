@@ -33,9 +33,9 @@ def net_specs(args) -> list:
 
 
 def refuse_unused_given(args) -> None:
-    """A run directory named for nets the command will not run is a ValueError (it was dropped without a
-    word): ``--pupil`` or ``--lens`` with ``--intraocular analytic`` (intercept's default), ``--limb`` with
-    an intercept whose ``--perception`` is not vision."""
+    """A run directory named for nets the command will not run is a ValueError, not an option left unread:
+    ``--pupil`` or ``--lens`` with ``--intraocular analytic`` (intercept's default), ``--limb`` with an
+    intercept whose ``--perception`` is not vision."""
     unused = []
     if getattr(args, "intraocular", "nets") == "analytic":
         unused += [f"--{flag} {getattr(args, flag)}: the {flag} nets run with --intraocular nets; this command's is "

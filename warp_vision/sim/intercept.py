@@ -18,9 +18,9 @@ predicted path, and the arm's motor nets driving the hand there.
   cannon's reach envelope, :data:`warp_vision.sim.cannon.ENVELOPE`), and holds it there with the posture
   net. The other arm stays passive (zero activation; it hangs).
   Defaults (``aim="plane"``, the plane :data:`PLANE_FRONT` in front of the shoulder, ``gain`` :data:`GAIN`)
-  are the best of the variants measured on 50 held-out left shots
-  (``sample_shots(50, seed=0, split="heldout", side="left")``, the default left arm nets): 92% deflected,
-  against 16% with passive arms; the plane through the ready hand at gain 1: 72%.
+  are the best of the variants tried on 50 held-out left shots
+  (``sample_shots(50, seed=0, split="heldout", side="left")``, the default left arm nets; the figures:
+  docs/RESULTS.md, "Figures behind the code's constants").
 - :func:`intercept_point`: where on the predicted path to put the hand. ``aim="plane"``: where the path
   crosses a frontal plane (y = const; the controller's: :data:`PLANE_FRONT` in front of the shoulder), if
   that point is within reach;
@@ -65,10 +65,11 @@ MIN_FRONT = 0.15
 HORIZON_S = 0.8
 PATH_STEP_S = 0.002
 #: m: the default plane of ``aim="plane"``: this far in front of the hanging shoulder (the envelope's
-#: nearest targets; measured on 50 held-out shots it beats the ready hand's plane, 0.375 m: more time to reach).
+#: nearest targets): it leaves the arm more time to reach than the ready hand's plane, 0.375 m, and deflects
+#: more shots (docs/RESULTS.md, "Figures behind the code's constants").
 PLANE_FRONT = 0.25
 #: The default displacement gain: the net is asked for twice the remaining displacement (at gain 1 the arm
-#: is too slow for the 0.2-0.55 s flights: its reaches are 16 cm off after 0.3 s).
+#: is too slow for the 0.2-0.55 s flights: docs/RESULTS.md, "Figures behind the code's constants").
 GAIN = 2.0
 #: m: the largest displacement the voluntary net is fed (its training reaches: hands 0.2-0.6 m in front).
 MAX_DISPLACEMENT = 0.6
@@ -351,7 +352,8 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
 FIXATE_S = 0.4
 #: ``sim intercept`` renders every INTERCEPT_FRAME_EVERY control periods: 50 frames a second. A fast shot
 #: leaves the ranging gate after about 0.13 s of its 0.2-0.3 s flight; at 25 frames a second that is
-#: four observations (measured on 50 held-out shots: 38 deflected at 25 Hz, 42 at 50 Hz; docs/RESULTS.md)
+#: four observations, too few for the ballistic fit (docs/RESULTS.md, "The arms: ...", what made the
+#: difference)
 INTERCEPT_FRAME_EVERY = 2
 
 

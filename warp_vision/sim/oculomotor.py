@@ -13,7 +13,7 @@ gaze, current six activations) to the next six activations. Its data (:func:`syn
 sampled in a disc, their holding activations, and transitions between them (:func:`transition_pairs`) (the current
 activations hold gaze g, the next ones hold g + change): a tenth stay put, 36% go to a gaze within 3 deg (the small
 corrections the loop asks for every period) and the rest, 54%, to a random gaze (saccades); the fit weighs each error by
-the inverse square of (1 deg + the change). Its held-out accuracy is measured where it matters, on the body:
+the inverse square of (1 deg + the change). Its held-out accuracy is evaluated where it matters, on the body:
 the gaze the eye settles at under the net's activations against the gaze asked for, after one saccade
 and after 30 small steps with the net fed its own output (:func:`evaluate_on_body`).
 """

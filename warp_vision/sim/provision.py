@@ -44,7 +44,7 @@ from warp_vision.nn.trained import (
 #: simulation that needs the net waits for it rather than starting a training the run lock refuses
 PROVIDING_LOCK = ".providing.lock"
 
-#: Wall minutes of each training on the 2-core reference CPU (measured; docs/RESULTS.md has the runs): the
+#: Wall minutes of each training on the 2-core reference CPU (docs/RESULTS.md has the runs): the
 #: foveation net's dataset synthesis plus its training, the oculomotor net's holding-activation dataset
 #: plus its training, the pupil and lens nets' datasets plus their training (the lens net's first run on
 #: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards); an arm's
@@ -226,8 +226,8 @@ def _training_slot(s: NetSpec, log):
     """Within the block, ``s``'s run directory is this process's to have trained: another simulation
     having it trained holds :data:`PROVIDING_LOCK` there, and a training command started by hand holds
     the run's :data:`TRAINING_LOCK`; this one waits for each, saying so (the run is then ready, or is
-    resumed where the other stopped). Two simulations started together on a fresh clone train each net
-    once; the second used to fail at once: its training was refused by the run lock."""
+    resumed where the other stopped). So two simulations started together on a fresh clone train each net
+    once, where without the wait the second's training would be refused by the run lock."""
     os.makedirs(s.run, exist_ok=True)
     slot = FileLock(os.path.join(s.run, PROVIDING_LOCK))
     if not slot.acquire():

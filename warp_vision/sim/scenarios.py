@@ -1,5 +1,5 @@
 """The closed loop's scenarios: :func:`run_scenario` runs the loop with the ball free or placed by a
-function of time and records traces; :func:`experiments` is the measured set (saccades in eight
+function of time and records traces; :func:`experiments` is the set of experiments (saccades in eight
 directions, vergence at 1 m, tracking at 15 and 30 deg/s) that ``python -m warp_vision.sim experiments``
 and ``python -m warp_vision.bench loop`` report."""
 
@@ -329,8 +329,8 @@ FOCUS_PHASES = ((1.5, 2.0), (2.0, 1.0 / 3.0), (2.0, 2.0))
 FOCUS_TOLERANCE_D = 0.25
 #: The cards' texture seed: none of the lens datasets' (their seeds are 0 and 1000).
 FOCUS_CARD_SEED = 2024
-#: The goal a focus step is measured against (docs/RESULTS.md): in
-#: focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
+#: The goal a focus step is held to (docs/RESULTS.md): in focus (FOCUS_TOLERANCE_D) within this
+#: many simulated seconds.
 FOCUS_GOAL_S = 1.2
 
 

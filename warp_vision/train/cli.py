@@ -289,7 +289,7 @@ def _evaluate(argv: list[str]) -> int:
         p.error("--signal: a part of --misses")
     if a.agreement and (a.misses or a.conditions or len(a.run_dirs) < 2):
         p.error("--agreement: of two or more runs' own split, not with --misses or --conditions")
-    if a.samples is not None and not a.conditions:  # (it was ignored without a word)
+    if a.samples is not None and not a.conditions:  # refused, not ignored: it sizes --conditions' sets only
         p.error("--samples: the ONVs of each held-out set of --conditions; a run's own split has its own")
     if a.split != "test" and a.conditions:
         p.error(f"--split {a.split}: of a run's own split; --conditions measures held-out sets of its own")
@@ -363,9 +363,9 @@ def parse_training(argv: list[str]):
 
 
 def _refuse_settings_on_resume(a: argparse.Namespace, cls, argv: list[str]) -> None:
-    """A ValueError for settings given with ``--resume`` (it used to drop them without a word: ``--resume
-    RUN --lr 0.1`` carried on at the run's own rate): a resumed run continues as its config.json says,
-    under a new epoch cap at most."""
+    """A ValueError for settings given with ``--resume``: a resumed run continues as its config.json says,
+    under a new epoch cap at most, so a setting given with it (``--resume RUN --lr 0.1``) is refused rather than
+    left unread."""
     given = [f"--{f.name.replace('_', '-')}" for f in fields(cls)
              if f.name not in ("preset", "task", "epochs") and getattr(a, f.name, None) is not None]
     given += [flag for flag in ("--preset", "--overwrite") if any(x == flag or x.startswith(flag + "=") for x in argv)]

@@ -8,7 +8,7 @@ beside the run's own test split. Each run gets ``conditions.json`` and ``figures
 example retina image per condition with the true and the predicted target).
 
 The held-out sets depend only on the eye's data config (retina, rays per photoreceptor, optics, field),
-so a v7 and a v8 net of the same eye are measured on the very same ONVs.
+so a v7 and a v8 net of the same eye are evaluated on the very same ONVs.
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
         raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
     suffix = "" if checkpoint == "best" else f"_{checkpoint}"
     results, examples = {}, {}
-    for run in run_dirs:  # every run checked before the first is measured
+    for run in run_dirs:  # every run checked before the first is evaluated
         if (task := saved_task(run)) != "foveation":
             raise ValueError(f"{run}: {a_run(task)}; --conditions measures foveation runs")
     for run in run_dirs:

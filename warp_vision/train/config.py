@@ -260,14 +260,13 @@ CONDITION_SAMPLES = 400
 PRESETS: dict[str, dict] = {
     # end to end in well under a minute (tests)
     "smoke": dict(**FOVEATION_DATA["smoke"], layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
-    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU
-    # (1.7 measured, synthesis included)
+    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU,
+    # synthesis included
     "quick": dict(**FOVEATION_DATA["quick"], epochs=12, patience=12, model="cnn", lr=2e-3),
     # the default run: the retina CNN on generator v9, about 12-14 minutes on a 2-core CPU that trains it in
-    # bfloat16 (11.7 and 13.6 measured on two days), 14.6 in float32 (12,000 ONVs of P=14,400, S=4 rendered
-    # in 4.5-5.2 by two processes; 20 epochs of 19-27 s, 29 in float32: docs/RESULTS.md "20 epochs", fewer
-    # balls missed than with 12, and "bfloat16 training"). v7's liNet: --generator 7 --model linet --lr 0.001
-    # --epochs 40 --samples 8000
+    # bfloat16, about 15 in float32 (12,000 ONVs of P=14,400, S=4 rendered by two processes, then 20 epochs,
+    # which miss fewer balls than 12: docs/RESULTS.md "20 epochs" and "bfloat16 training"). v7's liNet:
+    # --generator 7 --model linet --lr 0.001 --epochs 40 --samples 8000
     "default": dict(**FOVEATION_DATA["default"], model="cnn", lr=2e-3, epochs=20),
     # the paper's set-up on v9: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
     "paper": dict(**FOVEATION_DATA["paper"], epochs=60, patience=10),
@@ -408,8 +407,8 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
 
 def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
     """The config of a command line: its preset with the flags given over it. A flag of a net setting the
-    chosen model does not read (``cls.MODEL_FIELDS``: ``--model cnn --receptive-field 30``) is a ValueError:
-    it was dropped without a word."""
+    chosen model does not read (``cls.MODEL_FIELDS``: ``--model cnn --receptive-field 30``) is a ValueError
+    rather than a setting left unread."""
     cls = cls or TrainConfig
     cfg = resolve(args.preset, {f.name: getattr(args, f.name, None) for f in fields(cls)}, cls, presets)
     for name, models in getattr(cls, "MODEL_FIELDS", {}).items():

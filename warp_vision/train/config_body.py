@@ -220,10 +220,10 @@ LIMB_PRESETS: dict[str, dict] = {
     # seconds, for tests
     "smoke": dict(samples=64, heldout_samples=16, photoreceptors=400, samples_per_receptor=1, layers=2,
                   receptive_field=8, batch=16, epochs=2, patience=2),
-    # a first look: about 2 minutes on a 2-core CPU (1.7-1.8 measured, rendering included)
+    # a first look: about 2 minutes on a 2-core CPU, rendering included
     "quick": dict(samples=2000, heldout_samples=300, model="range", lr=2e-3, epochs=12, patience=12),
-    # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training, 3.2
-    # with bfloat16; 9-11 measured):
+    # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training, less
+    # with bfloat16; the runs: docs/RESULTS.md, "Figures behind the code's constants"):
     # the ranging net (the ONV-only nets find the ball but not the hands: docs/RESULTS.md)
     "default": dict(model="range", lr=2e-3, epochs=24, patience=24),
 }

@@ -74,7 +74,7 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     ids = task.splits()
     if split == "test":
         split, idx = held_out(ids)
-        if split != "test":  # (it was named "test")
+        if split != "test":  # the validation split stands in: say so, rather than call it "test"
             log(f"{run_dir}: no test split (--test-fraction 0, or too few samples); the validation split's, as the "
                 f"run's summary")
     else:

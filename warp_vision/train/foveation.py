@@ -383,8 +383,8 @@ class FoveationTask(harness.OnvTask):
 
     def validate(self, model, idx, norm, device):
         """One view per epoch (the plain image, as the net trains), not the consensus of ``views`` that the
-        test, ``evaluate`` and the simulation read (8 views cost 8 times the inference: measured, 19 s of
-        an epoch's 45 at the default preset's 1,200 validation ONVs)."""
+        test, ``evaluate`` and the simulation read: 8 views cost 8 times the inference, a large share of a
+        default epoch (docs/RESULTS.md, "The consensus read-out, and 32,000 ONVs")."""
         if not hasattr(model, "views"):
             return self.evaluate(model, idx, norm, device)
         views, model.views = model.views, 1

@@ -302,7 +302,7 @@ def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, mi
 
 
 def held_out(ids) -> tuple[str, np.ndarray]:
-    """The split a finished run is measured on, by name, and its samples, of ``ids`` = (train, val, test): the
+    """The split a finished run is evaluated on, by name, and its samples, of ``ids`` = (train, val, test): the
     test split, or the validation split where there is none (``--test-fraction 0``, or too few samples)."""
     return ("test", ids[2]) if len(ids[2]) else ("val", ids[1])
 
@@ -343,8 +343,8 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     """One pass over the training samples in the epoch's seeded order; the mean of each train metric. Under
     torchrun each batch is dealt out over the ranks, and a last batch of fewer samples than ranks is left out
     on every rank alike (its samples, a different few each epoch, train in the other epochs): a rank given
-    none had a loss of NaN (the mean of nothing), and the others waited on its gradients (:func:`run` refuses
-    a batch smaller than the ranks)."""
+    none would have a loss of NaN (the mean of nothing), and the others would wait on its gradients
+    (:func:`run` refuses a batch smaller than the ranks)."""
     from tqdm import tqdm
 
     cfg = task.cfg
@@ -441,11 +441,11 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
             state.bad = 0  # (kept, the first epoch without a better score would end it again)
             task.log(f"early stopping ended it; training on to epoch {cfg.epochs}, its patience "
                      f"({cfg.patience} epochs) counted afresh")
-        elif state.bad >= cfg.patience:  # (it trained on, up to its cap, without a word)
+        elif state.bad >= cfg.patience:  # early stopping ended it: evaluated again, not trained on
             state.ended = f"early stop: {_patience_spent(task)}"
             task.log(f"early stopping ended it after epoch {state.start_epoch} ({_patience_spent(task)}): its best "
                      f"checkpoint is evaluated again; {further}, its patience counted afresh")
-        elif state.start_epoch >= cfg.epochs:  # (it said "max epochs" and evaluated again, without a word why)
+        elif state.start_epoch >= cfg.epochs:  # the log says why no epoch is trained
             task.log(f"no epochs left to train (its cap is {cfg.epochs}): its best checkpoint is evaluated again; "
                      f"{further}")
     return (tr, va, te), norm, model, opt, state
@@ -542,7 +542,7 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     (:func:`warp_vision.train.workers.render_in_processes`; "auto": :func:`~warp_vision.train.workers.auto_workers`)."""
     if workers != "auto" and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
         raise ValueError(f"workers: expected a positive integer or 'auto', got {workers!r}")
-    # (it was dropped without a word)
+    # a task that renders in one process refuses --workers rather than leave it unread
     if workers != "auto" and workers > 1 and task_cls.dataset_dirs is Task.dataset_dirs:
         raise ValueError(f"workers: {a_run(task_cls.name)} renders its dataset in one process (foveation and limb "
                          f"runs render in several); leave --workers out")
@@ -559,7 +559,7 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
            stop_after_epoch: int | None, workers: int | str, new_cap: bool = False) -> dict:
     """:func:`run`'s work once the run directory is open (and locked): data, training, evaluation."""
     world = world_size()  # (before Dist below joins the process group: a refusal costs no rendezvous)
-    if cfg.batch < world:  # (each rank was dealt an empty batch, and its loss was NaN)
+    if cfg.batch < world:  # (a rank dealt an empty batch would have a NaN loss)
         raise ValueError(f"batch: expected at least one sample for each of the {world} ranks under torchrun, "
                          f"got {cfg.batch}")
     device = pick_device(cfg.device)

@@ -185,7 +185,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         out = Path(cfg.out)
         require_output(out, "--out")
         # a complete dataset may sit in a read-only directory; one still to be rendered needs a directory that
-        # can be made and written (/proc/x was refused only after the run directory was claimed)
+        # can be made and written, checked before the run directory is claimed
         data_dir = getattr(cfg, "data_dir", "") or "."
         require_output(data_dir, "--data-dir", writable=not ChunkedStore.whole_at(data_dir))
         hold_run_dir(out)  # (before --overwrite deletes a run another process may be training)
@@ -330,7 +330,7 @@ def sync_metrics(out: Path, history: list) -> None:
 
 def read_metrics(path, need: tuple[str, ...] = ("epoch",)) -> list[dict]:
     """The rows of a run's ``metrics.jsonl``; a line that is not a JSON object holding the keys ``need`` is a
-    ValueError naming the file and the line (it was a bare JSON error or a KeyError's traceback)."""
+    ValueError naming the file and the line, not a bare JSON error or a KeyError's traceback."""
     rows = []
     for n, line in enumerate(Path(path).read_text().splitlines(), 1):
         if not line.strip():

@@ -290,7 +290,8 @@ def surface_table(eye: NavarroEye) -> np.ndarray:
 
 
 #: memory per ray bundle (photoreceptor x pupil sample) while the eye's rays are built: 3 channels of
-#: origin, direction and weight (84 B) and the pupil samples with their temporaries (measured ~147 B in all)
+#: origin, direction and weight (84 B) and the pupil samples with their temporaries, an upper bound of the
+#: peak (docs/RESULTS.md, "Figures behind the code's constants")
 EYE_RAYS_BYTES_PER_SAMPLE = 160
 
 
