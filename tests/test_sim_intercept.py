@@ -39,7 +39,7 @@ def parsed(monkeypatch, tmp_path):
 
 # --- arguments ---------------------------------------------------------------------------------------
 def test_defaults_and_the_shots_they_pick(parsed):
-    from warp_vision.sim.strike import pick_shots
+    from warp_vision.sim.intercept_trials import pick_shots
 
     a = parsed()
     assert (a.side, a.shots, a.shot_seed, a.perception, a.seed) == ("left", None, None, "vision", 0)
@@ -105,7 +105,7 @@ def test_unknown_choices_are_refused_by_the_parser(tmp_path, monkeypatch, capsys
 # --- the nets ----------------------------------------------------------------------------------------
 def test_the_plan_adds_the_arm_and_both_limb_vision_nets(parsed):
     from warp_vision.sim.build import net_specs
-    from warp_vision.sim.strike import strike_runs
+    from warp_vision.sim.intercept_trials import strike_runs
 
     specs = net_specs(parsed())
     assert [(s.kind, s.eye) for s in specs] == [("foveation", "left"), ("foveation", "right"), ("oculomotor", "left"),
@@ -171,7 +171,7 @@ def _fake_results(n=12):
     """intercept_stats' results of three modes on n held-out shots, without simulating any."""
     from warp_vision.sim.cannon import sample_shots
     from warp_vision.sim.intercept import intercept_stats
-    from warp_vision.sim.strike_figures import target_offset
+    from warp_vision.sim.intercept_figures import target_offset
 
     shots = sample_shots(n, seed=3, split="heldout", side="left")
     rng = np.random.default_rng(0)
@@ -189,7 +189,7 @@ def _fake_results(n=12):
 
 
 def test_the_comparison_figures_are_written(tmp_path):
-    from warp_vision.sim.strike_figures import stats_figures
+    from warp_vision.sim.intercept_figures import stats_figures
 
     results = _fake_results()
     paths = stats_figures(results, str(tmp_path / "figs"))
@@ -206,7 +206,7 @@ def test_the_comparison_figures_are_written(tmp_path):
 
 def test_the_target_offset_is_in_the_shoulders_frame():
     from warp_vision.sim.cannon import ENVELOPE, make_shot, sample_shots, shoulder
-    from warp_vision.sim.strike_figures import target_offset
+    from warp_vision.sim.intercept_figures import target_offset
 
     for side in SIDES:
         s = shoulder(side)
@@ -223,7 +223,7 @@ def test_the_target_offset_is_in_the_shoulders_frame():
 
 
 def test_the_hand_ball_distance_figure_is_written(tmp_path):
-    from warp_vision.sim.strike_figures import plot_hand_ball_distance
+    from warp_vision.sim.intercept_figures import plot_hand_ball_distance
 
     t = np.arange(0, 0.4, 0.01)
     trace = {"t": t.tolist(), "true_m": np.abs(0.5 - 2 * t).tolist(), "frame_t": t[::4].tolist(),
@@ -237,7 +237,7 @@ def test_the_hand_ball_distance_figure_is_written(tmp_path):
 
 def test_projection_and_the_strike_frame():
     from warp_vision.frames import look_at
-    from warp_vision.sim.strike_figures import compose_strike_frame, draw_strike
+    from warp_vision.sim.intercept_figures import compose_strike_frame, draw_strike
     from warp_vision.sim.video import project
 
     cam = look_at([0.0, 2.0, 1.0], [0.0, 0.0, 1.0])
@@ -258,7 +258,7 @@ def test_projection_and_the_strike_frame():
 
 def test_a_shot_result_and_the_time_shares_are_json_ready():
     from warp_vision.sim.cannon import Contact, ShotResult, make_shot, shoulder
-    from warp_vision.sim.strike import result_dict, shot_dict, time_shares
+    from warp_vision.sim.intercept_trials import result_dict, shot_dict, time_shares
 
     r = ShotResult(np.bool_(True), {"hand_left": Contact(0.21, "g", (0.1, -0.2, 1.0), 9.5)}, "hand_left", True,
                    np.array([1.0, -2.0, 0.5]), np.float64(-0.003), 0.21, "hand_left", False, False, 0.101, 1.0, 0.3)

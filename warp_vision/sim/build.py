@@ -1,6 +1,6 @@
 """What a ``python -m warp_vision.sim`` command runs on: the nets it needs, provided (trained where
 missing, :mod:`warp_vision.sim.provision`), and the body and closed loop built from them. Used by the
-commands of :mod:`warp_vision.sim.cli` and by ``intercept`` (:mod:`warp_vision.sim.strike`)."""
+commands of :mod:`warp_vision.sim.cli` and by ``intercept`` (:mod:`warp_vision.sim.intercept_trials`)."""
 
 from __future__ import annotations
 
