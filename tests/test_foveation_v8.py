@@ -150,7 +150,7 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     for gen in (7, 8):
         cfg = resolve("smoke",
                       {"out": str(tmp_path / f"v{gen}"), "data_dir": str(tmp_path / f"data{gen}"), "generator": gen,
-                                "epochs": 1})
+                       "epochs": 1})
         foveation.run(cfg, progress=False, log=lambda *a: None)
         runs.append(str(tmp_path / f"v{gen}"))
     import os

@@ -57,7 +57,7 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
             raise ValueError(f"{name}: expected one of {allowed}, got {getattr(cfg, name)!r}")
     require_positive(cfg,
                      [n for n in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience")
-                           if hasattr(cfg, n)], flags=False)
+                      if hasattr(cfg, n)], flags=False)
     require_seeds(cfg)
     if not cfg.lr > 0:
         raise ValueError(f"lr: expected > 0, got {cfg.lr}")

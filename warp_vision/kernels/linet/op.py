@@ -235,12 +235,12 @@ def forward(x: Tensor, weight: Tensor, bias: Tensor, plan: LinetPlan, relu: bool
         yT = torch.empty(N, B, dtype=weight.dtype, device=x.device)
         if N and feature_major(x):
             launch_kernel(linet_forward_fm, N,
-                   [flat_vectors(x.t()), warp_array(weight.reshape(-1)), warp_array(bias),
-                    warp_array(plan.index.reshape(-1)), plan.receptive_field, B // LANES, int(relu)],
-                   [flat_vectors(yT)], dev)
+                          [flat_vectors(x.t()), warp_array(weight.reshape(-1)), warp_array(bias),
+                           warp_array(plan.index.reshape(-1)), plan.receptive_field, B // LANES, int(relu)],
+                          [flat_vectors(yT)], dev)
         elif N:
             launch_kernel(linet_forward, _blocks(B, BATCH_BLOCK) * N,
-                   [warp_array(x), warp_array(weight), warp_array(bias), warp_array(plan.index), int(relu)],
+                          [warp_array(x), warp_array(weight), warp_array(bias), warp_array(plan.index), int(relu)],
                           [warp_array(yT.t())], dev)
         return yT.t()
     y = torch.empty(B, N, dtype=weight.dtype, device=x.device)
@@ -334,9 +334,9 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev, x_dtype):
         if N and plan.in_features:
             t_offsets, t_entries, t_units = plan.transposed()
             launch_kernel(linet_grad_x_fm, plan.in_features,
-                   [g, warp_array(weight.reshape(-1)), warp_array(t_offsets), warp_array(t_entries),
-                    warp_array(t_units), chunks],
-                   [flat_vectors(gxT)], dev)
+                          [g, warp_array(weight.reshape(-1)), warp_array(t_offsets), warp_array(t_entries),
+                           warp_array(t_units), chunks],
+                          [flat_vectors(gxT)], dev)
         else:
             gxT.zero_()
         grad_x = gxT.t()
@@ -351,7 +351,7 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev, x_dtype):
         # the bias gradient comes with the weight gradient (into scratch when it is not wanted)
         gb = grad_b if grad_b is not None else torch.empty(N, dtype=grad_y.dtype, device=grad_y.device)
         launch_kernel(linet_grad_weight_fm, N,
-               [flat_vectors(x.t()), g, warp_array(plan.index.reshape(-1)), R, chunks],
+                      [flat_vectors(x.t()), g, warp_array(plan.index.reshape(-1)), R, chunks],
                       [warp_array(grad_w.reshape(-1)), warp_array(gb)], dev)
         return grad_x, grad_w, grad_b
     g_bm = warp_array(gT.t())  # the same memory, seen [B, N] by the batch-major kernels
@@ -359,7 +359,7 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev, x_dtype):
     if need[1] and R:
         launch_kernel(linet_grad_weight, N * _blocks(R, CONN_BLOCK),
                       [warp_array(x), g_bm, y_bm, warp_array(plan.index), relu],
-               [warp_array(grad_w)], dev)
+                      [warp_array(grad_w)], dev)
     if need[2]:
         if relu:
             launch_kernel(linet_grad_bias, N, [g_bm, y_bm, relu], [warp_array(grad_b)], dev)
