@@ -365,24 +365,11 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
     their textures' seed."""
     from tqdm import tqdm
 
-    from warp_vision.data.intraocular import CARD_VERTICES, card_size_for
-    from warp_vision.scene import Material
-    from warp_vision.scene.textures import textured_card
     from warp_vision.sim.loop import CONTROL_DT, point_at
 
     body = loop.body
     body.model.opt.gravity[:] = 0
-    # a card per distance, of the kind the lens nets learnt on (the size their data show at that distance,
-    # so the pattern's angular scale is theirs) but with a texture of its own
-    cards = {}
-    for _dur, dist in phases:
-        name = f"focus_card_{card_seed}_{dist:.3f}"
-        cards[dist] = name
-        if name not in [o.name for o in loop.scene.objects]:
-            loop.scene.add(name, textured_card(card_size_for(dist), card_vertices or CARD_VERTICES,
-                                               [card_seed, int(dist * 1000)]),
-                           Material(vertex_colors=True), np.eye(4))
-            loop.scene.set_visible(name, False)
+    cards = _focus_cards(loop, phases, card_vertices, card_seed)
     loop.reset(SETTLE_S)
     starts = np.cumsum([0.0] + [d for d, _ in phases])
     state = {"centre": None}
@@ -403,31 +390,13 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
             dist = phases[phase][1]
             if k == 0 or dist != tr["distance"][-1]:  # the card moves at a step, then stays put in the world
                 state["centre"] = point_at(body, 0.0, 0.0, dist)
-            T = np.eye(4)
-            T[:3, :3] = body.head_pose()[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # its face (+z) toward the eyes (head -z)
-            T[:3, 3] = state["centre"]
-            for dd, name in cards.items():
-                loop.scene.set_visible(name, dd == dist)
-            loop.scene.set_transform(cards[dist], T)
+            _show_card(loop, cards, dist, state["centre"])
             body.set_ball(parked)
             loop.step()
-            tr["t"].append(body.time - t0)
-            tr["distance"].append(dist)
-            for s in SIDES:
-                acc = body.intraocular(s)[1]
-                verg = 1.0 / np.linalg.norm(state["centre"] - body.eye_pose(s)[:3, 3])
-                tr[f"accommodation_{s}"].append(acc)
-                tr[f"command_{s}"].append(loop._lens_command.get(s, loop.lens_teacher.get(s, np.nan)))
-                tr[f"vergence_{s}"].append(verg)
-                tr[f"defocus_{s}"].append(acc - verg)
-            if snapshots and loop.period % loop.frame_every == 1 and phase > 0:
-                since = t - starts[phase]
-                if (
-                    since < loop.frame_every * CONTROL_DT
-                    or abs(t - (starts[phase + 1] - 0.1)) < loop.frame_every * CONTROL_DT / 2
-                ):
-                    shots.append({"t": float(tr["t"][-1]), "defocus_D": float(tr["defocus_left"][-1]),
-                                  "onv": loop.onv["left"][0].numpy().copy()})
+            _record_focus(loop, tr, body.time - t0, dist, state["centre"])
+            if snapshots and _snapshot_due(loop, t, starts, phase):
+                shots.append({"t": float(tr["t"][-1]), "defocus_D": float(tr["defocus_left"][-1]),
+                              "onv": loop.onv["left"][0].numpy().copy()})
     finally:
         loop.fov = fov
         for name in cards.values():
@@ -440,6 +409,63 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
             steps.append({"eye": s, "at_s": float(a), "from_m": phases[i - 1][1], "to_m": phases[i][1],
                           **focus_step_metrics(tr["t"], tr[f"accommodation_{s}"], tr[f"vergence_{s}"], a, b)})
     return {"traces": tr, "steps": steps, "snapshots": shots}
+
+
+def _focus_cards(loop, phases, card_vertices: int | None, card_seed: int) -> dict:
+    """{distance: its card's name in ``loop.scene``}: a card per distance of ``phases``, of the kind the lens nets
+    learnt on (the size their data show at that distance, so the pattern's angular scale is theirs) but with a
+    texture of its own; each added hidden, once."""
+    from warp_vision.data.intraocular import CARD_VERTICES, card_size_for
+    from warp_vision.scene import Material
+    from warp_vision.scene.textures import textured_card
+
+    cards = {}
+    for _dur, dist in phases:
+        name = f"focus_card_{card_seed}_{dist:.3f}"
+        cards[dist] = name
+        if name not in [o.name for o in loop.scene.objects]:
+            loop.scene.add(name, textured_card(card_size_for(dist), card_vertices or CARD_VERTICES,
+                                               [card_seed, int(dist * 1000)]),
+                           Material(vertex_colors=True), np.eye(4))
+            loop.scene.set_visible(name, False)
+    return cards
+
+
+def _show_card(loop, cards: dict, dist: float, centre) -> None:
+    """The card of ``dist`` alone visible, at ``centre``, its face (+z) toward the eyes (the head's -z)."""
+    T = np.eye(4)
+    T[:3, :3] = loop.body.head_pose()[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = centre
+    for dd, name in cards.items():
+        loop.scene.set_visible(name, dd == dist)
+    loop.scene.set_transform(cards[dist], T)
+
+
+def _record_focus(loop, tr: dict, t: float, dist: float, centre) -> None:
+    """A period's row of the focus traces ``tr``: the time, the card's distance, and per eye the
+    accommodation, the lens command, the card's vergence from the eye (D) and the defocus."""
+    body = loop.body
+    tr["t"].append(t)
+    tr["distance"].append(dist)
+    for s in SIDES:
+        acc = body.intraocular(s)[1]
+        verg = 1.0 / np.linalg.norm(centre - body.eye_pose(s)[:3, 3])
+        tr[f"accommodation_{s}"].append(acc)
+        tr[f"command_{s}"].append(loop._lens_command.get(s, loop.lens_teacher.get(s, np.nan)))
+        tr[f"vergence_{s}"].append(verg)
+        tr[f"defocus_{s}"].append(acc - verg)
+
+
+def _snapshot_due(loop, t: float, starts, phase: int) -> bool:
+    """Whether the period at ``t`` rendered a frame just after the step into ``phase`` (not the first) or
+    0.1 s before its end."""
+    from warp_vision.sim.loop import CONTROL_DT
+
+    if not (loop.period % loop.frame_every == 1 and phase > 0):
+        return False
+    since = t - starts[phase]
+    return (since < loop.frame_every * CONTROL_DT
+            or abs(t - (starts[phase + 1] - 0.1)) < loop.frame_every * CONTROL_DT / 2)
 
 
 def focus_summary(runs: list[list[dict]], goal_s: float = FOCUS_GOAL_S) -> dict:

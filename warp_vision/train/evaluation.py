@@ -17,9 +17,8 @@ from warp_vision.train.workers import rendering_lock
 def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
     """How ``evaluate`` names a run read other than as it stands: "RUN (latest.pt, epoch 9; views 1)";
     the run's best checkpoint with its own views is just "RUN". ``epoch``: the checkpoint's, 0-based."""
-    how = ([f"{checkpoint}.pt, epoch {epoch + 1}"] if checkpoint != "best" else []) + (
-        [f"views {views}"] if views is not None else []
-    )
+    how = [f"{checkpoint}.pt, epoch {epoch + 1}"] if checkpoint != "best" else []
+    how += [f"views {views}"] if views is not None else []
     return f"{run_dir} ({'; '.join(how)})" if how else str(run_dir)
 
 
