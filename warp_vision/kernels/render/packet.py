@@ -256,6 +256,13 @@ def _packet_traverse(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8
     closer, and the global triangle index, or -1. Any hit (True, shadow rays): children in stored order,
     a lane that hits anything is set to DEAD, and the traversal stops once every lane is dead; tri is
     left at -1.
+
+    Length: one function over the docs' ~80 lines. It is the renderer's innermost loop, and its steps share
+    and mutate the packet's limits ``tb``, its triangles ``tri``, the 64-entry ``stack`` and its pointer.
+    Split into Warp functions, those would travel by value (a copy of the stack per call) or as ``wp.ref``
+    parameters; either changes the code Warp generates for the loop that ``bench raytrace`` times, so it
+    stays whole until a split is timed there. The steps that need none of that state are helpers already
+    (``_slab_terms``, ``_packet_in_instance``, ``_children_hit``, ``tri_hit``).
     """
     tb = t_in
     tri = ivec8()
