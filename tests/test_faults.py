@@ -514,8 +514,8 @@ def test_out_naming_a_file_is_one_line(tmp_path, capsys):
     # deleting the directory "to rebuild the dataset", the foveation run's dataset
     (["pupil", "--eye", "left"], [], "holds another kind of dataset: its samples hold onv, target, meta;"),
 ])
-def test_a_data_dir_of_other_settings_is_refused_before_the_run_is_claimed(command, flags, says, tmp_path, capsys,
-                                                                           data):
+def test_a_data_dir_of_other_settings_is_refused_before_the_run_is_claimed(
+        command, flags, says, tmp_path, capsys, data):
     # it used to be found by the store after the preflight had printed "(already there)" and the run
     # directory had been claimed with its config.json
     manifest = (data / "manifest.json").read_bytes()

@@ -42,8 +42,8 @@ def test_bad_v8_configs_are_refused(kw, match):
 def test_room_families_are_disjoint_and_samples_do_not_depend_on_batching():
     train = [V.room_layout(0, 0, b) for b in range(20)]
     held = [V.room_layout(1, 0, b) for b in range(20)]
-    assert not any(np.isclose(a["size"][0], b["size"][0]) and np.isclose(a["size"][1],
-                                                                         b["size"][1]) for a in train for b in held)
+    assert not any(np.isclose(a["size"][0], b["size"][0]) and np.isclose(a["size"][1], b["size"][1])
+                   for a in train for b in held)
     cfg = FoveationDataConfig(samples=40, **SMALL)
     a, b = params(cfg, 5), params(cfg, 5)
     assert np.array_equal(a["ball"], b["ball"]) and np.array_equal(a["eye_pose"], b["eye_pose"])

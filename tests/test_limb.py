@@ -70,8 +70,8 @@ def test_rendered_samples_fill_the_fields_and_keep_to_one_room(poser):
         assert out[k].shape == (2, *shape) and out[k].dtype == np.dtype(dtype), k
     assert np.isfinite(out["onv"].astype(np.float32)).all() and out["onv"].astype(np.float32).max() > 0
     assert np.allclose(out["target"][1], sample_params(cfg, 1, poser)["target"], atol=1e-6)
-    assert out["meta"][0, META.index("ball_hand_left_m")] == pytest.approx(np.linalg.norm(out["target"][0, :3]),
-                                                                           rel=1e-5)
+    distance = np.linalg.norm(out["target"][0, :3])
+    assert out["meta"][0, META.index("ball_hand_left_m")] == pytest.approx(distance, rel=1e-5)
     with pytest.raises(ValueError, match="one chunk"):
         render_samples(cfg, [3, 4], poser, retina)
 

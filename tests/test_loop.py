@@ -109,8 +109,8 @@ def test_two_simulations_needing_one_net_train_it_once(tmp_path):
     a = threading.Thread(target=lambda: results.setdefault("a", provide([spec], False, lambda _m: None, slow)))
     a.start()
     assert started.wait(30)
-    b = threading.Thread(target=lambda: results.setdefault("b", provide([spec], False, lines.append,
-                                                                        _fake_trainer(second_calls))))
+    b = threading.Thread(target=lambda: results.setdefault(
+        "b", provide([spec], False, lines.append, _fake_trainer(second_calls))))
     b.start()
     _wait_for(lines, f"waiting for process {os.getpid()}, which is having the left eye's foveation net trained into")
     go.set()

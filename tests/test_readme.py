@@ -72,8 +72,8 @@ def _training_commands() -> list[list[str]]:
     for argv in commands() + commands(RESULTS):
         i = argv.index("-m")
         rest = argv[i + 2:]
-        if argv[i + 1] == "warp_vision.train" and rest[:1] not in (["compare"],
-                                                                   ["evaluate"]) and "--resume" not in rest:
+        if (argv[i + 1] == "warp_vision.train" and rest[:1] not in (["compare"], ["evaluate"])
+                and "--resume" not in rest):
             out.append(rest)
     return out
 

@@ -499,11 +499,11 @@ def test_the_misses_are_broken_down_by_eccentricity_size_and_scene(tmp_path, smo
     rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9)}
     assert rows[("eccentricity (deg)", "0-10")] == {"group": "eccentricity (deg)", "bin": "0-10", "n": 1, "off": 0.0,
                                                     "of_misses": 0.0}
-    assert rows[("eccentricity (deg)", "30-40")]["off"] == 1.0 and rows[("eccentricity (deg)",
-                                                                         "30-40")]["of_misses"] == 0.5
+    assert rows[("eccentricity (deg)", "30-40")]["off"] == 1.0
+    assert rows[("eccentricity (deg)", "30-40")]["of_misses"] == 0.5
     assert rows[("eccentricity (deg)", ">= 40")]["n"] == 1 and ("eccentricity (deg)", "20-30") not in rows
-    assert rows[("apparent radius (deg)", "2-4")]["n"] == 2 and rows[("apparent radius (deg)",
-                                                                      "2-4")]["of_misses"] == 1.0
+    assert rows[("apparent radius (deg)", "2-4")]["n"] == 2
+    assert rows[("apparent radius (deg)", "2-4")]["of_misses"] == 1.0
     assert rows[("apparent radius (deg)", "8-11")]["off"] == 0.0
     assert rows[("arm", "yes")]["off"] == 1.0 and rows[("arm", "no")]["off"] == 0.0
     assert rows[("decoy", "yes")]["n"] == 1 and rows[("decoy", "no")]["off"] == pytest.approx(2 / 3)

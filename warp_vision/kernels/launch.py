@@ -216,9 +216,8 @@ class _RecordedLaunches:
         for cmd in self.cmds[1:]:
             for i in index:
                 packed = first.params[i + 1]  # params[0]: the launch bounds
-                cmd.set_param_at_index_from_ctype(i,
-                                                  packed if isinstance(packed, (ctypes.Structure,
-                                                                                ctypes.Array)) else packed.value)
+                cmd.set_param_at_index_from_ctype(
+                    i, packed if isinstance(packed, (ctypes.Structure, ctypes.Array)) else packed.value)
 
     def release(self) -> None:
         """Drop the commands' references to the last arguments (Warp keeps the arrays, and so the

@@ -130,8 +130,8 @@ def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False)
     idx = np.flatnonzero(seen)
     dist = np.exp(predict_targets(net, onv[torch.as_tensor(idx)], ck["norm"], "cpu").numpy()[:, 0])
     poser = Poser()
-    true_ball = np.stack([ball_in_eye(cfg, int(i), poser) for i in tqdm(idx, desc="held-out balls",
-                                                                        disable=not progress)])
+    true_ball = np.stack([ball_in_eye(cfg, int(i), poser)
+                          for i in tqdm(idx, desc="held-out balls", disable=not progress)])
     est_ball = dist[:, None] * u[idx]
     target = d["target"][idx].astype(np.float64)  # ball - hand, each arm, eye frame
     pred = target + np.tile(est_ball - true_ball, 2)  # the hands at their true places

@@ -321,8 +321,8 @@ class FoveationTask(harness.OnvTask):
             return (f"cnn ({model.warp.size} x {model.warp.size} foveated image, heat map read-out): "
                     f"{sum(p.numel() for p in model.parameters()):,} parameters")
         b = model.backbone
-        layers = getattr(b, "layer_sizes", None) or [f"{n}x{c}" for n, c in zip(getattr(b, "layer_sites", [])[1:],
-                                                                                getattr(b, "channels", []))]
+        layers = getattr(b, "layer_sizes", None) or [
+            f"{n}x{c}" for n, c in zip(getattr(b, "layer_sites", [])[1:], getattr(b, "channels", []))]
         return (f"{self.cfg.model} ({self.cfg.head_kind()} head): {sum(p.numel() for p in model.parameters()):,} "
                 f"parameters, layers {layers}")
 

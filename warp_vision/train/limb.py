@@ -114,9 +114,8 @@ class LimbTask(harness.OnvTask):
                 "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
         if c.model in ("cnn", "range"):  # its image's warp: the directions the photoreceptors see at the default optics
-            spec.update(channels=c.channels, image_size=IMAGE_SIZE,
-                        photoreceptor_angles=torch.from_numpy(np.asarray(self.retina.visual_angles(NavarroEye()),
-                                                                         np.float64)))
+            angles = np.asarray(self.retina.visual_angles(NavarroEye()), np.float64)
+            spec.update(channels=c.channels, image_size=IMAGE_SIZE, photoreceptor_angles=torch.from_numpy(angles))
         if c.model == "range":
             from warp_vision.nn.retina_cnn import RANGE_ECC_DEG, RANGE_IMAGE_SIZE, RANGE_POWER
 
