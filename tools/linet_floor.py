@@ -27,8 +27,8 @@ from pathlib import Path
 
 importlib.import_module("warp_vision")  # before torch: it sets OMP_WAIT_POLICY=PASSIVE
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
 from warp_vision.bench import torch_baselines as tb
 from warp_vision.bench.common import interleaved_ms, machine_info
