@@ -84,7 +84,8 @@ def main() -> None:
     tr = run_scenario(loop, args.duration, ball=lambda t: first if t < 0.5 else second, progress=False)
     wall = time.perf_counter() - t0
     print(f"{'nets in ' + args.nets if args.nets else 'oracle perception, holding activations'}; "
-          f"{'arms' if args.arms else 'bare torso'}; {len(tr['t'])} control periods, {-(-loop.period // loop.frame_every)} frames")
+          f"{'arms' if args.arms else 'bare torso'}; {len(tr['t'])} control periods, "
+          f"{-(-loop.period // loop.frame_every)} frames")
     print("    t (s)   gaze error left, right (deg)   head yaw (deg)")
     for k in range(9, len(tr["t"]), 10):
         print(f"   {tr['t'][k]:5.2f}   {tr['error_left'][k]:8.2f} {tr['error_right'][k]:8.2f}"

@@ -68,7 +68,8 @@ def main() -> None:
     head = torch.nn.Linear(net.out_features, 2).to(device)
     params = list(net.parameters()) + list(head.parameters())
     print(f"ONV x: {tuple(x.shape)}; liNet widths {net.layer_sizes}; "
-          f"{net.num_parameters():,} liNet parameters (a dense first layer would have {x.shape[1] * net.layer_sizes[1]:,})")
+          f"{net.num_parameters():,} liNet parameters (a dense first layer would have "
+          f"{x.shape[1] * net.layer_sizes[1]:,})")
     opt = torch.optim.Adam(params, lr=1e-3)
     for step in range(args.steps):
         features = net(x)  # [B, N_H]: Warp forward kernels

@@ -28,7 +28,8 @@ def main() -> None:
     p.add_argument("--photoreceptors", type=int, default=14_400, help="P, photoreceptors on the retina")
     p.add_argument("--samples", type=int, default=16, help="S, rays per photoreceptor and channel")
     p.add_argument("--layout", choices=["log-polar", "cone-density"], default="log-polar")
-    p.add_argument("--accommodation", type=float, default=0.5, help="lens accommodation, dioptres (0.5: focused at 2 m)")
+    p.add_argument("--accommodation", type=float, default=0.5,
+                   help="lens accommodation, dioptres (0.5: focused at 2 m)")
     p.add_argument("--pupil", type=float, default=4.0, help="pupil diameter, mm")
     p.add_argument("--out", default="runs/examples/render_eye", help="output directory")
     args = p.parse_args()

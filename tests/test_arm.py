@@ -10,7 +10,7 @@ import torch
 from warp_vision.body import Body
 from warp_vision.nn.arm import ArmNets, PostureNet, VoluntaryNet
 from warp_vision.nn.trained import load_net
-from warp_vision.sim.arm import (FRONT_M, Arm, ArmDataConfig, hold_start, reach_pairs, run_arm, solve_postures)
+from warp_vision.sim.arm import FRONT_M, Arm, ArmDataConfig, hold_start, reach_pairs, run_arm, solve_postures
 from warp_vision.train.cli import TASKS, _task_parser
 from warp_vision.train.cli import main as train_main
 
@@ -96,7 +96,7 @@ def test_nets_reject_bad_inputs_and_stay_in_range():
         lambda: nets.voluntary(d, a, q, v[:3]),  # velocities of another batch
         lambda: PostureNet()(np.zeros((2, 7))),  # not a tensor
     ]
-    for k, call in enumerate(bad):
+    for call in bad:
         with pytest.raises(ValueError):
             call()
     assert isinstance(nets.voluntary, VoluntaryNet)

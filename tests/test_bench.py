@@ -150,7 +150,8 @@ def test_cnn_bench_times_both_precisions_per_width_with_the_speedup(tmp_path):
 
 
 @pytest.mark.parametrize("argv, said", [  # small sizes: without the checks each fails in seconds
-    (["linet", "--photoreceptors", "100", "--batch", "0"], "--batch: expected a positive integer"),  # was torch's RuntimeError
+    # was torch's RuntimeError
+    (["linet", "--photoreceptors", "100", "--batch", "0"], "--batch: expected a positive integer"),
     (["linet", "--photoreceptors", "100", "--receptive-field", "0"], "--receptive-field"),
     (["linet", "--photoreceptors", "100", "--repeats", "0"], "--repeats"),
     (["raytrace", "--photoreceptors", "100", "--samples", "0"], "--samples"),

@@ -6,9 +6,24 @@ import numpy as np
 import pytest
 
 from warp_vision.body import Body, BodyConfig
-from warp_vision.sim.cannon import (ARM_REACH, ENVELOPE, GRAVITY, HELDOUT_SEEDS, SHOULDER_LEFT, SPLITS, TRAIN_SEEDS,
-                                    DeflectionDetector, arm_actuators, geom_parts, make_shot, part_name, run_shot,
-                                    sample_shots, shoulder, shot_from_seed)
+from warp_vision.sim.cannon import (
+    ARM_REACH,
+    ENVELOPE,
+    GRAVITY,
+    HELDOUT_SEEDS,
+    SHOULDER_LEFT,
+    SPLITS,
+    TRAIN_SEEDS,
+    DeflectionDetector,
+    arm_actuators,
+    geom_parts,
+    make_shot,
+    part_name,
+    run_shot,
+    sample_shots,
+    shot_from_seed,
+    shoulder,
+)
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +53,8 @@ def test_model_measures_match_the_constants(body):
     chain = [d.xpos[m.body(n).id] for n in ("humerus_l", "ulna_l", "lunate_l", "3proxph_l")]
     assert sum(np.linalg.norm(b - a) for a, b in zip(chain, chain[1:])) == pytest.approx(ARM_REACH, abs=0.005)
     parts = {part_name(*v) for v in geom_parts(m).values()}
-    assert parts == {"torso", "head", *(f"{p}_{s}" for p in ("hand", "forearm", "upper_arm") for s in ("left", "right"))}
+    assert parts == {"torso", "head",
+                     *(f"{p}_{s}" for p in ("hand", "forearm", "upper_arm") for s in ("left", "right"))}
     assert len(arm_actuators(body)) == 126  # myo-sim's 63 muscles per arm, no eye, neck or intraocular one
 
 

@@ -73,7 +73,8 @@ def test_foveator_own_scene_says_how_to_make_a_run(tmp_path):
 
 def test_foveator_own_scene_estimates_the_ball(tmp_path, finished):
     """The smoke run (3 epochs on 160 ONVs) is no good foveator, so the check is of sense, not accuracy."""
-    out = run("foveator_own_scene.py", "--run", str(finished), "--views", "4", "--out", str(tmp_path / "o"), cwd=tmp_path)
+    out = run("foveator_own_scene.py", "--run", str(finished), "--views", "4", "--out", str(tmp_path / "o"),
+              cwd=tmp_path)
     assert "a generator v7 net, P = 400" in out
     rows = re.findall(r"^ +(\d) +([+-][\d.]+) +([+-][\d.]+) +([+-][\d.]+) +([+-][\d.]+) +([\d.]+)$", out, flags=re.M)
     assert [int(r[0]) for r in rows] == [0, 1, 2, 3]

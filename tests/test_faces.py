@@ -203,7 +203,8 @@ def test_faces_smoke_end_to_end_and_resume(tmp_path, ids, smoke_data, capsys):
 def test_a_file_that_is_not_an_identity_cache_is_refused_by_name_and_left_alone(tmp_path, unclose_npz_headers):
     # --identities-cache README.md read as numpy's "pickled (object) data" error; a damaged header as
     # numpy's tokenize.TokenError
-    for name, content in (("notes.md", b"# notes\n"), ("empty.npz", b""), ("other.npz", None), ("damaged.npz", "damaged")):
+    for name, content in (("notes.md", b"# notes\n"), ("empty.npz", b""), ("other.npz", None),
+                          ("damaged.npz", "damaged")):
         f = tmp_path / name
         if content is None or content == "damaged":
             np.savez(f, vertices=np.zeros(3))

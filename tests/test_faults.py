@@ -13,8 +13,8 @@ import argparse
 import errno
 import hashlib
 import json
-import re
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -111,7 +111,8 @@ def test_a_resumed_run_takes_no_epoch_cap_under_what_it_has_trained(finished, tm
 
 def test_a_run_that_early_stopping_ended_trains_further_only_under_a_higher_cap(data, tmp_path, capsys):
     run = tmp_path / "run"
-    first = foveation.run(resolve("smoke", {"out": str(run), "data_dir": str(data), "patience": 1, "epochs": 8}), **QUIET)
+    first = foveation.run(resolve("smoke", {"out": str(run), "data_dir": str(data), "patience": 1, "epochs": 8}),
+                          **QUIET)
     done = first["epochs"]
     assert first["stopped"].startswith("early stop") and done < 8, first  # (the drill needs a run that ended early)
     rows = (run / "metrics.jsonl").read_text()
@@ -182,7 +183,8 @@ def test_a_file_that_is_no_checkpoint_is_named_as_such(finished, tmp_path):
     torch.save({"model": argparse.Namespace(lr=0.1)}, foreign)  # an object a weights-only load refuses
     cut.write_bytes((finished / "best.pt").read_bytes()[:-100])
     for path in (text, cut):
-        with pytest.raises(ValueError, match=r"not a readable checkpoint: not a whole zip archive as torch.save writes"):
+        with pytest.raises(ValueError,
+                           match=r"not a readable checkpoint: not a whole zip archive as torch.save writes"):
             read_checkpoint(path)
     with pytest.raises(ValueError, match=r"foreign.pt: not a checkpoint of this package: it holds objects that a "
                                          r"weights-only load refuses") as e:
@@ -229,7 +231,8 @@ def test_resume_and_evaluate_from_another_directory(data, tmp_path, capsys):
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
 def test_cuda_on_a_cpu_machine_fails_before_any_work(tmp_path, capsys):
     out = tmp_path / "run"
-    code, err = cli(["--preset", "smoke", "--out", str(out), "--data-dir", str(tmp_path / "d"), "--device", "cuda"], capsys)
+    code, err = cli(["--preset", "smoke", "--out", str(out), "--data-dir", str(tmp_path / "d"), "--device", "cuda"],
+                    capsys)
     assert code != 0 and one_line_naming(err, "cuda"), err
     assert not out.exists() and not (tmp_path / "d").exists()
 
@@ -247,7 +250,8 @@ def test_the_data_command_checks_the_device_first(tmp_path, capsys):
 @pytest.mark.parametrize("flag,value", [("--lr", "inf"), ("--lr", "nan"), ("--val-fraction", "nan"),
                                         ("--max-field-deg", "inf")])
 def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
-    code, err = cli(["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "d"), flag, value], capsys)
+    code, err = cli(["--preset", "smoke", "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "d"), flag,
+                     value], capsys)
     assert code == 2 and one_line_naming(err, flag + ":"), err
     assert not (tmp_path / "d").exists()
 
@@ -257,11 +261,15 @@ def test_non_finite_options_are_refused_by_name(flag, value, tmp_path, capsys):
     ("train", ["--preset", "smoke", "--out", "OUT", "--lr", "-1e-3"], "--lr: expected > 0, got -0.001"),
     ("train", ["faces", "--preset", "smoke", "--out", "OUT", "--lr", "-1"], "--lr: expected > 0, got -1.0"),
     ("train", ["limb", "--out", "OUT", "--epochs", "0"], "--epochs: expected a positive integer, got 0"),
-    ("train", ["evaluate", "RUN", "--conditions", "--samples", "3"], "--samples: expected at least 10 per condition, got 3"),
+    ("train", ["evaluate", "RUN", "--conditions", "--samples", "3"],
+     "--samples: expected at least 10 per condition, got 3"),
     ("data", ["foveation", "--out", "OUT", "--samples", "0"], "--samples: expected a positive integer, got 0"),
-    ("data", ["faces", "--out", "OUT", "--shard", "3/2"], "--shard: the index I in I/N must satisfy 0 <= I < N, got 3/2"),
-    ("data", ["foveation", "--out", "OUT", "--shard=a/2"], "--shard: expected 'I/N' with integers 0 <= I < N, got 'a/2'"),
-    ("data", ["foveation", "--out", "OUT", "--shard", "-1/2"], "--shard: expected 'I/N' with integers 0 <= I < N, got '-1/2'"),
+    ("data", ["faces", "--out", "OUT", "--shard", "3/2"],
+     "--shard: the index I in I/N must satisfy 0 <= I < N, got 3/2"),
+    ("data", ["foveation", "--out", "OUT", "--shard=a/2"],
+     "--shard: expected 'I/N' with integers 0 <= I < N, got 'a/2'"),
+    ("data", ["foveation", "--out", "OUT", "--shard", "-1/2"],
+     "--shard: expected 'I/N' with integers 0 <= I < N, got '-1/2'"),
     ("scene", ["demo", "--device", "gpu", "--out", "OUT"], "--device: expected cpu, cuda or cuda:N, got 'gpu'"),
     ("sim", ["intercept", "--perception-error-cm", "-1e1", "--out", "OUT"],
      "--perception-error-cm: expected distances of 0-500 cm with --shots, got [-10.0]"),
@@ -289,7 +297,8 @@ def test_a_directory_of_runs_is_refused_naming_the_runs_in_it(finished, tmp_path
         assert code == 2 and err == (f"error: {tmp_path / 'pupil'}: holds the runs left, right, not a run's {name}: "
                                      f"name one, e.g. {tmp_path / 'pupil' / 'left'}\n"), err
     code, err = cli(["evaluate", str(tmp_path / "pupil" / "figures")], capsys)  # no run below: as before
-    assert code == 2 and err == f"error: {tmp_path / 'pupil' / 'figures' / 'best.pt'}: no best.pt: is this a training run directory?\n", err
+    assert code == 2 and err == (f"error: {tmp_path / 'pupil' / 'figures' / 'best.pt'}: no best.pt: is this a training "
+                                 "run directory?\n"), err
 
 
 def test_a_resumed_runs_bad_setting_is_named_in_its_config_json(finished, tmp_path, capsys):
@@ -374,24 +383,30 @@ def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys)
     ("data", ["faces", "--samples", "10"], "(--samples is an option of foveation)"),
     # train's tasks, evaluate and compare are separate parsers, not subcommands: a flag of another was unnamed
     ("train", ["faces", "--preset", "smoke", "--samples", "5"], "unrecognized arguments: --samples 5 (--samples is "
-                                                                "an option of the foveation task, limb, pupil, lens and evaluate)"),
-    ("train", ["--preset", "smoke", "--conditions"], "unrecognized arguments: --conditions (--conditions is an option of evaluate)"),
+                                                                "an option of the foveation task, limb, pupil, lens "
+                                                                "and evaluate)"),
+    ("train", ["--preset", "smoke", "--conditions"],
+     "unrecognized arguments: --conditions (--conditions is an option of evaluate)"),
     ("train", ["compare", "r", "--out", "c.png", "--split", "val"], "(--split is an option of evaluate)"),
     ("train", ["evaluate", "r", "--lr", "0.1"], "(--lr is an option of the foveation task, faces, oculomotor, arm, "
                                                 "limb, pupil and lens)"),
     # a flag near another task's (not its own) was unnamed
     ("train", ["oculomotor", "--photoreceptor", "5"], "unrecognized arguments: --photoreceptor 5 (did you mean "
-                                                      "--photoreceptors, an option of the foveation task, faces, limb, pupil and lens?)"),
+                                                      "--photoreceptors, an option of the foveation task, faces, limb, "
+                                                      "pupil and lens?)"),
     ("sim", ["demo", "--shot", "5"], "(did you mean --shots, an option of intercept?)"),
     # a command's option given before the command: "unrecognized arguments: --quick (--quick is an option of
     # experiments, ...)", as if demo lacked it; "'quick' is not a command", its value taken for the command
-    ("sim", ["--quick", "demo", "--gif"], "error: --quick goes after the command: python -m warp_vision.sim demo --gif --quick\n"),
+    ("sim", ["--quick", "demo", "--gif"],
+     "error: --quick goes after the command: python -m warp_vision.sim demo --gif --quick\n"),
     ("data", ["--preset", "quick", "foveation"], "error: --preset goes after the command: python -m warp_vision.data "
                                                  "foveation --preset quick\n"),
     ("sim", ["--shots", "3", "demo"], "error: --shots is an option of intercept, given after the command: "
                                       "python -m warp_vision.sim COMMAND --shots 3\n"),
-    ("bench", ["--repeats", "3"], "error: --repeats is an option of linet, raytrace, readout and cnn, given after the command"),
-    ("train", ["--preset", "smoke", "faces"], "unrecognized arguments: faces (faces is a command: name it first, before the options)"),
+    ("bench", ["--repeats", "3"],
+     "error: --repeats is an option of linet, raytrace, readout and cnn, given after the command"),
+    ("train", ["--preset", "smoke", "faces"],
+     "unrecognized arguments: faces (faces is a command: name it first, before the options)"),
     ("bench", ["linet", "--batchs=3"], "unrecognized arguments: --batchs=3 (did you mean --batch?)"),
     ("train", ["limb", "--epoch", "3"], "unrecognized arguments: --epoch 3 (did you mean --epochs?)"),
     ("scene", ["demo", "--bogus"], "error: unrecognized arguments: --bogus (python -m warp_vision.scene demo --help "
@@ -464,7 +479,8 @@ def test_a_failed_allocation_is_one_line_and_other_runtime_errors_still_raise(ca
 
 @pytest.mark.parametrize("command", [
     ["train", "--preset", "smoke", "--data-seed", "-1"], ["train", "--preset", "smoke", "--seed", "-1"],
-    ["train", "faces", "--preset", "smoke", "--identity-seed", "-1"], ["train", "pupil", "--preset", "smoke", "--seed", "-1"],
+    ["train", "faces", "--preset", "smoke", "--identity-seed", "-1"],
+    ["train", "pupil", "--preset", "smoke", "--seed", "-1"],
     ["train", "limb", "--preset", "smoke", "--data-seed", "-1"], ["data", "foveation", "--seed", "-1"],
     ["data", "faces", "--identity-seed", "-1"], ["train", "--preset", "smoke", "--seed", "2147483648"],
     ["data", "foveation", "--seed", "1180591620717411303424"],
@@ -498,11 +514,13 @@ def test_out_naming_a_file_is_one_line(tmp_path, capsys):
     # deleting the directory "to rebuild the dataset", the foveation run's dataset
     (["pupil", "--eye", "left"], [], "holds another kind of dataset: its samples hold onv, target, meta;"),
 ])
-def test_a_data_dir_of_other_settings_is_refused_before_the_run_is_claimed(command, flags, says, tmp_path, capsys, data):
+def test_a_data_dir_of_other_settings_is_refused_before_the_run_is_claimed(
+        command, flags, says, tmp_path, capsys, data):
     # it used to be found by the store after the preflight had printed "(already there)" and the run
     # directory had been claimed with its config.json
     manifest = (data / "manifest.json").read_bytes()
-    code, err = cli([*command, "--preset", "smoke", *flags, "--out", str(tmp_path / "run"), "--data-dir", str(data)], capsys)
+    code, err = cli([*command, "--preset", "smoke", *flags, "--out", str(tmp_path / "run"), "--data-dir", str(data)],
+                    capsys)
     assert code == 2 and one_line_naming(err, str(data / "manifest.json")) and says in err, err
     assert ("delete" in err) == (not command), err
     assert not (tmp_path / "run").exists()
@@ -571,7 +589,8 @@ def test_an_output_where_nothing_can_be_made_is_refused_whatever_the_mode_says(t
 @pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
 def test_a_dataset_directory_where_nothing_can_be_made_is_refused_before_the_run_is_claimed(data, tmp_path, capsys):
     # it was "No space left for the dataset: about 378 KiB needed, 0 KiB free", after --out was claimed
-    code, err = cli(["--preset", "smoke", "--data-dir", "/proc/warp_vision_data", "--out", str(tmp_path / "run")], capsys)
+    code, err = cli(["--preset", "smoke", "--data-dir", "/proc/warp_vision_data", "--out", str(tmp_path / "run")],
+                    capsys)
     assert code == 2 and "--data-dir: /proc: nothing can be made there" in err, err
     assert not (tmp_path / "run").exists()
     # the data command's was "/proc/warp_vision_data: No such file or directory", from its first mkdir
@@ -622,7 +641,9 @@ def test_a_training_run_refuses_a_dataset_the_disk_cannot_hold_before_rendering(
     data = tmp_path / "d"
     code, err = cli(["--preset", "smoke", "--samples", "1000", "--out", str(tmp_path / "run"), "--data-dir", str(data)],
                     capsys)
-    assert code == 2 and "error: " + str(data) + ": No space left for the dataset: about 2 MiB needed, 488 KiB free" in err, err
+    assert (
+        code == 2 and "error: " + str(data) + ": No space left for the dataset: about 2 MiB needed, 488 KiB free" in err
+    ), err
     assert not data.exists()
 
 
@@ -694,7 +715,8 @@ def _can_mount() -> bool:
 REAL_FS = _can_mount()
 
 
-@pytest.mark.skipif(not REAL_FS, reason="this machine does not let the tests mount a tmpfs; the injected ENOSPC drill covers it")
+@pytest.mark.skipif(not REAL_FS,
+                    reason="this machine does not let the tests mount a tmpfs; the injected ENOSPC drill covers it")
 def test_a_really_full_disk_while_synthesising(tmp_path, capsys):
     d = tmp_path / "small"
     assert _mount_tmpfs(d, "128k")
@@ -707,7 +729,8 @@ def test_a_really_full_disk_while_synthesising(tmp_path, capsys):
         subprocess.run(["umount", str(d)])
 
 
-@pytest.mark.skipif(not REAL_FS, reason="this machine does not let the tests mount a tmpfs; the injected EROFS drill covers it")
+@pytest.mark.skipif(not REAL_FS,
+                    reason="this machine does not let the tests mount a tmpfs; the injected EROFS drill covers it")
 def test_a_read_only_output(data, tmp_path, capsys):
     d = tmp_path / "ro"
     assert _mount_tmpfs(d, "4m")
@@ -727,7 +750,8 @@ def test_a_whole_dataset_on_a_read_only_disk_trains(data, tmp_path, capsys):
     try:
         shutil.copytree(data, d / "data")
         subprocess.run(["mount", "-o", "remount,ro", str(d)], check=True)
-        code, err = cli(["--preset", "smoke", "--data-dir", str(d / "data"), "--epochs", "1", "--out", str(tmp_path / "run")],
+        code, err = cli(["--preset", "smoke", "--data-dir", str(d / "data"), "--epochs", "1", "--out",
+                         str(tmp_path / "run")],
                         capsys)
         assert code == 0, err
         code, err = cli(["--preset", "smoke", "--samples", "200", "--data-dir", str(d / "other"), "--out",
@@ -786,9 +810,10 @@ def test_sigterm_during_training_says_where_the_run_stands_and_resume_finishes_i
     """SIGTERM (kill, a scheduler's preemption) ended the run without a word (exit -15); now it stops as
     Ctrl-C does: its line, exit 143, and --resume carries on to the same bytes."""
     run = tmp_path / "run"
-    p = subprocess.Popen([sys.executable, "-m", "warp_vision.train", "--preset", "smoke", "--out", str(run), "--data-dir",
-                          str(data), "--epochs", "3", "--no-progress"], env=dict(os.environ, PYTHONUNBUFFERED="1"),
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    p = subprocess.Popen([sys.executable, "-m", "warp_vision.train", "--preset", "smoke", "--out", str(run),
+                          "--data-dir", str(data), "--epochs", "3", "--no-progress"],
+                         env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                         text=True)
     lines = []
     for line in p.stdout:  # stop it at the first epoch's end (its checkpoint is written by then)
         lines.append(line)
@@ -875,7 +900,8 @@ def test_a_run_directory_another_process_trains_is_refused_and_freed_when_it_end
     assert cli(["--resume", str(run), "--epochs", "4"], capsys)[0] == 0
     # this process let go of it at the end: another can take it
     out = subprocess.run([sys.executable, "-c", "import sys; from pathlib import Path; "
-                          "from warp_vision.train.rundir import hold_run_dir; hold_run_dir(Path(sys.argv[1]))", str(run)],
+                          "from warp_vision.train.rundir import hold_run_dir; hold_run_dir(Path(sys.argv[1]))",
+                          str(run)],
                          capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     # and a refused new run (the directory holds one) lets go of it too
@@ -891,10 +917,11 @@ def test_a_run_waits_for_another_process_rendering_its_dataset_and_renders_nothi
     d = tmp_path / "data"
     cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(d)})
     other = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path\n"
-                              "from warp_vision.data.foveation import synthesize; from warp_vision.fileio import FileLock\n"
-                              "from warp_vision.train.config import resolve\n"
-                              "d = Path(sys.argv[1]); d.mkdir(); FileLock(d / '.render.lock').acquire(); print('held', flush=True)\n"
-                              "time.sleep(2); synthesize(d, resolve('smoke', {}).data_config(), progress=False, log=print)",
+                              "from warp_vision.data.foveation import synthesize; from warp_vision.fileio import "
+                              "FileLock\nfrom warp_vision.train.config import resolve\n"
+                              "d = Path(sys.argv[1]); d.mkdir(); FileLock(d / '.render.lock').acquire(); print('held', "
+                              "flush=True)\ntime.sleep(2); synthesize(d, resolve('smoke', {}).data_config(), "
+                              "progress=False, log=print)",
                               str(d)], stdout=subprocess.PIPE, text=True)
     try:
         assert other.stdout.readline().strip() == "held"
@@ -983,8 +1010,10 @@ def test_ctrl_c_during_data_synthesis_says_the_same_command_carries_on(tmp_path,
         raise KeyboardInterrupt
 
     monkeypatch.setattr(data_cli, "synthesize", ctrl_c)
-    assert data_cli.main(["foveation", "--samples", "8", "--photoreceptors", "400", "--out", str(tmp_path / "d")]) == 130
-    assert capsys.readouterr().err == "interrupted: the chunks written are kept; the same command carries on from them\n"
+    assert data_cli.main(["foveation", "--samples", "8", "--photoreceptors", "400", "--out",
+                          str(tmp_path / "d")]) == 130
+    assert capsys.readouterr().err == ("interrupted: the chunks written are kept; the same command carries on from "
+                                       "them\n")
 
 
 class _SlowRender:
@@ -1037,8 +1066,8 @@ def test_a_synthesis_helper_ends_when_its_parent_is_killed_outright(tmp_path):
         "from test_faults import _SlowRender\n"
         "from warp_vision.train.workers import _render_shard\n"
         "if __name__ == '__main__':\n"
-        f"    p = mp.get_context('spawn').Process(target=_render_shard, args=(_SlowRender, {str(tmp_path)!r}, (1, 2), 1))\n"
-        "    p.start()\n"
+        f"    p = mp.get_context('spawn').Process(target=_render_shard, args=(_SlowRender, {str(tmp_path)!r}, (1, 2), "
+        "1))\n    p.start()\n"
         "    print(p.pid, flush=True)\n"
         "    time.sleep(120)\n")
     parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
@@ -1105,7 +1134,9 @@ def test_render_onv_refuses_rays_that_cannot_fit_before_allocating():
     from warp_vision.kernels.render import render_onv
 
     retina, eye, pose = _eye_and_pose()
-    with pytest.raises(ValueError, match=r"render_onv \(B=1, P=50, S=1,000,000,000\) needs about .* GiB.*lower samples_per_receptor"):
+    with pytest.raises(
+        ValueError, match=r"render_onv \(B=1, P=50, S=1,000,000,000\) needs about .* GiB.*lower samples_per_receptor"
+    ):
         render_onv(_tiny_scene(), retina, eye, pose[None], samples_per_receptor=10**9)
 
 
@@ -1135,7 +1166,8 @@ def test_a_pose_with_a_wrong_bottom_row_is_refused():
         render_onv(_tiny_scene(), retina, eye, bad[None], samples_per_receptor=1)
 
 
-@pytest.mark.parametrize("kw", [dict(accommodation_D=None), dict(pupil_diameter_mm=[4.0]), dict(lens_semi_diameter_mm=float("nan"))])
+@pytest.mark.parametrize("kw", [dict(accommodation_D=None), dict(pupil_diameter_mm=[4.0]),
+                                dict(lens_semi_diameter_mm=float("nan"))])
 def test_navarro_eye_names_a_bad_argument(kw):
     from warp_vision.eye.optics import NavarroEye
 
@@ -1165,7 +1197,8 @@ def test_a_bad_memory_cap_in_the_environment_is_refused_by_name(value, monkeypat
     monkeypatch.setenv("WARP_VISION_MEMORY_LIMIT", "1e3")
     assert available_memory_bytes() == 1000
     require_memory(1000, "a dataset", "--samples")
-    with pytest.raises(ValueError, match="a dataset needs about 2 KiB, more than the 1 KiB of memory available; lower --samples"):
+    with pytest.raises(ValueError,
+                       match="a dataset needs about 2 KiB, more than the 1 KiB of memory available; lower --samples"):
         require_memory(2000, "a dataset", "--samples")
 
 

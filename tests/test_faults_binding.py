@@ -88,7 +88,8 @@ def test_the_other_eyes_best_pt_is_refused_by_every_reader(left, right, tmp_path
     shutil.copy(left / "best.pt", run / "best.pt")
     code, err = _cli(["evaluate", str(run)], capsys)
     assert code == 2
-    _one_line(err, "best.pt belongs to the left eye's foveation run", "the right eye's", "eye 'left' there, 'right' here")
+    _one_line(err, "best.pt belongs to the left eye's foveation run", "the right eye's",
+              "eye 'left' there, 'right' here")
     why = NetSpec("foveation", "right", str(run), "quick").mismatch()
     assert why and "left eye's" in why
     with pytest.raises(ValueError, match="belongs to the left eye's"):

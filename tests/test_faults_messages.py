@@ -16,7 +16,6 @@ import pytest
 
 from warp_vision.__main__ import main as index_main
 from warp_vision.data.foveation import synthesize
-from warp_vision.train import foveation
 from warp_vision.train.cli import main as train_main
 from warp_vision.train.config import resolve
 

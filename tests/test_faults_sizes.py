@@ -69,7 +69,9 @@ def test_an_icosphere_is_bounded_before_its_mesh_is_built(monkeypatch):
     with pytest.raises(ValueError, match="subdivisions: expected an integer"):
         Scene().add_sphere("b", 0.1, subdivisions=2.5)
     monkeypatch.setenv("WARP_VISION_MEMORY_LIMIT", str(2**30))
-    with pytest.raises(ValueError, match=r"an icosphere of 9 subdivisions \(5,242,880 triangles\) needs about 2.0 GiB, more than the 1.0 GiB"):
+    with pytest.raises(ValueError,
+                       match=r"an icosphere of 9 subdivisions \(5,242,880 triangles\) needs about 2.0 GiB, more than "
+                             r"the 1.0 GiB"):
         Scene().add_sphere("b", 0.1, subdivisions=9)
     Scene().add_sphere("b", 0.1, subdivisions=3)
 

@@ -42,7 +42,8 @@ def test_bad_v8_configs_are_refused(kw, match):
 def test_room_families_are_disjoint_and_samples_do_not_depend_on_batching():
     train = [V.room_layout(0, 0, b) for b in range(20)]
     held = [V.room_layout(1, 0, b) for b in range(20)]
-    assert not any(np.isclose(a["size"][0], b["size"][0]) and np.isclose(a["size"][1], b["size"][1]) for a in train for b in held)
+    assert not any(np.isclose(a["size"][0], b["size"][0]) and np.isclose(a["size"][1], b["size"][1])
+                   for a in train for b in held)
     cfg = FoveationDataConfig(samples=40, **SMALL)
     a, b = params(cfg, 5), params(cfg, 5)
     assert np.array_equal(a["ball"], b["ball"]) and np.array_equal(a["eye_pose"], b["eye_pose"])
@@ -72,8 +73,12 @@ def test_the_mixture_and_the_conditions_follow_their_rules():
         if not p["kind"]["glow"]:
             assert not p["ball_material"]["emission"].any()
     assert len({tuple(np.round(p["ball_material"]["diffuse"], 3)) for p in mixed}) > 200
-    by = {c: [params(FoveationDataConfig(condition=c, rooms="heldout", **SMALL), i) for i in range(30)] for c in V.CONDITIONS[1:]}
-    assert all(p["kind"]["glow"] and p["kind"]["dim"] and p["ball_material"]["emission"].max() == V.GLOW for p in by["glow_dim"])
+    by = {c: [params(FoveationDataConfig(condition=c, rooms="heldout", **SMALL),
+                     i) for i in range(30)] for c in V.CONDITIONS[1:]}
+    assert all(
+        p["kind"]["glow"] and p["kind"]["dim"] and p["ball_material"]["emission"].max() == V.GLOW
+        for p in by["glow_dim"]
+    )
     for p in by["white"]:
         d = p["ball_material"]["diffuse"]
         assert d.min() >= 0.8 and np.ptp(d) == 0 and not p["ball_material"]["emission"].any()
@@ -143,8 +148,9 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
 
     runs = []
     for gen in (7, 8):
-        cfg = resolve("smoke", {"out": str(tmp_path / f"v{gen}"), "data_dir": str(tmp_path / f"data{gen}"), "generator": gen,
-                                "epochs": 1})
+        cfg = resolve("smoke",
+                      {"out": str(tmp_path / f"v{gen}"), "data_dir": str(tmp_path / f"data{gen}"), "generator": gen,
+                       "epochs": 1})
         foveation.run(cfg, progress=False, log=lambda *a: None)
         runs.append(str(tmp_path / f"v{gen}"))
     import os
@@ -156,8 +162,8 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     finally:
         os.chdir(cwd)
     out = capsys.readouterr().out
-    for label in ("glowing ball, dim room", "lit white ball", "coloured matte ball", "brighter object", "arm in view", "round decoy",
-                  "own test split"):
+    for label in ("glowing ball, dim room", "lit white ball", "coloured matte ball", "brighter object", "arm in view",
+                  "round decoy", "own test split"):
         assert label in out
     table = [line for line in out.splitlines() if line.startswith("| ")]
     assert len(table) == 1 + len(V.CONDITIONS) and all(line.count("/") >= 2 for line in table[1:])
@@ -188,13 +194,15 @@ def test_evaluate_conditions_prints_one_table_for_several_runs(tmp_path, capsys)
     # --checkpoint latest: the last epoch's weights (here the run's only epoch), beside the best's files
     os.chdir(tmp_path)
     try:
-        assert train_main(["evaluate", runs[1], "--conditions", "--samples", "12", "--checkpoint", "latest", "--no-progress"]) == 0
+        assert train_main(["evaluate", runs[1], "--conditions", "--samples", "12", "--checkpoint", "latest",
+                           "--no-progress"]) == 0
     finally:
         os.chdir(cwd)
     assert f"{runs[1]} (latest.pt, epoch 1)" in capsys.readouterr().out
     latest = json.loads((tmp_path / runs[1] / "conditions_latest.json").read_text())
     assert latest["checkpoint"] == "latest" and latest["epoch"] == 1
-    assert latest["results"] == json.loads((tmp_path / runs[1] / "conditions.json").read_text())["results"]  # one epoch: the same net
+    # one epoch: the same net
+    assert latest["results"] == json.loads((tmp_path / runs[1] / "conditions.json").read_text())["results"]
     assert (tmp_path / runs[1] / "figures" / "conditions_latest.png").exists()
 
 
@@ -207,8 +215,12 @@ def test_furniture_shape_names_each_piece_of_a_room():
     for o in pieces:  # a box has 8 corners; a cylinder is round
         assert (len(o.mesh.vertices) == 8) == (furniture_shape(o.name) == "box"), o.name
     assert [furniture_shape(o.name) for o in pieces] == ["box", "cylinder", "box", "cylinder", "box"]
-    assert F._landed_class("object_1") == "furniture: cylinder" and F._landed_class("wall_north") == "wall, floor or ceiling"
-    assert [F._landed_class(n) for n in ("decoy_barrel", "decoy_drum", "decoy_plate")] == ["decoy: barrel", "decoy: drum", "decoy: plate"]
+    assert (
+        F._landed_class("object_1") == "furniture: cylinder"
+        and F._landed_class("wall_north") == "wall, floor or ceiling"
+    )
+    assert [F._landed_class(n) for n in ("decoy_barrel", "decoy_drum",
+                                         "decoy_plate")] == ["decoy: barrel", "decoy: drum", "decoy: plate"]
     for bad in ("wall_north", "object_", "object_x"):
         with pytest.raises(ValueError, match="furniture"):
             furniture_shape(bad)

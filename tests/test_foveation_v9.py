@@ -37,7 +37,8 @@ def test_decoys_follow_their_rules():
     share = np.mean([bool(shown(p)) for p in mixed])
     assert 0.15 < share < 0.4, share
     assert not any(shown(p) for p in mixed if p["kind"]["dim"])  # v7's condition stays v7's
-    decoy = [params(FoveationDataConfig(generator=9, condition="decoy", rooms="heldout", **SMALL), i) for i in range(80)]
+    decoy = [params(FoveationDataConfig(generator=9, condition="decoy", rooms="heldout", **SMALL),
+                    i) for i in range(80)]
     assert np.mean([bool(shown(p)) for p in decoy]) > 0.95
     for c in ("white", "arm", "glow_dim"):
         assert not any(shown(params(FoveationDataConfig(generator=9, condition=c, **SMALL), i)) for i in range(20))
@@ -86,8 +87,8 @@ def test_decoys_are_rendered_in_sight_and_the_ball_stays_visible():
 
 
 def test_the_training_presets_use_v9():
-    from warp_vision.train.config import resolve
     from warp_vision.train.conditions import condition_config
+    from warp_vision.train.config import resolve
 
     for preset in ("quick", "default", "paper"):
         assert resolve(preset, {}).generator == 9
@@ -125,7 +126,8 @@ def test_ball_signal_renders_the_dataset_s_onvs_and_measures_each_ball():
     assert (sig["landed_on"] == "ball").mean() >= 0.75  # the centre of a partly hidden ball may be behind something
     # the way back: from the eye away from the ball reaches something else
     away = gaze_angles(-gaze_directions(targets))
-    again = F.ball_signal(cfg, idx[::-1], retina, eye, directions=away[::-1], with_onv=True, chance_directions=targets[::-1])
+    again = F.ball_signal(cfg, idx[::-1], retina, eye, directions=away[::-1], with_onv=True,
+                          chance_directions=targets[::-1])
     assert np.array_equal(again["receptors"], sig["receptors"][::-1]) and np.array_equal(again["onv"], sig["onv"][::-1])
     assert not (again["landed_on"] == "ball").any() and set(again["landed_on"]) <= set(F.LANDED_ON)
     assert np.array_equal(again["chance_landed_on"], sig["landed_on"][::-1])  # chance directions are followed alike

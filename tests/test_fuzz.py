@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-import fuzz_cli  # noqa: E402
+import fuzz_cli
 
 CASES = int(os.environ.get("WARP_VISION_FUZZ_CASES", "24"))
 SEED = int(os.environ.get("WARP_VISION_FUZZ_SEED", "1"))

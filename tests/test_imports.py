@@ -15,7 +15,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "warp_vision"
 
-#: stage -> the stages it may import (besides itself). ``frames``, ``fileio``, ``resources``, ``errors`` and ``limits`` are the foundations.
+#: stage -> the stages it may import (besides itself). ``frames``,
+#: ``fileio``, ``resources``, ``errors`` and ``limits`` are the foundations.
 ALLOWED = {
     "foundation": set(),
     "eye": {"foundation"},
@@ -153,7 +154,10 @@ def test_the_checks_fail_on_a_backward_import_and_a_cycle(tmp_path):
     assert any("warp_vision.eye.retina (eye) imports warp_vision.nn" in v for v in stage_violations(import_graph(root)))
     loop = root / "sim" / "loop.py"
     loop.write_text(loop.read_text() + "\nfrom warp_vision.train import harness\n")
-    assert any("warp_vision.sim.loop (sim) imports warp_vision.train.harness" in v for v in stage_violations(import_graph(root)))
+    assert any(
+        "warp_vision.sim.loop (sim) imports warp_vision.train.harness" in v
+        for v in stage_violations(import_graph(root))
+    )
     frames = root / "frames.py"
     frames.write_text(frames.read_text() + "\nfrom warp_vision import fileio\n")
     fileio = root / "fileio.py"

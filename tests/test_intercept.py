@@ -11,8 +11,14 @@ import torch
 from warp_vision.body import Body
 from warp_vision.nn.arm import ArmNets
 from warp_vision.sim.cannon import ARM_REACH, arm_actuators, make_shot, run_shot, sample_shots, shoulder
-from warp_vision.sim.intercept import (MIN_FRONT, REACH_FRACTION, arm_interceptor, ballistic_path, intercept_point,
-                                       intercept_stats)
+from warp_vision.sim.intercept import (
+    MIN_FRONT,
+    REACH_FRACTION,
+    arm_interceptor,
+    ballistic_path,
+    intercept_point,
+    intercept_stats,
+)
 
 TRAINED_LEFT = Path(__file__).resolve().parents[1] / "runs" / "arm" / "left"
 
@@ -48,7 +54,8 @@ def test_intercept_point_lies_on_the_predicted_path_within_reach():
             assert hit is not None, (shot.seed, aim)
             point, tau = hit
             assert np.allclose(point, ballistic_path(p0, v0, [tau])[0], atol=1e-9)
-            assert np.linalg.norm(point - sh) <= REACH_FRACTION * ARM_REACH + 0.02  # the plane crossing: within a path step
+            # the plane crossing: within a path step
+            assert np.linalg.norm(point - sh) <= REACH_FRACTION * ARM_REACH + 0.02
             assert point[1] <= sh[1] - MIN_FRONT + 0.02
         # the plane through the shot's target: the path (with gravity) crosses it at the target, at the flight time
         point, tau = intercept_point(p0, v0, sh, hand, "plane", plane_y=shot.target[1])
@@ -70,7 +77,7 @@ def test_controller_sets_only_its_arm_within_bounds(body, untrained):
         assert np.linalg.norm(ctrl.arm.hand(body.data) - ctrl.ready_hand) < 0.01
         seen = []
 
-        def watch(b, t):
+        def watch(b, t, ctrl=ctrl, seen=seen):
             ctrl(b, t)
             seen.append(b.data.ctrl.copy())
 

@@ -24,7 +24,8 @@ def test_region_log_means_match_a_plain_reference():
     region = retina_regions(xy, 3, 4)
     x = onv.double().numpy().reshape(5, -1, 3)
     for r in range(12):
-        np.testing.assert_allclose(got[:, r].numpy(), np.log10(x[:, region == r].mean(1) + LOG_FLOOR), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(got[:, r].numpy(), np.log10(x[:, region == r].mean(1) + LOG_FLOOR), rtol=1e-5,
+                                   atol=1e-5)
     np.testing.assert_allclose(got[:, 12].numpy(), np.log10(x.mean(1) + LOG_FLOOR), rtol=1e-5, atol=1e-5)
     counts = np.bincount(region, minlength=12).reshape(3, 4).sum(1)
     assert counts.max() - counts.min() <= 1  # rings of equal photoreceptor counts
@@ -38,7 +39,8 @@ def test_the_pupil_net_refuses_bad_inputs_and_answers_within_the_iris_range():
     out = net(onv, torch.tensor([2.0, 4.0, 8.0]))
     assert out.shape == (3,) and ((out > 2) & (out < 8)).all()
     for bad, match in [((torch.rand(3, 899), [4.0] * 3), r"\[B, 900\]"), ((torch.rand(900), [4.0]), r"\[B, 900\]"),
-                       ((-torch.rand(3, 900), [4.0] * 3), ">= 0"), ((torch.full((3, 900), float("nan")), [4.0] * 3), "finite"),
+                       ((-torch.rand(3, 900), [4.0] * 3), ">= 0"),
+                       ((torch.full((3, 900), float("nan")), [4.0] * 3), "finite"),
                        ((onv, [4.0, 4.0]), "one diameter per ONV"), ((onv, [4.0, 0.0, 4.0]), r"\(0, 10\]"),
                        ((onv, [4.0, 11.0, 4.0]), r"\(0, 10\]")]:
         with pytest.raises(ValueError, match=match):
@@ -75,7 +77,8 @@ def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
     from warp_vision.train.config_intraocular import PUPIL_PRESETS, PupilTrainConfig
     from warp_vision.train.pupil import run
 
-    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, PupilTrainConfig, PUPIL_PRESETS)
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, PupilTrainConfig,
+                  PUPIL_PRESETS)
     summary = run(cfg, progress=False, log=lambda *_a, **_k: None)
     held = summary["heldout"]
     assert set(held) >= {"median_error_mm", "p90_error_mm", "median_relative_error", "within_5pct"}
@@ -87,7 +90,9 @@ def test_a_smoke_pupil_run_trains_and_measures_held_out_rooms(tmp_path):
 
     with pytest.raises(ValueError, match="expected a lens run"):
         load_lens(str(tmp_path / "run"))
-    with pytest.raises(ValueError, match=r"expected a foveation run \(python -m warp_vision.train\); it holds a net of kind 'pupil'"):
+    with pytest.raises(
+        ValueError, match=r"expected a foveation run \(python -m warp_vision.train\); it holds a net of kind 'pupil'"
+    ):
         Foveator(str(tmp_path / "run"))
     with pytest.raises(ValueError, match="pupil_mm"):
         load_pupil(str(tmp_path / "run"))(torch.rand(2, 3 * cfg.photoreceptors), torch.tensor([3.0]))
@@ -232,7 +237,9 @@ def test_the_lens_holds_on_an_image_without_contrast():
     c_uni = float(net.contrast(net.raw_features(uniform, torch.tensor([4.0])))[0])
     assert c_uni < -7 < c_tex
     net.contrast_floor.fill_(c_tex - 1.0)
-    central = lambda onv: onv.view(1, 300, 3)[:, :100].reshape(1, 300)  # the loop renders the net's field only
+    def central(onv):  # the loop renders the net's field only
+        return onv.view(1, 300, 3)[:, :100].reshape(1, 300)
+
     assert _lens_command(net, central(uniform), 2.0, 4.0, hold=1.5) == (1.5, None)
     cmd, d = _lens_command(net, central(textured), 2.0, 4.0, hold=1.5)
     assert d is not None and cmd == pytest.approx(2.0 - d)
@@ -248,7 +255,8 @@ def test_lens_samples_fill_the_central_field_with_a_card_at_the_stated_defocus()
     pos = np.asarray(retina.positions_optical_mm)[central]
     d = render_lens_samples(cfg, range(12, 20), pos)
     np.testing.assert_allclose(d["defocus"], d["accommodation"] - 1.0 / d["distance"], atol=1e-5)
-    assert np.all(np.abs(d["defocus"]) <= cfg.defocus_range_D + 1e-6) and np.all((d["distance"] >= 0.2) & (d["distance"] <= 5.0))
+    assert np.all(np.abs(d["defocus"]) <= cfg.defocus_range_D + 1e-6)
+    assert np.all((d["distance"] >= 0.2) & (d["distance"] <= 5.0))
     onv = d["onv"].astype(np.float32).reshape(len(d["onv"]), -1, 3)
     assert (onv.sum(2) > 0).all()  # every central photoreceptor sees the card (the background is black)
     again = render_lens_samples(cfg, [13], pos)
@@ -264,7 +272,8 @@ def test_a_smoke_lens_run_trains_and_measures_held_out_cards(tmp_path, monkeypat
 
     monkeypatch.setattr(lens, "CALIBRATE_MIN_SAMPLES", 1)  # the smoke set is too small for the real threshold
 
-    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, LensTrainConfig, LENS_PRESETS)
+    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data")}, LensTrainConfig,
+                  LENS_PRESETS)
     said = []
     summary = run(cfg, progress=False, log=lambda *a, **_k: said.append(" ".join(map(str, a))))
     assert {"median_error_D", "p90_error_D", "sign_correct_above_0.5D"} <= set(summary["heldout"])
@@ -309,7 +318,8 @@ def test_the_lens_bias_table_is_the_median_error_near_focus():
     table = fit_bias(pred, true, acc)
     inside = LENS_BIAS_KNOTS_D <= 4.0
     np.testing.assert_allclose(table[inside], 0.05 * LENS_BIAS_KNOTS_D[inside] - 0.1, atol=0.01)
-    np.testing.assert_allclose(table[LENS_BIAS_KNOTS_D > 4.5], table[LENS_BIAS_KNOTS_D == 4.0][0], atol=1e-12)  # held flat
+    # held flat
+    np.testing.assert_allclose(table[LENS_BIAS_KNOTS_D > 4.5], table[LENS_BIAS_KNOTS_D == 4.0][0], atol=1e-12)
     assert np.all(fit_bias(pred, true + 5.0, acc) == 0.0)  # nothing near focus: no correction
     with pytest.raises(ValueError, match="as many"):
         fit_bias(pred, true[:-1], acc)
@@ -332,7 +342,9 @@ def test_the_lens_net_subtracts_its_bias_at_the_lens_state():
 def test_focus_summary_counts_the_steps_in_focus_by_the_goal():
     from warp_vision.sim.scenarios import focus_summary
 
-    step = lambda to, t, end: {"from_m": 2.0 if to < 1 else 0.33, "to_m": to, "in_focus_s": t, "end_defocus_D": end}
+    def step(to, t, end):
+        return {"from_m": 2.0 if to < 1 else 0.33, "to_m": to, "in_focus_s": t, "end_defocus_D": end}
+
     runs = [[step(0.33, 1.0, -0.1), step(2.0, 0.8, 0.05)], [step(0.33, None, -0.3), step(2.0, 1.3, 0.2)]]
     f = focus_summary(runs, goal_s=1.2)
     assert f["near"]["steps"] == 2 and f["near"]["in_focus_within_goal"] == 1 and f["near"]["median_in_focus_s"] is None

@@ -198,7 +198,7 @@ def test_gradcheck_float64(B, feature_major_x, device):
     for relu in (False, True):
         inputs = tuple(t.clone().requires_grad_(True) for t in (x, w, b))
         assert torch.autograd.gradcheck(
-            lambda x_, w_, b_: locally_connected(x_, w_, b_, index, relu=relu), inputs, eps=1e-6, atol=1e-8
+            lambda x_, w_, b_, relu=relu: locally_connected(x_, w_, b_, index, relu=relu), inputs, eps=1e-6, atol=1e-8
         )
 
 
@@ -333,7 +333,8 @@ def test_a_plan_for_other_values_is_refused():
         (lambda a: a.update(x=a["x"].to(torch.int32)), "x: expected dtype float32, float64, float16 or bfloat16"),
         (lambda a: a.update(x=a["x"].half(), weight=a["weight"].half()),
          r"weight: expected dtype torch.float32 \(float32 weights go with a torch.float16 x\)"),
-        (lambda a: a.update(weight=a["weight"].double()), r"weight: expected dtype torch.float32 \(the dtype of x\), got "
+        (lambda a: a.update(weight=a["weight"].double()),
+         r"weight: expected dtype torch.float32 \(the dtype of x\), got "
                                                           r"torch.float64; convert x \(x.to\(torch.float64\)\) or the "
                                                           r"layer \(.to\(torch.float32\)\)"),
         (lambda a: a.update(bias=a["bias"].double()), "bias: expected dtype torch.float32"),

@@ -8,10 +8,19 @@ import pytest
 import torch
 
 from warp_vision.sim.cannon import GRAVITY
-from warp_vision.sim.limb import (META, NEAR_M, SIDES, LimbDataConfig, Poser, dataset_fields, fit_ballistic,
-                                  render_samples, sample_params)
-from warp_vision.train.cli import main as train_main
+from warp_vision.sim.limb import (
+    META,
+    NEAR_M,
+    SIDES,
+    LimbDataConfig,
+    Poser,
+    dataset_fields,
+    fit_ballistic,
+    render_samples,
+    sample_params,
+)
 from warp_vision.sim.limb_errors import discrepancy_errors
+from warp_vision.train.cli import main as train_main
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +53,9 @@ def test_balls_lie_near_a_hand_or_on_a_shot_and_in_front_of_the_body(poser):
     for p in near:
         assert min(np.linalg.norm(p["ball"] - h) for h in p["hands"].values()) <= NEAR_M + 1e-9
     for p in ps:
-        assert p["ball"][1] < SHOULDER_LEFT[1] and min(np.linalg.norm(p["ball"] - h) for h in p["hands"].values()) > 0.05
+        assert (
+            p["ball"][1] < SHOULDER_LEFT[1] and min(np.linalg.norm(p["ball"] - h) for h in p["hands"].values()) > 0.05
+        )
     assert {round(p["light"], 6) for p in ps}.__len__() > 30 and all(10 ** -0.5 <= p["light"] <= 10 ** 0.5 for p in ps)
 
 
@@ -59,12 +70,14 @@ def test_rendered_samples_fill_the_fields_and_keep_to_one_room(poser):
         assert out[k].shape == (2, *shape) and out[k].dtype == np.dtype(dtype), k
     assert np.isfinite(out["onv"].astype(np.float32)).all() and out["onv"].astype(np.float32).max() > 0
     assert np.allclose(out["target"][1], sample_params(cfg, 1, poser)["target"], atol=1e-6)
-    assert out["meta"][0, META.index("ball_hand_left_m")] == pytest.approx(np.linalg.norm(out["target"][0, :3]), rel=1e-5)
+    distance = np.linalg.norm(out["target"][0, :3])
+    assert out["meta"][0, META.index("ball_hand_left_m")] == pytest.approx(distance, rel=1e-5)
     with pytest.raises(ValueError, match="one chunk"):
         render_samples(cfg, [3, 4], poser, retina)
 
 
-@pytest.mark.parametrize("bad", [dict(eye="middle"), dict(samples=0), dict(rooms="attic"), dict(shots="test"), dict(ball="red")])
+@pytest.mark.parametrize("bad", [dict(eye="middle"), dict(samples=0), dict(rooms="attic"), dict(shots="test"),
+                                 dict(ball="red")])
 def test_bad_dataset_configs_are_refused(bad):
     with pytest.raises(ValueError):
         LimbDataConfig(**bad).validate()
@@ -148,7 +161,8 @@ def test_smoke_run_trains_and_reports_held_out_errors(tmp_path):
     assert ck["net"]["kind"] == "limb" and ck["data"]["eye"] == "left"
     x = torch.rand(2, 3 * 400, dtype=torch.float16)
     assert net(x.float() if ck["net"]["onv_dtype"] == "float32" else x).shape == (2, 6)
-    assert train_main(["limb", "--preset", "smoke", "--near-weight-m", "0", "--no-progress"]) == 2  # refused in one line
+    # refused in one line
+    assert train_main(["limb", "--preset", "smoke", "--near-weight-m", "0", "--no-progress"]) == 2
 
 
 def test_the_gaze_lines_cross_at_the_ball_and_fixation_vision_sees_it_there():
@@ -164,7 +178,8 @@ def test_the_gaze_lines_cross_at_the_ball_and_fixation_vision_sees_it_there():
     # parallel gaze lines: the depth is capped; a ray pointing away is cut at its origin
     far = nearest_to_rays(eyes["left"], u["left"], eyes["right"], u["left"])
     assert np.linalg.norm(far - eyes["left"]) <= MAX_DEPTH_M + 0.1
-    assert np.allclose(nearest_to_rays(eyes["left"], -u["left"], eyes["left"], -u["left"], 2.0), eyes["left"] - 2.0 * u["left"])
+    assert np.allclose(nearest_to_rays(eyes["left"], -u["left"], eyes["left"], -u["left"], 2.0),
+                       eyes["left"] - 2.0 * u["left"])
     # each eye off the ball by a few degrees: the foveation nets' estimates say by how much
     poses, est = {}, {}
     for s, o in eyes.items():
@@ -234,7 +249,8 @@ def test_limb_vision_with_ranging_nets_puts_the_ball_along_the_seen_direction(tm
 
     for eye in SIDES:
         assert train_main(["limb", "--preset", "smoke", "--model", "range", "--eye", eye, "--epochs", "1",
-                           "--out", str(tmp_path / eye), "--data-dir", str(tmp_path / "data" / eye), "--no-progress"]) == 0
+                           "--out", str(tmp_path / eye), "--data-dir", str(tmp_path / "data" / eye),
+                           "--no-progress"]) == 0
     lv = LimbVision({s: str(tmp_path / s) for s in SIDES}, "left")
     assert lv.ranging
     lv.check_ball("ordinary")  # the default: the loop's ordinary ball
@@ -250,7 +266,8 @@ def test_limb_vision_with_ranging_nets_puts_the_ball_along_the_seen_direction(tm
         poses[s] = np.eye(4)
         poses[s][:3, :3], poses[s][:3, 3] = look_rotation([0.0, -1.0, 0.1], up=(0.0, 0.0, 1.0)), [x, -0.09, 1.55]
     inside = gaze_angles(np.array([np.sin(np.radians(2.0)), 0.0, np.cos(np.radians(2.0))]))
-    outside = gaze_angles(np.array([np.sin(np.radians(RANGE_GATE_DEG + 1)), 0.0, np.cos(np.radians(RANGE_GATE_DEG + 1))]))
+    outside = gaze_angles(np.array([np.sin(np.radians(RANGE_GATE_DEG + 1)), 0.0,
+                                    np.cos(np.radians(RANGE_GATE_DEG + 1))]))
     loop = SimpleNamespace(onv=onv, estimate={"left": inside, "right": outside})
     hand = np.array([0.2, -0.4, 1.0])
     p = lv.observe(loop, poses, hand, 0.04)

@@ -10,7 +10,6 @@ import torch
 
 from warp_vision.body import SIDES, Body, BodyConfig
 
-
 # --- provisioning ------------------------------------------------------------------------------------
 
 
@@ -44,7 +43,8 @@ def test_provide_trains_only_what_is_missing_and_the_manifest_names_it(tmp_path)
     (tmp_path / "fr" / "best.pt").write_bytes(b"already here")
     lines, calls = [], []
     trained = provide(specs, progress=False, log=lines.append, runner=_fake_trainer(calls))
-    assert [s.run for s in trained] == [str(tmp_path / "fl"), str(tmp_path / "ocu" / "left"), str(tmp_path / "ocu" / "right")]
+    assert [s.run for s in trained] == [str(tmp_path / "fl"), str(tmp_path / "ocu" / "left"),
+                                        str(tmp_path / "ocu" / "right")]
     assert len(calls) == 3 and all("--no-progress" in c and c[c.index("--preset") + 1] == "quick" for c in calls)
     assert calls[1][3] == "oculomotor" and calls[0][3] == "--preset"  # foveation is the training command's default task
     assert "about 3 min" in lines[0] and len([ln for ln in lines if ln.startswith("  ")]) == 3  # the plan first
@@ -109,7 +109,8 @@ def test_two_simulations_needing_one_net_train_it_once(tmp_path):
     a = threading.Thread(target=lambda: results.setdefault("a", provide([spec], False, lambda _m: None, slow)))
     a.start()
     assert started.wait(30)
-    b = threading.Thread(target=lambda: results.setdefault("b", provide([spec], False, lines.append, _fake_trainer(second_calls))))
+    b = threading.Thread(target=lambda: results.setdefault(
+        "b", provide([spec], False, lines.append, _fake_trainer(second_calls))))
     b.start()
     _wait_for(lines, f"waiting for process {os.getpid()}, which is having the left eye's foveation net trained into")
     go.set()
@@ -134,9 +135,11 @@ def test_a_simulation_waits_for_a_training_started_by_hand(tmp_path):
     by_hand = FileLock(os.path.join(spec.run, TRAINING_LOCK))
     assert by_hand.acquire()
     lines, calls, results = [], [], {}
-    b = threading.Thread(target=lambda: results.setdefault("b", provide([spec], False, lines.append, _fake_trainer(calls))))
+    b = threading.Thread(target=lambda: results.setdefault("b",
+                                                           provide([spec], False, lines.append, _fake_trainer(calls))))
     b.start()
-    _wait_for(lines, f"waiting for process {os.getpid()}, which is training the left eye's foveation net into {spec.run}")
+    _wait_for(lines,
+              f"waiting for process {os.getpid()}, which is training the left eye's foveation net into {spec.run}")
     for name in ("best.pt", "latest.pt", "summary.json"):  # the hand-started run ends
         open(os.path.join(spec.run, name), "wb").close()
     by_hand.release()
@@ -182,7 +185,8 @@ def test_provide_refuses_a_run_directory_that_holds_another_net_before_training_
     right = run("fr", eye="right")  # a foveation run: its config names no task
     calls = []
     specs = plan(arm, right, str(tmp_path / "ocu"))
-    with pytest.raises(ValueError, match="arm/left holds the left arm's motor nets, not the left eye's foveation net \\(check"):
+    with pytest.raises(ValueError,
+                       match="arm/left holds the left arm's motor nets, not the left eye's foveation net \\(check"):
         provide(specs, progress=False, log=lambda _m: None, runner=_fake_trainer(calls))
     assert calls == []  # nothing trained: the oculomotor nets are missing too
     specs = plan(right, right, str(tmp_path / "ocu"))  # the right eye's net for the left eye
@@ -190,7 +194,8 @@ def test_provide_refuses_a_run_directory_that_holds_another_net_before_training_
         provide(specs, progress=False, log=lambda _m: None, runner=_fake_trainer(calls))
     run("limb/left", task="limb", eye="left")
     run("limb/right", task="pupil", eye="right")
-    with pytest.raises(ValueError, match="right holds the right eye's pupil net, not the right eye's limb vision net") as e:
+    with pytest.raises(ValueError,
+                       match="right holds the right eye's pupil net, not the right eye's limb vision net") as e:
         provide(strike_plan("left", str(tmp_path / "arm"), str(tmp_path / "limb")), progress=False, log=lambda _m: None,
                 runner=_fake_trainer(calls))
     assert "limb/left" not in str(e.value) and calls == []
@@ -317,8 +322,9 @@ def test_bad_settings_are_refused_before_any_training(tmp_path, monkeypatch, cap
         except SystemExit as e:
             return e.code
 
-    for bad in (["--width", "0"], ["--slow-motion", "0"], ["--frame-every", "0"], ["--seed", "-1"], ["--slow-motion", "inf"],
-                ["--duration", "nan"], ["--duration", "-1"], ["--flight", "0"], ["--stop", "inf"]):
+    for bad in (["--width", "0"], ["--slow-motion", "0"], ["--frame-every", "0"], ["--seed", "-1"],
+                ["--slow-motion", "inf"], ["--duration", "nan"], ["--duration", "-1"], ["--flight", "0"],
+                ["--stop", "inf"]):
         assert code(["demo", *bad, "--out", str(tmp_path / "demo")]) == 2
         assert bad[0] in capsys.readouterr().err
     assert code(["experiments", "--seed", "-2", "--quick"]) == 2
@@ -348,7 +354,8 @@ def test_the_simulations_help_reads_by_section_and_states_each_default(command, 
         sections["the nets"] += ["--perception", "--arm", "--limb"]
         sections["the scene"] += ["--side", "--shots", "--shot-seed", "--perception-error-cm"]
         sections["the output"] += ["--width", "--height", "--slow-motion", "--video-format"]
-    heads = {title: shown.index(f"\n{title}:\n") for title in ("the nets", "the scene", "the output") if title in sections}
+    heads = {title: shown.index(f"\n{title}:\n") for title in ("the nets", "the scene",
+                                                               "the output") if title in sections}
     assert list(heads) == sorted(heads, key=heads.get)  # the nets, the scene, the output
     ends = dict(zip(heads, [*sorted(heads.values())[1:], len(shown)]))
     for title, flags in sections.items():
@@ -370,9 +377,11 @@ def test_a_run_directory_given_that_holds_no_run_is_refused_before_any_training(
     monkeypatch.chdir(tmp_path)
     trained = []
     monkeypatch.setattr(provision, "provide", lambda specs, **_kw: trained.append(specs) or [])
-    for argv, flag in ((["experiments", "--left", "runs/foveaton"], "--left runs/foveaton: no left eye's foveation net"),
+    for argv, flag in ((["experiments", "--left", "runs/foveaton"],
+                        "--left runs/foveaton: no left eye's foveation net"),
                        (["oculomotor", "--oculomotor", "ocu"], "--oculomotor ocu: no right eye's oculomotor net"),
-                       (["intercept", "--shots", "2", "--limb", "limbs"], "--limb limbs: no left eye's limb vision net")):
+                       (["intercept", "--shots", "2", "--limb", "limbs"],
+                        "--limb limbs: no left eye's limb vision net")):
         assert sim_main(argv) == 2
         err = capsys.readouterr().err
         assert flag in err and "python -m warp_vision.train" in err, err
@@ -426,7 +435,8 @@ def test_experiments_measure_and_draw_every_scenario(bare_body, tmp_path):
     assert sac["all_within_1deg_by_0.3s"], sac
     assert result["vergence_1m"]["gaze_line_distance_cm_max"] < 2.0, result["vergence_1m"]
     for omega in (15, 30):
-        assert max(result[f"tracking_{omega}deg_s"]["median_error_deg"].values()) < 1.0, result[f"tracking_{omega}deg_s"]
+        tracking = result[f"tracking_{omega}deg_s"]
+        assert max(tracking["median_error_deg"].values()) < 1.0, tracking
     # each trace starts with the ball away from the gaze: a saccade is measured, not a ball already fixated
     assert min(max(tr["error_left"][0], tr["error_right"][0]) for tr in traces.values()) > 10
     path = plot_experiments(traces, str(tmp_path / "experiments.png"), title="oracle")
@@ -500,8 +510,8 @@ def test_sigterm_stops_the_command_as_ctrl_c_does_and_reaches_a_net_s_training(t
 
     said = tmp_path / "said"
     child = [sys.executable, "-c", "import signal, sys, time, pathlib\n"
-             f"signal.signal(signal.SIGTERM, lambda *a: (pathlib.Path({str(said)!r}).write_text('stopped'), sys.exit(143)))\n"
-             "time.sleep(30)"]
+             f"signal.signal(signal.SIGTERM, lambda *a: (pathlib.Path({str(said)!r}).write_text('stopped'), "
+             "sys.exit(143)))\ntime.sleep(30)"]
     threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGTERM)).start()
     with pytest.raises(Terminated):
         with sigterm_as_interrupt():

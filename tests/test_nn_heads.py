@@ -57,9 +57,11 @@ def test_solid_angle_share_balances_a_dense_centre():
 
 def test_state_dict_round_trip_and_errors():
     xy, ang = grid(12)
-    a = foveation_net("linet", xy, layers=2, receptive_field=5, reduction=3, head="softargmax", input_angles=ang, seed=1)
+    a = foveation_net("linet", xy, layers=2, receptive_field=5, reduction=3, head="softargmax", input_angles=ang,
+                      seed=1)
     a.set_target_norm(torch.tensor([0.3, 0.1]), torch.tensor([2.0, 3.0]))
-    b = foveation_net("linet", xy, layers=2, receptive_field=5, reduction=3, head="softargmax", input_angles=ang, seed=2)
+    b = foveation_net("linet", xy, layers=2, receptive_field=5, reduction=3, head="softargmax", input_angles=ang,
+                      seed=2)
     b.load_state_dict(a.state_dict())
     x = torch.randn(3, len(xy))
     assert torch.equal(a(x), b(x))

@@ -71,7 +71,8 @@ def test_locally_connected_buffers_init_and_forward():
     with pytest.raises(ValueError, match=r"x: expected shape \[B, 5\], got \(1, 6\)"):
         layer(torch.ones(1, 6, dtype=torch.float64))
     # a numpy batch was "expected shape [B, 5], got ndarray"
-    with pytest.raises(ValueError, match=r"x: expected a torch tensor \[B, 5\], got a ndarray \(torch.from_numpy\(x\)\)"):
+    with pytest.raises(ValueError,
+                       match=r"x: expected a torch tensor \[B, 5\], got a ndarray \(torch.from_numpy\(x\)\)"):
         layer(np.ones((1, 5)))
 
 
@@ -241,7 +242,8 @@ def test_plot_receptive_fields(in_pos):
     assert ax.get_aspect() == 1.0
     # A circle's radius is its unit's receptive-field radius, centred at the unit.
     conns = net.connectivity()
-    radius = receptive_field_radius(in_pos.astype(np.float32).astype(np.float64), conns[0])  # the net's float32 positions
+    # the net's float32 positions
+    radius = receptive_field_radius(in_pos.astype(np.float32).astype(np.float64), conns[0])
     unit_of = {tuple(p): n for n, p in enumerate(conns[0].positions)}
     for c in circles:
         n = unit_of[tuple(c.center)]
@@ -272,7 +274,7 @@ def test_a_folded_standardisation_reads_half_inputs_as_the_float32_path_does(hal
     folded.input_mean.copy_(mean)
     folded.input_std.copy_(std)
     x = (torch.rand(64, 300, generator=g) * 3).to(half)
-    want = plain(((x.float() - mean) / std))
+    want = plain((x.float() - mean) / std)
     got = folded(x)
     scale = plain.bias.abs() + (x.float()[:, index].abs() / std + mean / std) @ torch.ones(9) * plain.weight.abs().max()
     assert got.dtype == torch.float32 and ((got - want).abs() <= 1e-5 * scale + 1e-6).all()

@@ -7,18 +7,25 @@ import numpy as np
 import pytest
 import torch
 
-from warp_vision.nn.trained import build_net, load_net, run_identity, seal
 from warp_vision.body import Body, BodyConfig
-from warp_vision.sim.oculomotor import HOLDING_VERSION, HoldingDataConfig, evaluate_on_body, load_oculomotor, transition_pairs
+from warp_vision.nn.trained import build_net, load_net, run_identity, seal
+from warp_vision.sim.oculomotor import (
+    HOLDING_VERSION,
+    HoldingDataConfig,
+    evaluate_on_body,
+    load_oculomotor,
+    transition_pairs,
+)
 from warp_vision.train import oculomotor
-from warp_vision.train.rundir import run_config, save_checkpoint
 from warp_vision.train.config import resolve
 from warp_vision.train.config_body import OCULOMOTOR_PRESETS, OculomotorTrainConfig
+from warp_vision.train.rundir import run_config, save_checkpoint
 
 
 def cfg_for(tmp_path, **kw):
     return resolve("default", {"out": str(tmp_path / "left"), "data_dir": str(tmp_path / "data"), "gazes": 400,
-                               "transitions": 20_000, "epochs": 15, "seed": 3, "body_checks": 20, **kw}, OculomotorTrainConfig, OCULOMOTOR_PRESETS)
+                               "transitions": 20_000, "epochs": 15, "seed": 3, "body_checks": 20, **kw},
+                   OculomotorTrainConfig, OCULOMOTOR_PRESETS)
 
 
 def test_transition_pairs_mix_saccades_corrections_and_holds():

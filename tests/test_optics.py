@@ -12,7 +12,8 @@ FOVEA = np.array([0.0, 0.0, RETINA_VERTEX_MM])
 def retina_point(rho_deg, theta_deg=0.0):
     r, t = np.radians(rho_deg), np.radians(theta_deg)
     return np.array(
-        [RETINA_RADIUS_MM * np.sin(r) * np.cos(t), RETINA_RADIUS_MM * np.sin(r) * np.sin(t), EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(r)]
+        [RETINA_RADIUS_MM * np.sin(r) * np.cos(t), RETINA_RADIUS_MM * np.sin(r) * np.sin(t),
+         EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(r)]
     )
 
 
@@ -193,7 +194,8 @@ def test_frames_round_trip_and_landmarks():
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [({"accommodation_D": -1}, "accommodation_D"), ({"pupil_diameter_mm": 12}, "pupil_diameter_mm"), ({"pupil_diameter_mm": float("nan")}, "pupil_diameter_mm")],
+    [({"accommodation_D": -1}, "accommodation_D"), ({"pupil_diameter_mm": 12}, "pupil_diameter_mm"),
+     ({"pupil_diameter_mm": float("nan")}, "pupil_diameter_mm")],
 )
 def test_bad_eye_parameters(kwargs, match):
     with pytest.raises(ValueError, match=match):

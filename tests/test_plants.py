@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from warp_vision.eye.plants import (LENS_LATENCY_S, LENS_TAU_S, PUPIL_TAU_S, LensPlant, PupilPlant, pupil_latency_s)
+from warp_vision.eye.plants import LENS_LATENCY_S, LENS_TAU_S, PUPIL_TAU_S, LensPlant, PupilPlant, pupil_latency_s
 from warp_vision.eye.pupil import luminance_for_diameter, pupil_diameter_mm
 
 

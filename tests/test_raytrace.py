@@ -18,15 +18,18 @@ def retina_points(rho_deg, theta_deg):
     r, t = np.radians(rho_deg), np.radians(theta_deg)
     # eye frame direction (sin r cos t, sin r sin t, -cos r); optical x = -eye x
     return np.stack(
-        [-RETINA_RADIUS_MM * np.sin(r) * np.cos(t), RETINA_RADIUS_MM * np.sin(r) * np.sin(t), EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(r)],
+        [-RETINA_RADIUS_MM * np.sin(r) * np.cos(t), RETINA_RADIUS_MM * np.sin(r) * np.sin(t),
+         EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(r)],
         axis=1,
     )
 
 
 def small_scene(batch_ball=None):
     sc = Scene(ambient=(0.08, 0.06, 0.05), background=(0.02, 0.03, 0.05))
-    sc.add_box("floor", (4, 4, 0.1), translation([0, 1.5, -0.05]), Material((0.5, 0.5, 0.4), reflectivity=0.3), static=True)
-    sc.add_box("wall", (4, 0.1, 3), translation([0, 3, 1.5]), Material((0.7, 0.3, 0.2), specular=0.2, shininess=8), static=True)
+    sc.add_box("floor", (4, 4, 0.1), translation([0, 1.5, -0.05]), Material((0.5, 0.5, 0.4), reflectivity=0.3),
+               static=True)
+    sc.add_box("wall", (4, 0.1, 3), translation([0, 3, 1.5]), Material((0.7, 0.3, 0.2), specular=0.2, shininess=8),
+               static=True)
     cube = trimesh.creation.box((0.4, 0.4, 0.4))
     cube.visual.vertex_colors = np.tile([40, 200, 90, 255], (len(cube.vertices), 1))
     rot = trimesh.transformations.rotation_matrix(0.5, [0, 0, 1])
@@ -166,7 +169,8 @@ def test_per_batch_transforms_equal_separate_renders():
     together = rt.render_onv(sc, q, eye, poses, 2)
     for b, c in enumerate(centres):
         alone = small_scene(batch_ball=c)
-        np.testing.assert_allclose(together[b].numpy(), rt.render_onv(alone, q, eye, EYE_POSE, 2)[0].numpy(), rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(together[b].numpy(), rt.render_onv(alone, q, eye, EYE_POSE, 2)[0].numpy(), rtol=1e-6,
+                                   atol=1e-9)
     assert not torch.allclose(together[0], together[1])
 
 
@@ -179,7 +183,8 @@ def test_static_merge_changes_nothing():
         o.static = False
     b._version += 1
     np.testing.assert_allclose(
-        rt.render_onv(a, q, eye, EYE_POSE, 2).numpy(), rt.render_onv(b, q, eye, EYE_POSE, 2).numpy(), rtol=1e-5, atol=1e-9
+        rt.render_onv(a, q, eye, EYE_POSE, 2).numpy(), rt.render_onv(b, q, eye, EYE_POSE, 2).numpy(), rtol=1e-5,
+        atol=1e-9
     )
 
 
@@ -365,7 +370,8 @@ def test_hidden_objects_are_skipped_per_batch_element():
     gone.objects = [o for o in gone.objects if o.name != "ball"]
     gone._version += 1
     np.testing.assert_allclose(both[1], rt.render_onv(gone, q, eye, EYE_POSE, 2)[0].numpy(), rtol=1e-6, atol=1e-9)
-    np.testing.assert_allclose(both[0], rt.render_onv(small_scene(), q, eye, EYE_POSE, 2)[0].numpy(), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(both[0], rt.render_onv(small_scene(), q, eye, EYE_POSE, 2)[0].numpy(), rtol=1e-6,
+                               atol=1e-9)
     expect = ref.render_onv_ref(sc, q[:10], eye, poses, 2, seed=0)
     got = rt.render_onv(sc, q[:10], eye, poses, 2).numpy()
     np.testing.assert_allclose(got, expect, rtol=2e-3, atol=1e-6)

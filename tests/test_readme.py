@@ -72,7 +72,8 @@ def test_the_readme_install_and_test_commands_are_what_ci_runs():
     assert any(b.splitlines()[:2] == [install, test] for b in blocks("bash")), (install, test)
 
 
-SNIPPETS = [("README.md", code) for code in blocks("python")] + [("docs/guide.md", code) for code in blocks("python", GUIDE)]
+SNIPPETS = [("README.md", code) for code in blocks("python")] + [("docs/guide.md",
+                                                                  code) for code in blocks("python", GUIDE)]
 
 
 @pytest.mark.parametrize("doc, code", SNIPPETS, ids=[f"{d}:{k}" for k, (d, _) in enumerate(SNIPPETS)])
@@ -117,7 +118,8 @@ def _training_commands() -> list[list[str]]:
     for argv in doc_commands():
         i = argv.index("-m")
         rest = argv[i + 2:]
-        if argv[i + 1] == "warp_vision.train" and rest[:1] not in (["compare"], ["evaluate"]) and "--resume" not in rest:
+        if (argv[i + 1] == "warp_vision.train" and rest[:1] not in (["compare"], ["evaluate"])
+                and "--resume" not in rest):
             out.append(rest)
     return out
 

@@ -9,8 +9,16 @@ import torch
 
 from warp_vision.eye.retina import Retina
 from warp_vision.frames import gaze_angles, gaze_directions
-from warp_vision.nn.retina_cnn import (CONSENSUS_DEG, ROTATIONS, RetinaCNNFoveationNet, consensus_of, consensus_transforms,
-                                      native_bfloat16, training_autocast, transform_matrix)
+from warp_vision.nn.retina_cnn import (
+    CONSENSUS_DEG,
+    ROTATIONS,
+    RetinaCNNFoveationNet,
+    consensus_of,
+    consensus_transforms,
+    native_bfloat16,
+    training_autocast,
+    transform_matrix,
+)
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +46,10 @@ def test_the_image_is_the_dense_binning_matrix_applied_to_each_channel(net):
         assert torch.allclose(rows[inside], torch.ones(int(inside.sum())), atol=1e-5)  # each pixel a weighted mean
         assert inside.float().mean() > 0.6  # black only beyond the retina's rim
     # a transform per group of the batch (training's augmentation in one forward pass)
-    ref0 = torch.einsum("qp,bpc->bcq", dense_binning(net, 0), x[:2].reshape(2, net.P, 3)).reshape(2, 3, net.warp.size, net.warp.size)
-    ref5 = torch.einsum("qp,bpc->bcq", dense_binning(net, 5), x[2:].reshape(1, net.P, 3)).reshape(1, 3, net.warp.size, net.warp.size)
+    ref0 = torch.einsum("qp,bpc->bcq", dense_binning(net, 0),
+                        x[:2].reshape(2, net.P, 3)).reshape(2, 3, net.warp.size, net.warp.size)
+    ref5 = torch.einsum("qp,bpc->bcq", dense_binning(net, 5),
+                        x[2:].reshape(1, net.P, 3)).reshape(1, 3, net.warp.size, net.warp.size)
     assert torch.allclose(net.image(x, [0, 5]), torch.cat([ref0, ref5]), atol=1e-5)
 
 
@@ -55,7 +65,8 @@ def test_the_views_images_are_one_sparse_product_equal_to_the_dense_and_index_ad
     x = torch.randn(3, 3 * net.P)
     ks = [0, 5, 7]
     n = net.warp.size
-    dense = torch.cat([torch.einsum("qp,bpc->bcq", dense_binning(net, k), x.reshape(3, net.P, 3)).reshape(3, 3, n, n) for k in ks])
+    dense = torch.cat([torch.einsum("qp,bpc->bcq", dense_binning(net, k),
+                                    x.reshape(3, net.P, 3)).reshape(3, 3, n, n) for k in ks])
     got = net.view_images(x, ks)
     assert got.shape == (9, 3, n, n) and got.is_contiguous(memory_format=torch.channels_last)
     assert torch.allclose(got, dense, atol=1e-5) and torch.allclose(got, index_add_images(net, x, ks), atol=1e-5)
@@ -164,8 +175,10 @@ def test_the_consensus_averages_the_largest_agreeing_group_and_outvotes_the_rest
     two = torch.stack([dirs([[0.0, 0.0], [20.0, 0.0]])])
     assert np.allclose(consensus_of(two).numpy(), 0.0, atol=1e-12)
     c = CONSENSUS_DEG
-    edge = torch.stack([dirs([[0.0, 0.0], [0.95 * c, 0.0], [-0.95 * c, 0.0], [1.05 * c, 0.0]])])  # the first two tie at 3
-    assert np.degrees(float(consensus_of(edge)[0, 0])) == pytest.approx(0.0, abs=1e-9)  # 1.05 c is not in view 0's group
+    # the first two tie at 3
+    edge = torch.stack([dirs([[0.0, 0.0], [0.95 * c, 0.0], [-0.95 * c, 0.0], [1.05 * c, 0.0]])])
+    # 1.05 c is not in view 0's group
+    assert np.degrees(float(consensus_of(edge)[0, 0])) == pytest.approx(0.0, abs=1e-9)
 
 
 def test_eval_mode_reads_out_by_the_consensus_of_views_as_a_plain_reference_does(net):
@@ -197,8 +210,8 @@ def test_eval_mode_reads_out_by_the_consensus_of_views_as_a_plain_reference_does
         m.views = 8
     m.train()  # training reads one (augmented) view
     assert m(x).shape == (5, 2)
-    assert torch.allclose(m(x, transform=0).detach(), ((m.read_out(m.logits(m.image(x, 0))) - m.target_mean) / m.target_std).detach(),
-                          atol=1e-5)
+    assert torch.allclose(m(x, transform=0).detach(),
+                          ((m.read_out(m.logits(m.image(x, 0))) - m.target_mean) / m.target_std).detach(), atol=1e-5)
 
 
 def test_a_cnn_foveation_run_saves_a_net_the_simulation_can_load(tmp_path, monkeypatch):
@@ -294,7 +307,8 @@ def test_a_cnn_limb_run_saves_a_net_the_simulation_can_load(tmp_path):
     from warp_vision.train.config import resolve
     from warp_vision.train.config_body import LIMB_PRESETS, LimbTrainConfig
 
-    cfg = resolve("smoke", {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data"), "model": "cnn", "channels": 4},
+    cfg = resolve("smoke",
+                  {"out": str(tmp_path / "run"), "data_dir": str(tmp_path / "data"), "model": "cnn", "channels": 4},
                   LimbTrainConfig, LIMB_PRESETS)
     summary = limb.run(cfg, progress=False, log=lambda *a: None)
     assert np.isfinite(summary["test"]["near_median_cm"]) or summary["test"]["near_pairs"] == 0
@@ -307,7 +321,8 @@ def test_a_cnn_limb_run_saves_a_net_the_simulation_can_load(tmp_path):
 def test_a_plateau_at_the_magnified_centre_reads_out_at_its_middle(net):
     """A near ball at the centre spans many cells of equal heat: the angular window takes them all, so
     the estimate is the plateau's middle, not whichever of its cells peaks by a hair."""
-    wide = RetinaCNNFoveationNet(gaze_angles(net._dirs), size=32, channels=4, window=1, window_deg=12.0)  # wider than the plateau
+    # wider than the plateau
+    wide = RetinaCNNFoveationNet(gaze_angles(net._dirs), size=32, channels=4, window=1, window_deg=12.0)
     target = torch.tensor([0.02, -0.03], dtype=torch.float64)  # rad, near the axis
     ang = torch.rad2deg(torch.arccos((wide.cell_dirs.double() @ gaze_directions(target)).clamp(-1, 1)))
     plateau = ang < 5.0

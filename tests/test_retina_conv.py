@@ -5,7 +5,14 @@ import pytest
 import torch
 
 from warp_vision.eye.retina import Retina
-from warp_vision.nn.retina_conv import STENCIL, RetinaConv, RetinaConvFoveationNet, channel_plan, site_counts, stencil_layers
+from warp_vision.nn.retina_conv import (
+    STENCIL,
+    RetinaConv,
+    RetinaConvFoveationNet,
+    channel_plan,
+    site_counts,
+    stencil_layers,
+)
 
 
 @pytest.fixture(scope="module")

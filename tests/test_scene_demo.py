@@ -49,7 +49,8 @@ def test_eye_ray_paths_end_where_trace_to_world_says():
 def test_demo_refuses_a_device_this_machine_lacks_in_one_line(tmp_path, capsys):
     # "cuda" on a machine without a GPU was Warp's traceback from inside the renderer
     for device, says in (("cuda:99", "CUDA device(s) on this machine"), ("gpu", "expected cpu, cuda or cuda:N")):
-        assert main(["demo", "--photoreceptors", "100", "--samples", "1", "--device", device, "--out", str(tmp_path / "d")]) == 2
+        assert main(["demo", "--photoreceptors", "100", "--samples", "1", "--device", device, "--out",
+                     str(tmp_path / "d")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: --device:") and says in err and err.count("\n") == 1, err  # (the option typed)
     assert not list(tmp_path.iterdir())

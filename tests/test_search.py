@@ -265,7 +265,8 @@ def test_verification_samples_do_not_depend_on_batching():
     parts = [render_verify_samples(cfg, range(a, b), pos) for a, b in ((0, 3), (3, 8))]
     for k in ("label", "cls", "offset", "ball_ecc_deg"):
         assert np.array_equal(whole[k], np.concatenate([p[k] for p in parts])), k
-    assert np.allclose(whole["onv"].astype(np.float32), np.concatenate([p["onv"] for p in parts]).astype(np.float32), rtol=1e-2, atol=1e-6)
+    assert np.allclose(whole["onv"].astype(np.float32), np.concatenate([p["onv"] for p in parts]).astype(np.float32),
+                       rtol=1e-2, atol=1e-6)
     labels = whole["label"] > 0.5
     assert np.all(whole["ball_ecc_deg"][labels] <= 2.5) and set(whole["cls"]) <= set(range(len(CLASSES)))
     with pytest.raises(ValueError, match="max_offset_deg"):

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from warp_vision.frames import fick_rotation, gaze_angles, torsion_angle
 from warp_vision.body import EYE_MUSCLE_NAMES, NECK_MUSCLE_NAMES, SIDES, Body, BodyConfig, SimulationError
+from warp_vision.frames import fick_rotation, gaze_angles, torsion_angle
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,8 @@ def _settle(body, side, k, activation=0.5, steps=300):
     body.set_eye_activations(side, a)
     body.step(steps)
     yaw, pitch = np.degrees(body.gaze_in_head(side))
-    return yaw * _nasal(side), pitch, np.degrees(body.torsion(side)) * -_nasal(side)  # (adduction, elevation, intorsion)
+    # (adduction, elevation, intorsion)
+    return yaw * _nasal(side), pitch, np.degrees(body.torsion(side)) * -_nasal(side)
 
 
 # muscle -> (index into (adduction, elevation, intorsion), sign of its textbook primary action)

@@ -39,7 +39,7 @@ def parsed(monkeypatch, tmp_path):
 
 # --- arguments ---------------------------------------------------------------------------------------
 def test_defaults_and_the_shots_they_pick(parsed):
-    from warp_vision.sim.strike import pick_shots
+    from warp_vision.sim.intercept_trials import pick_shots
 
     a = parsed()
     assert (a.side, a.shots, a.shot_seed, a.perception, a.seed) == ("left", None, None, "vision", 0)
@@ -105,21 +105,24 @@ def test_unknown_choices_are_refused_by_the_parser(tmp_path, monkeypatch, capsys
 # --- the nets ----------------------------------------------------------------------------------------
 def test_the_plan_adds_the_arm_and_both_limb_vision_nets(parsed):
     from warp_vision.sim.build import net_specs
-    from warp_vision.sim.strike import strike_runs
+    from warp_vision.sim.intercept_trials import strike_runs
 
     specs = net_specs(parsed())
     assert [(s.kind, s.eye) for s in specs] == [("foveation", "left"), ("foveation", "right"), ("oculomotor", "left"),
-                                                ("oculomotor", "right"), ("arm", "left"), ("limb", "left"), ("limb", "right")]
+                                                ("oculomotor", "right"), ("arm", "left"), ("limb", "left"),
+                                                ("limb", "right")]
     assert [s.run for s in specs[4:]] == [os.path.join("runs", "arm", "left"), os.path.join("runs", "limb", "left"),
                                           os.path.join("runs", "limb", "right")]
     quick = net_specs(parsed("--quick", "--side", "right", "--perception", "oracle"))
     assert [(s.kind, s.eye, s.preset) for s in quick[4:]] == [("arm", "right", "quick")]  # no limb nets with the oracle
     assert quick[4].run == os.path.join("runs", "quick", "arm", "right")
     a = parsed("--quick", "--limb", "L", "--arm", "A")
-    assert [s.run for s in net_specs(a)[4:]] == [os.path.join("A", "left"), os.path.join("L", "left"), os.path.join("L", "right")]
+    assert [s.run for s in net_specs(a)[4:]] == [os.path.join("A", "left"), os.path.join("L", "left"),
+                                                 os.path.join("L", "right")]
     assert strike_runs(a) == (os.path.join("A", "left"), {s: os.path.join("L", s) for s in SIDES})
     nets = net_specs(parsed("--intraocular", "nets"))
-    assert [s.kind for s in nets] == ["foveation"] * 2 + ["oculomotor"] * 2 + ["pupil"] * 2 + ["lens"] * 2 + ["arm"] + ["limb"] * 2
+    assert [s.kind for s in nets] == (["foveation"] * 2 + ["oculomotor"] * 2 + ["pupil"] * 2 + ["lens"] * 2 + ["arm"]
+                                      + ["limb"] * 2)
 
 
 def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
@@ -127,8 +130,10 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
 
     arm, left, right = strike_plan("left", str(tmp_path / "arm"), str(tmp_path / "limb"))
     assert arm.command() == ["arm", "--preset", "default", "--side", "left", "--out", str(tmp_path / "arm" / "left")]
-    assert right.command() == ["limb", "--preset", "default", "--eye", "right", "--out", str(tmp_path / "limb" / "right")]
-    assert NetSpec("arm", "right", "r", "quick").command() == ["arm", "--preset", "quick", "--side", "right", "--out", "r"]
+    assert right.command() == ["limb", "--preset", "default", "--eye", "right", "--out",
+                               str(tmp_path / "limb" / "right")]
+    assert NetSpec("arm", "right", "r", "quick").command() == ["arm", "--preset", "quick", "--side", "right", "--out",
+                                                               "r"]
     assert (arm.what, left.what) == ("left arm's motor nets", "left eye's limb vision net")
     assert NetSpec("oculomotor", "left", "o", "quick").command()[3:5] == ["--eye", "left"]
     assert (MINUTES["arm", "default"], MINUTES["arm", "quick"], MINUTES["limb", "default"], MINUTES["limb", "quick"]) \
@@ -153,7 +158,9 @@ def test_netspec_trains_arms_with_side_and_limb_vision_with_eye(tmp_path):
 
     assert provide([arm, left, right], progress=False, log=lines.append, runner=fake) == [arm, left, right]
     assert [c[3] for c in calls] == ["arm", "limb", "limb"] and all("--no-progress" in c for c in calls)
-    assert "about 28 min" in lines[0] and "left arm's motor nets" in lines[1] and "right eye's limb vision net" in lines[3]
+    assert (
+        "about 28 min" in lines[0] and "left arm's motor nets" in lines[1] and "right eye's limb vision net" in lines[3]
+    )
     with pytest.raises(SystemExit, match="left arm's motor nets failed"):
         provide(strike_plan("left", str(tmp_path / "arm2"), None), progress=False, log=lambda _m: None,
                 runner=lambda cmd: 1)
@@ -164,7 +171,7 @@ def _fake_results(n=12):
     """intercept_stats' results of three modes on n held-out shots, without simulating any."""
     from warp_vision.sim.cannon import sample_shots
     from warp_vision.sim.intercept import intercept_stats
-    from warp_vision.sim.strike_figures import target_offset
+    from warp_vision.sim.intercept_figures import target_offset
 
     shots = sample_shots(n, seed=3, split="heldout", side="left")
     rng = np.random.default_rng(0)
@@ -182,11 +189,12 @@ def _fake_results(n=12):
 
 
 def test_the_comparison_figures_are_written(tmp_path):
-    from warp_vision.sim.strike_figures import stats_figures
+    from warp_vision.sim.intercept_figures import stats_figures
 
     results = _fake_results()
     paths = stats_figures(results, str(tmp_path / "figs"))
-    assert [os.path.basename(p) for p in paths] == ["success_by_speed.png", "success_by_direction.png", "closest_approach.png"]
+    assert [os.path.basename(p) for p in paths] == ["success_by_speed.png", "success_by_direction.png",
+                                                    "closest_approach.png"]
     for p in paths:
         assert Path(p).read_bytes()[:8] == PNG and os.path.getsize(p) > 5000
     # one shot, one mode (and a shot that failed, at 10 m): still drawn
@@ -198,7 +206,7 @@ def test_the_comparison_figures_are_written(tmp_path):
 
 def test_the_target_offset_is_in_the_shoulders_frame():
     from warp_vision.sim.cannon import ENVELOPE, make_shot, sample_shots, shoulder
-    from warp_vision.sim.strike_figures import target_offset
+    from warp_vision.sim.intercept_figures import target_offset
 
     for side in SIDES:
         s = shoulder(side)
@@ -207,17 +215,21 @@ def test_the_target_offset_is_in_the_shoulders_frame():
         assert np.allclose(target_offset(shot), [0.1, 0.3, -0.2])
         for sh in sample_shots(5, seed=0, split="heldout", side=side):
             o, f, u = target_offset(sh)
-            assert ENVELOPE["outward"][0] <= o <= ENVELOPE["outward"][1] and ENVELOPE["forward"][0] <= f <= ENVELOPE["forward"][1]
+            assert (
+                ENVELOPE["outward"][0] <= o <= ENVELOPE["outward"][1]
+                and ENVELOPE["forward"][0] <= f <= ENVELOPE["forward"][1]
+            )
             assert ENVELOPE["up"][0] <= u <= ENVELOPE["up"][1]
 
 
 def test_the_hand_ball_distance_figure_is_written(tmp_path):
-    from warp_vision.sim.strike_figures import plot_hand_ball_distance
+    from warp_vision.sim.intercept_figures import plot_hand_ball_distance
 
     t = np.arange(0, 0.4, 0.01)
     trace = {"t": t.tolist(), "true_m": np.abs(0.5 - 2 * t).tolist(), "frame_t": t[::4].tolist(),
              "estimate_m": (np.abs(0.5 - 2 * t[::4]) + 0.02).tolist()}
-    p = plot_hand_ball_distance(trace, str(tmp_path / "d.png"), contact_t=0.25, deflected=True, closest_t=0.25, title="x")
+    p = plot_hand_ball_distance(trace, str(tmp_path / "d.png"), contact_t=0.25, deflected=True, closest_t=0.25,
+                                title="x")
     assert Path(p).read_bytes()[:8] == PNG
     trace.update(frame_t=None, estimate_m=None)  # the oracle's: no estimate, no contact
     assert os.path.isfile(plot_hand_ball_distance(trace, str(tmp_path / "o.png"), closest_t=float("nan")))
@@ -225,7 +237,7 @@ def test_the_hand_ball_distance_figure_is_written(tmp_path):
 
 def test_projection_and_the_strike_frame():
     from warp_vision.frames import look_at
-    from warp_vision.sim.strike_figures import compose_strike_frame, draw_strike
+    from warp_vision.sim.intercept_figures import compose_strike_frame, draw_strike
     from warp_vision.sim.video import project
 
     cam = look_at([0.0, 2.0, 1.0], [0.0, 0.0, 1.0])
@@ -233,7 +245,8 @@ def test_projection_and_the_strike_frame():
     assert np.allclose(c, (160, 120)) and behind is None
     assert plus_x[0] < 160  # the camera looks along -y: world +x is on the image's left
     img = np.zeros((241, 320, 3), np.uint8)
-    hand = np.array([[0.1, 0.0, 1.0], [0.05, 0.0, 1.05], [0.0, 0.0, 1.1], [0.0, 3.0, 1.0]])  # the last: behind the camera
+    # the last: behind the camera
+    hand = np.array([[0.1, 0.0, 1.0], [0.05, 0.0, 1.05], [0.0, 0.0, 1.1], [0.0, 3.0, 1.0]])
     out = draw_strike(img, cam, 50.0, hand, ball_path=hand[:2] - 0.1, aim=[0.0, 0.0, 1.0])
     assert out.shape == img.shape and out.any() and not img.any()
     frame = compose_strike_frame(out, np.full((50, 50, 3), 200, np.uint8), "t = 0.100 s\nhand-ball 0.2 m")
@@ -245,7 +258,7 @@ def test_projection_and_the_strike_frame():
 
 def test_a_shot_result_and_the_time_shares_are_json_ready():
     from warp_vision.sim.cannon import Contact, ShotResult, make_shot, shoulder
-    from warp_vision.sim.strike import result_dict, shot_dict, time_shares
+    from warp_vision.sim.intercept_trials import result_dict, shot_dict, time_shares
 
     r = ShotResult(np.bool_(True), {"hand_left": Contact(0.21, "g", (0.1, -0.2, 1.0), 9.5)}, "hand_left", True,
                    np.array([1.0, -2.0, 0.5]), np.float64(-0.003), 0.21, "hand_left", False, False, 0.101, 1.0, 0.3)

@@ -189,10 +189,13 @@ def test_bad_config_is_refused():
     (["faces", "--preset", "smoke", "--layers", "9"], "--receptive-field: expected R_9 <= N_8 = 4"),
     (["limb", "--preset", "smoke", "--model", "linet", "--layers", "5"], "layers: expected every layer to keep N_h"),
     # v7 placed no ball at all on a retina this small: a RuntimeError after the run was claimed
-    (["--preset", "smoke", "--photoreceptors", "3", "--layers", "1", "--receptive-field", "2"], "photoreceptors: 3 are too few for balls out to max_field_deg=45"),
+    (["--preset", "smoke", "--photoreceptors", "3", "--layers", "1", "--receptive-field", "2"],
+     "photoreceptors: 3 are too few for balls out to max_field_deg=45"),
     (["--preset", "smoke", "--photoreceptors", "60", "--layers", "2"], "from 18.5 deg out"),
 ])
-def test_a_net_or_retina_too_small_for_its_settings_is_refused_before_any_data_is_rendered(argv, said, tmp_path, capsys):
+def test_a_net_or_retina_too_small_for_its_settings_is_refused_before_any_data_is_rendered(
+    argv, said, tmp_path, capsys
+):
     assert train_main([*argv, "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "data")]) == 2
     err = capsys.readouterr().err
     assert said in err and err.count("\n") == 1, err
@@ -210,8 +213,10 @@ def test_a_warm_start_that_cannot_load_is_refused_before_any_data_is_rendered(tm
     for init, extra, said in ((tmp_path / "none", [], "no such checkpoint (--init takes a foveation run directory"),
                               (tmp_path / "arm", [], "is an arm run; --init takes a foveation run"),
                               (tmp_path / "cnn16" / "best.pt", [], "--model cnn there, linet here"),
-                              (tmp_path / "cnn16", ["--model", "cnn", "--channels", "8"], "--channels 16 there, 8 here")):
-        argv = ["--preset", "smoke", *extra, "--init", str(init), "--out", str(tmp_path / "run"), "--data-dir", str(tmp_path / "d")]
+                              (tmp_path / "cnn16", ["--model", "cnn", "--channels", "8"],
+                               "--channels 16 there, 8 here")):
+        argv = ["--preset", "smoke", *extra, "--init", str(init), "--out", str(tmp_path / "run"), "--data-dir",
+                str(tmp_path / "d")]
         assert train_main(argv) == 2, argv
         err = capsys.readouterr().err
         assert said in err and err.count("\n") == 1, err
@@ -234,7 +239,8 @@ def test_a_run_of_another_task_is_refused_by_resume_compare_and_the_foveation_ev
     (arm / "metrics.jsonl").write_text(json.dumps({"epoch": 1, "train_loss": 1.0, "val_loss": 1.0}) + "\n")
     fov = tmp_path / "fov"
     fov.mkdir()
-    (fov / "config.json").write_text(json.dumps({"model": "cnn", "out": str(fov)}))  # foveation: the config names no task
+    # foveation: the config names no task
+    (fov / "config.json").write_text(json.dumps({"model": "cnn", "out": str(fov)}))
     capsys.readouterr()
     for argv, said in ((["--resume", str(arm)], f"an arm run, not a foveation run; resume it with "
                                                  f"python -m warp_vision.train arm --resume {arm}"),
@@ -255,7 +261,8 @@ def test_a_file_given_as_the_run_or_the_data_directory_is_refused_before_anythin
     f = tmp_path / "notes.txt"
     f.write_text("not a directory")
     for task in ([], ["oculomotor"], ["pupil"]):
-        for argv, flag in ((["--out", str(f)], "--out"), (["--out", str(tmp_path / "run"), "--data-dir", str(f)], "--data-dir")):
+        for argv, flag in ((["--out", str(f)], "--out"),
+                           (["--out", str(tmp_path / "run"), "--data-dir", str(f)], "--data-dir")):
             assert train_main([*task, "--preset", "smoke", *argv]) == 2
             assert f"{flag} names a file, not a directory" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
@@ -287,8 +294,10 @@ def test_face_and_limb_runs_offer_only_the_models_they_train():
 def _task_configs():
     from warp_vision.train import config, config_body, config_intraocular
 
-    return [(config.FaceTrainConfig, config.FACE_PRESETS), (config_body.OculomotorTrainConfig, config_body.OCULOMOTOR_PRESETS),
-            (config_body.ArmTrainConfig, config_body.ARM_PRESETS), (config_body.LimbTrainConfig, config_body.LIMB_PRESETS),
+    return [(config.FaceTrainConfig, config.FACE_PRESETS),
+            (config_body.OculomotorTrainConfig, config_body.OCULOMOTOR_PRESETS),
+            (config_body.ArmTrainConfig, config_body.ARM_PRESETS),
+            (config_body.LimbTrainConfig, config_body.LIMB_PRESETS),
             (config_intraocular.PupilTrainConfig, config_intraocular.PUPIL_PRESETS),
             (config_intraocular.LensTrainConfig, config_intraocular.LENS_PRESETS)]
 
@@ -301,7 +310,8 @@ def test_each_training_command_groups_its_flags_by_what_they_set(task):
     p = _train_parser() if task == "foveation" else _task_parser(task)
     titles = [g.title for g in p._action_groups]
     assert titles[-4:] == ["the run", "the dataset", "the model", "optimisation"] or (
-        task in ("limb", "pupil", "lens") and titles[-4] == "the run" and titles[-3].startswith("the dataset (")), titles
+        task in ("limb", "pupil",
+                 "lens") and titles[-4] == "the run" and titles[-3].startswith("the dataset (")), titles
     placed = {g.title: {o for a in g._group_actions for o in a.option_strings} for g in p._action_groups}
     assert {"--preset", "--out", "--device", "--resume", "--overwrite", "--workers", "--debug"} <= placed["the run"]
     assert "--batch" in placed["optimisation"] and "--lr" in placed["optimisation"]
@@ -408,7 +418,8 @@ def test_other_read_outs_train(tmp_path, smoke_data, model, head, loss):
     else:  # Huber is at most half the squared error
         assert all(r["val_loss"] <= 0.5 * r["val_mse"] + 1e-9 for r in rows)
     assert np.isfinite(summary["test_median_deg"])
-    assert foveation.evaluate_run(str(tmp_path / "run"), log=lambda *a: None)["median_deg"] == pytest.approx(summary["test_median_deg"])
+    assert foveation.evaluate_run(str(tmp_path / "run"),
+                                  log=lambda *a: None)["median_deg"] == pytest.approx(summary["test_median_deg"])
 
 
 def test_workers_synthesise_the_same_dataset_in_several_processes(tmp_path, smoke_data, capsys):
@@ -486,10 +497,13 @@ def test_the_misses_are_broken_down_by_eccentricity_size_and_scene(tmp_path, smo
     meta[1, META_V9.index("arm")] = meta[2, META_V9.index("arm")] = 1
     meta[0, META_V9.index("decoy")] = 1
     rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9)}
-    assert rows[("eccentricity (deg)", "0-10")] == {"group": "eccentricity (deg)", "bin": "0-10", "n": 1, "off": 0.0, "of_misses": 0.0}
-    assert rows[("eccentricity (deg)", "30-40")]["off"] == 1.0 and rows[("eccentricity (deg)", "30-40")]["of_misses"] == 0.5
+    assert rows[("eccentricity (deg)", "0-10")] == {"group": "eccentricity (deg)", "bin": "0-10", "n": 1, "off": 0.0,
+                                                    "of_misses": 0.0}
+    assert rows[("eccentricity (deg)", "30-40")]["off"] == 1.0
+    assert rows[("eccentricity (deg)", "30-40")]["of_misses"] == 0.5
     assert rows[("eccentricity (deg)", ">= 40")]["n"] == 1 and ("eccentricity (deg)", "20-30") not in rows
-    assert rows[("apparent radius (deg)", "2-4")]["n"] == 2 and rows[("apparent radius (deg)", "2-4")]["of_misses"] == 1.0
+    assert rows[("apparent radius (deg)", "2-4")]["n"] == 2
+    assert rows[("apparent radius (deg)", "2-4")]["of_misses"] == 1.0
     assert rows[("apparent radius (deg)", "8-11")]["off"] == 0.0
     assert rows[("arm", "yes")]["off"] == 1.0 and rows[("arm", "no")]["off"] == 0.0
     assert rows[("decoy", "yes")]["n"] == 1 and rows[("decoy", "no")]["off"] == pytest.approx(2 / 3)
@@ -521,22 +535,29 @@ def test_the_misses_are_broken_down_by_the_balls_signal_and_where_the_estimates_
     rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9, signal=signal)}
     assert rows[("photoreceptors on the ball", "0-5")] == {"group": "photoreceptors on the ball", "bin": "0-5", "n": 1,
                                                            "off": 1.0, "of_misses": 0.5}
-    assert rows[("photoreceptors on the ball", "10-20")]["off"] == 1.0 and rows[("photoreceptors on the ball", ">= 320")]["off"] == 0.0
+    assert rows[("photoreceptors on the ball",
+                 "10-20")]["off"] == 1.0 and rows[("photoreceptors on the ball", ">= 320")]["off"] == 0.0
     assert rows[("ball's contrast", "0-0.05")]["n"] == 2 and rows[("ball's contrast", "0-0.05")]["of_misses"] == 1.0
     assert rows[("ball's contrast", ">= 10")]["off"] == 0.0
-    assert rows[("estimate lands on", "ball")] == {"group": "estimate lands on", "bin": "ball", "n": 2, "off": 0.0, "of_misses": 0.0}
+    assert rows[("estimate lands on", "ball")] == {"group": "estimate lands on", "bin": "ball", "n": 2, "off": 0.0,
+                                                   "of_misses": 0.0}
     assert rows[("estimate lands on", "decoy: plate")]["off"] == 1.0 and ("estimate lands on", "arm") not in rows
-    assert rows[("estimate lands on", "furniture: box")]["of_misses"] == 0.5 and ("estimate lands on", "furniture: cylinder") not in rows
+    assert rows[("estimate lands on",
+                 "furniture: box")]["of_misses"] == 0.5 and ("estimate lands on", "furniture: cylinder") not in rows
     assert all("chance" not in r for r in rows.values())
-    chance = np.array(["wall, floor or ceiling", "wall, floor or ceiling", "decoy: plate", "furniture: box"], dtype=object)
+    chance = np.array(["wall, floor or ceiling", "wall, floor or ceiling", "decoy: plate", "furniture: box"],
+                      dtype=object)
     rows = {(r["group"], r["bin"]): r for r in foveation.miss_breakdown(err, target, meta, META_V9,
                                                                          signal={**signal, "chance_landed_on": chance})}
-    assert rows[("estimate lands on", "decoy: plate")]["chance"] == 0.25 and rows[("estimate lands on", "ball")]["chance"] == 0.0
+    assert rows[("estimate lands on",
+                 "decoy: plate")]["chance"] == 0.25 and rows[("estimate lands on", "ball")]["chance"] == 0.0
     assert "| 50.0% (chance 25.0%) |" in foveation.miss_table([rows[("estimate lands on", "decoy: plate")]])
-    assert "chance" not in rows[("ball's contrast", ">= 10")] and "chance" not in foveation.miss_table([rows[("ball's contrast", ">= 10")]])
+    assert "chance" not in rows[("ball's contrast", ">= 10")]
+    assert "chance" not in foveation.miss_table([rows[("ball's contrast", ">= 10")]])
     b = foveation.barely_seen(err, signal)  # the first (3 photoreceptors) and third (NaN contrast) are barely seen
     assert b == {"share": 0.5, "off": 1.0, "of_misses": 1.0, "others_off": 0.0}
-    assert foveation.barely_seen(err, {**signal, "receptors": np.full(4, 99), "contrast": np.ones(4)})["others_off"] == 0.5
+    assert foveation.barely_seen(err,
+                                 {**signal, "receptors": np.full(4, 99), "contrast": np.ones(4)})["others_off"] == 0.5
     without = {r["group"] for r in foveation.miss_breakdown(err, target, meta, META_V9)}
     assert "photoreceptors on the ball" not in without and "estimate lands on" not in without
 
@@ -585,7 +606,8 @@ def test_a_failing_synthesis_helper_is_an_error(tmp_path, monkeypatch):
 def test_torchrun_two_processes(tmp_path, smoke_data):
     env = dict(os.environ, WARP_VISION_THREADS="1", OMP_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29517",
-           "-m", "warp_vision.train", "--preset", "smoke", "--out", str(tmp_path / "ddp"), "--data-dir", str(smoke_data), "--no-progress"]
+           "-m", "warp_vision.train", "--preset", "smoke", "--out", str(tmp_path / "ddp"), "--data-dir",
+           str(smoke_data), "--no-progress"]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     summary = json.loads((tmp_path / "ddp/summary.json").read_text())
@@ -637,10 +659,14 @@ def test_a_run_too_small_for_a_test_split_names_the_split_it_evaluates(tmp_path,
     said = []
     summary = foveation.run(smoke(tmp_path, tmp_path / "data", samples=3), progress=False, log=said.append)
     assert summary["evaluated_split"] == "val"
-    assert f"{tmp_path / 'run'} (val, 1 ONVs): " in said[-1] and "(no test split: the summary's test_* are" in said[-1], said[-1]
+    assert (
+        f"{tmp_path / 'run'} (val, 1 ONVs): " in said[-1] and "(no test split: the summary's test_* are" in said[-1]
+    ), said[-1]
     assert train_main(["evaluate", str(tmp_path / "run")]) == 0
     out = capsys.readouterr().out
-    assert "no test split (--test-fraction 0, or too few samples)" in out and f"{tmp_path / 'run'} (val, 1 ONVs): " in out, out
+    assert (
+        "no test split (--test-fraction 0, or too few samples)" in out and f"{tmp_path / 'run'} (val, 1 ONVs): " in out
+    ), out
 
 
 def test_fewer_than_two_to_train_is_refused():
@@ -650,7 +676,8 @@ def test_fewer_than_two_to_train_is_refused():
 
     tr, va, te = splits(3, 0, 0.1, 0.1)
     assert (len(tr), len(va), len(te)) == (2, 1, 0) and sorted([*tr, *va, *te]) == [0, 1, 2]
-    with pytest.raises(ValueError, match="samples: 3 leave 1 to train after 2 to validate and 0 to test: expected at least 2"):
+    with pytest.raises(ValueError,
+                       match="samples: 3 leave 1 to train after 2 to validate and 0 to test: expected at least 2"):
         splits(3, 0, 0.5, 0.0)
     with pytest.raises(ValueError, match="leave 0 to train after 1 to validate and 2 to test"):
         splits(3, 0, 0.1, 0.1, min_test=2)
@@ -677,7 +704,8 @@ def test_compare_labels_every_run_by_its_directory_and_titles_the_figure(tmp_pat
         (tmp_path / d / "metrics.jsonl").write_text(json.dumps({"epoch": 1, "train_mse": 0.5, "val_mse": 0.6}) + "\n")
     seen = {}
     real = figures.plot_curves
-    monkeypatch.setattr(figures, "plot_curves", lambda h, title: seen.update(labels=list(h), title=title) or real(h, title))
+    monkeypatch.setattr(figures, "plot_curves", lambda h,
+                        title: seen.update(labels=list(h), title=title) or real(h, title))
     runs = [str(tmp_path / d) for d in ("a/plain", "b/plain", "copies")]
     assert train_main(["compare", *runs, "--out", str(tmp_path / "c.png"), "--title", "with and without"]) == 0
     assert seen == {"labels": [f"{runs[0]} (cnn, P=14,400)", f"{runs[1]} (cnn, P=14,400)", "copies (cnn, P=14,400)"],
@@ -736,12 +764,19 @@ def test_miss_agreement_tells_shared_misses_from_independent_ones():
     assert r["off"] == [0.4, 0.4, 0.2] and r["n"] == 5
     ab, ac, bc = r["pairs"]
     assert (ab["a"], ab["b"]) == ("a", "b")
-    assert ab["both"] == 0.4 and ab["shared"] == 1.0 and ab["same_wrong"] == 0.2 and ab["independent"] == pytest.approx(0.16)
+    assert (
+        ab["both"] == 0.4
+        and ab["shared"] == 1.0
+        and ab["same_wrong"] == 0.2
+        and ab["independent"] == pytest.approx(0.16)
+    )
     assert ac["both"] == 0.0 and ac["shared"] == 0.0 and bc["same_wrong"] == 0.0
     assert r["best_of"] == 0.0  # C finds the first two, A the third
     assert foveation.miss_agreement(["a", "b"], [a, b], target)["best_of"] == 0.4
     table = foveation.agreement_table(r)
-    assert "| a | b | 40.0% | 40.0% | 40.0% | 16.0% | 100% | 20.0% |" in table and "oracle): 0.0% of the 5 balls" in table
+    assert (
+        "| a | b | 40.0% | 40.0% | 40.0% | 16.0% | 100% | 20.0% |" in table and "oracle): 0.0% of the 5 balls" in table
+    )
     with pytest.raises(ValueError, match="two or more"):
         foveation.miss_agreement(["a"], [a], target)
     with pytest.raises(ValueError, match="shaped like"):
@@ -767,7 +802,8 @@ def test_evaluate_agreement_needs_runs_on_one_split(tmp_path, smoke_data, capsys
 
 
 @pytest.mark.parametrize("argv, refused", [
-    (["--model", "cnn", "--receptive-field", "30"], "--receptive-field: the cnn net does not read it (the linet and fc nets do)"),
+    (["--model", "cnn", "--receptive-field", "30"],
+     "--receptive-field: the cnn net does not read it (the linet and fc nets do)"),
     (["--model", "linet", "--views", "8"], "--views: the linet net does not read it (the cnn net does)"),
     (["--preset", "smoke", "--channels", "32"], "--channels: the linet net does not read it"),  # smoke's model: linet
     (["--model", "conv", "--receptive-field", "9"], "--receptive-field: the conv net does not read it"),
@@ -803,7 +839,8 @@ def test_the_data_command_builds_the_dataset_a_training_preset_reads(kind):
         built = config_of(kind, parser().parse_args([kind, "--preset", preset]))
         assert built == parse_training([*task, "--preset", preset])[3]().data_config(), preset
     assert config_of(kind, parser().parse_args([kind])) == parse_training(task)[3]().data_config()
-    flags = (["--samples", "20000", "--generator", "8"] if kind == "foveation" else ["--identities", "7"]) + ["--eye", "right"]
+    flags = (["--samples", "20000", "--generator",
+              "8"] if kind == "foveation" else ["--identities", "7"]) + ["--eye", "right"]
     built = config_of(kind, parser().parse_args([kind, *flags, "--seed", "3"]))
     assert built == parse_training([*task, *flags, "--data-seed", "3"])[3]().data_config()
 
@@ -819,9 +856,13 @@ def test_the_data_commands_help_reads_by_section_and_names_each_fields_values(ki
     shown = capsys.readouterr().out
     shown = shown[shown.index("\noptions:"):]  # (past the usage lines, which name every flag)
     dataset, built = shown.index("the dataset:"), shown.index("where and how it is built:")
-    assert dataset < shown.index("--eye {left,right}") < shown.index("--chunk-size") < built < shown.index("--shard SHARD")
+    assert (
+        dataset < shown.index("--eye {left,right}") < shown.index("--chunk-size") < built < shown.index("--shard SHARD")
+    )
     if kind == "foveation":
-        assert "--condition {mixed,glow_dim,white,matte,distractor,arm,decoy}" in shown and "--generator {7,8,9}" in shown
+        assert (
+            "--condition {mixed,glow_dim,white,matte,distractor,arm,decoy}" in shown and "--generator {7,8,9}" in shown
+        )
     else:
         assert built < shown.index("--identities-cache")
     with pytest.raises(SystemExit):

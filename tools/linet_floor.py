@@ -27,8 +27,8 @@ from pathlib import Path
 
 importlib.import_module("warp_vision")  # before torch: it sets OMP_WAIT_POLICY=PASSIVE
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
 from warp_vision.bench import torch_baselines as tb
 from warp_vision.bench.common import interleaved_ms, machine_info
@@ -68,11 +68,15 @@ def _timed_calls(inp: dict) -> dict:
 
     return {
         "warp_kernels": warp_kernels,
-        "warp_op": lambda: torch.autograd.grad(locally_connected(x_fm, weight, bias, index), (x_fm, weight, bias), gy_fm),
-        "torch_csr_op": lambda: torch.autograd.grad(tb.csr_matmul(x_fm, weight, bias, csr), (x_fm, weight, bias), grad_y),
+        "warp_op": lambda: torch.autograd.grad(locally_connected(x_fm, weight, bias, index), (x_fm, weight, bias),
+                                               gy_fm),
+        "torch_csr_op": lambda: torch.autograd.grad(tb.csr_matmul(x_fm, weight, bias, csr), (x_fm, weight, bias),
+                                                    grad_y),
         "warp_transpose": lambda: as_feature_major(x_bm),
-        "warp_op_bm": lambda: torch.autograd.grad(locally_connected(x_bmr, weight, bias, index), (x_bmr, weight, bias), gy_fm),
-        "torch_csr_op_bm": lambda: torch.autograd.grad(tb.csr_matmul(x_bmr, weight, bias, csr), (x_bmr, weight, bias), grad_y),
+        "warp_op_bm": lambda: torch.autograd.grad(locally_connected(x_bmr, weight, bias, index), (x_bmr, weight, bias),
+                                                  gy_fm),
+        "torch_csr_op_bm": lambda: torch.autograd.grad(tb.csr_matmul(x_bmr, weight, bias, csr), (x_bmr, weight, bias),
+                                                       grad_y),
     }
 
 
@@ -133,8 +137,9 @@ def main() -> None:
         print(f"x {lay.replace('_', '-')}: torch CSR over the Warp op {achieved[lay]:.2f}x; the bound (CSR over the C"
               f" kernels{' + the transpose' if lay == 'batch_major' else ''}) {bound[lay]:.2f}x")
     write_json(args.out, {
-        "benchmark": "linet_floor", "machine": machine_info(), "software": software(), "B": B, "N_in": inp["n_in"], "N": inp["N"], "R": R,
-        "rounds": rows, "median_ms": med, "csr_over_warp_op": achieved, "csr_over_c_kernels_bound": bound,
+        "benchmark": "linet_floor", "machine": machine_info(), "software": software(), "B": B, "N_in": inp["n_in"],
+        "N": inp["N"], "R": R, "rounds": rows, "median_ms": med, "csr_over_warp_op": achieved,
+        "csr_over_c_kernels_bound": bound,
     })
     print(f"results: {args.out}")
 

@@ -11,7 +11,7 @@ import os as _os
 
 # Warp's CPU kernels run on the same cores as torch's OpenMP pool. With the default wait policy
 # libgomp's idle workers spin after every parallel torch op and steal the cores the split Warp
-# launches need (docs/RESULTS.md has the measured effect on the liNet forward).
+# launches need (its effect on the liNet forward: docs/RESULTS.md, "Design choices measured").
 # This takes effect only when warp_vision is imported before torch; set the variable yourself to
 # choose otherwise.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

@@ -25,7 +25,8 @@ def usage() -> str:
              "       python -m warp_vision --version",
              "", "commands:"]
     lines += [f"  {name:<{width}}  {what}" for name, what in COMMANDS.items()]
-    lines += ["", "python -m warp_vision COMMAND --help says more; the README's quick start: python -m warp_vision.train"]
+    lines += ["",
+              "python -m warp_vision COMMAND --help says more; the README's quick start: python -m warp_vision.train"]
     return "\n".join(lines)
 
 

@@ -19,7 +19,7 @@ import re
 import signal
 import sys
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 from warp_vision.resources import check_environment
 
@@ -36,8 +36,8 @@ _NEGATIVE_NUMBER = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$")
 
 class ArgumentParser(argparse.ArgumentParser):
     """Every command's parser: argparse's, without its matching of abbreviated options, so that a flag a
-    command lacks is an error rather than another flag it begins (``data faces --samples 10`` was taken as
-    ``--samples-per-receptor 10``). Its subcommands' parsers are of this class too."""
+    command lacks is an error rather than another flag it begins (argparse would take ``data faces --samples
+    10`` for ``--samples-per-receptor 10``). Its subcommands' parsers are of this class too."""
 
     #: A callable giving other commands' parsers by name, for commands that are separate parsers rather than
     #: subcommands (train's tasks, evaluate and compare): a flag this parser lacks is named as theirs
@@ -213,7 +213,8 @@ def not_a_command(word: str, names, what: str = "a command") -> str:
     ``names`` to a mistyped ``word``, when one is near."""
     names = list(names)
     near = difflib.get_close_matches(word, names, n=1)
-    return f"{word!r} is not {what}{f' (did you mean {near[0]!r}?)' if near else ''}: expected one of {', '.join(names)}"
+    return (f"{word!r} is not {what}{f' (did you mean {near[0]!r}?)' if near else ''}: expected one of "
+            f"{', '.join(names)}")
 
 
 def add_debug_flag(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -224,13 +225,21 @@ def add_debug_flag(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 def field_help(cls, name: str) -> str:
     """The comment after field ``name`` in the source of dataclass ``cls`` (``samples: int = 4000  # number of
-    ONVs``): a config's --help text, written once beside the field."""
+    ONVs``): a config's --help text, written once beside the field. A comment too long for one line goes on in the
+    comment lines below whose ``#`` stands in the same column, joined with a space."""
     import inspect
 
-    for line in inspect.getsource(cls).splitlines():
+    lines = inspect.getsource(cls).splitlines()
+    for i, line in enumerate(lines):
         s = line.strip()
         if s.startswith(f"{name}:") and "#" in s:
-            return s.split("#", 1)[1].strip()
+            col = line.index("#")
+            words = [line[col + 1:].strip()]
+            for more in lines[i + 1:]:
+                if len(more) <= col or more[col] != "#" or more[:col].strip():
+                    break
+                words.append(more[col + 1:].strip())
+            return " ".join(words)
     return ""
 
 
@@ -255,7 +264,8 @@ def preset_defaults(presets: dict, name: str, value) -> str:
     """The default preset's value of field ``name`` and the other presets' where they differ, for --help:
     "default: 8; --preset smoke: 7" (``value``: the field's own default, kept by a preset that does not set it)."""
     shown = presets.get("default", {}).get(name, value)
-    others = [f"{k}: {v.get(name, value)!r}" for k, v in presets.items() if k != "default" and v.get(name, value) != shown]
+    others = [f"{k}: {v.get(name, value)!r}" for k,
+              v in presets.items() if k != "default" and v.get(name, value) != shown]
     return "; ".join([f"default: {shown!r}"] + [f"--preset {o}" for o in others])
 
 
@@ -388,7 +398,7 @@ def guarded(job: Callable[[], object], debug: bool = False, codes: dict[type, in
             print("stopped (SIGTERM)", file=sys.stderr)
         return 128 + signal.SIGTERM
     except KeyboardInterrupt as e:
-        if not getattr(e, "told", False):  # (it used to end without a word)
+        if not getattr(e, "told", False):  # every interruption ends with a line, the command's or this one
             print("interrupted (Ctrl-C)", file=sys.stderr)
         return 130
     except (ValueError, OSError, *codes) as e:

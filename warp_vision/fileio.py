@@ -27,8 +27,9 @@ import tempfile
 import tokenize
 import uuid
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, BinaryIO, Callable
+from typing import Any, BinaryIO
 
 #: What numpy raises reading a damaged ``.npy`` or ``.npz`` member, beside OSError (which each reader
 #: treats as it must: a missing file is often not damage). A header that is not a Python literal is

@@ -36,7 +36,8 @@ def gaze_direction(yaw, pitch):
     if _is_tensor(yaw):
         import torch
 
-        return torch.stack([torch.cos(pitch) * torch.sin(yaw), torch.sin(pitch), torch.cos(pitch) * torch.cos(yaw)], dim=-1)
+        return torch.stack([torch.cos(pitch) * torch.sin(yaw), torch.sin(pitch), torch.cos(pitch) * torch.cos(yaw)],
+                           dim=-1)
     yaw, pitch = np.asarray(yaw, float), np.asarray(pitch, float)
     return np.stack([np.sin(yaw) * np.cos(pitch), np.sin(pitch), np.cos(yaw) * np.cos(pitch)], -1)
 
@@ -53,7 +54,8 @@ def gaze_angles(direction):
         import torch
 
         d = direction
-        return torch.stack([torch.atan2(d[..., 0], d[..., 2]), torch.atan2(d[..., 1], torch.hypot(d[..., 0], d[..., 2]))], -1)
+        return torch.stack([torch.atan2(d[..., 0], d[..., 2]),
+                            torch.atan2(d[..., 1], torch.hypot(d[..., 0], d[..., 2]))], -1)
     d = np.asarray(direction, float)
     return np.stack([np.arctan2(d[..., 0], d[..., 2]), np.arctan2(d[..., 1], np.hypot(d[..., 0], d[..., 2]))], -1)
 
@@ -155,7 +157,7 @@ def _spread_bits(v: np.ndarray) -> np.ndarray:
 def check_positions(name: str, positions) -> np.ndarray:
     """Validate [N, 2] finite real positions (N >= 1); returns them as a float64 array, or raises a
     ``ValueError`` that names ``name``."""
-    if hasattr(positions, "domain_xy"):  # a Retina: it was "expected shape [N, 2] with N >= 1, got shape ()"
+    if hasattr(positions, "domain_xy"):  # a Retina: say which of its positions to pass, not its shape
         raise ValueError(f"{name}: expected positions [N, 2], got a {type(positions).__name__}: pass retina.domain_xy "
                          f"(its photoreceptors' positions) or onv_positions(retina.domain_xy) (its ONV's, three per "
                          f"photoreceptor)")

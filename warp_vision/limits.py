@@ -51,7 +51,8 @@ COUNT = Range(1, 10**7)
 
 def check(value, r: Range, name: str) -> None:
     """A ValueError ``"name: expected lo..hi unit, got value"`` unless ``r.lo <= value <= r.hi`` (and finite)."""
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and r.lo <= value <= r.hi
+    ok = isinstance(value, (int, float)) and not isinstance(value,
+                                                            bool) and math.isfinite(value) and r.lo <= value <= r.hi
     if not ok:
         raise ValueError(f"{name}: expected {r.words()}, got {value!r}")
 

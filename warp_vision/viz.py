@@ -11,7 +11,6 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-
 __all__ = ["plot_receptive_fields", "plot_retina_layout", "tone_map", "plot_onv", "plot_eye_rays", "plot_image"]
 
 
@@ -77,7 +76,8 @@ def plot_receptive_fields(
     ]
     if segments:
         lines = LineCollection(
-            np.concatenate(segments), colors=np.repeat(colours, conn.receptive_field), linewidths=0.4, alpha=0.6, zorder=2
+            np.concatenate(segments), colors=np.repeat(colours, conn.receptive_field), linewidths=0.4, alpha=0.6,
+            zorder=2
         )
         ax.add_collection(lines)
     for n, colour in zip(chosen, colours):
@@ -302,9 +302,11 @@ def plot_eye_rays(eye, eccentricities_deg: Sequence[float] = (0.0, 30.0), sample
     colors = {633.0: "red", 543.0: "green", 458.0: "blue"}
     py = np.linspace(-0.9, 0.9, samples) * r
     for rho in eccentricities_deg:
-        q = np.array([0.0, -RETINA_RADIUS_MM * np.sin(np.radians(rho)), EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(np.radians(rho))])
+        q = np.array([0.0, -RETINA_RADIUS_MM * np.sin(np.radians(rho)),
+                      EYE_CENTRE_MM + RETINA_RADIUS_MM * np.cos(np.radians(rho))])
         for wl in CHANNEL_WAVELENGTHS_NM:
-            path = eye.trace_path(np.repeat(q[None], samples, 0), np.stack([np.zeros(samples), py], 1), wl, world_length_mm)
+            path = eye.trace_path(np.repeat(q[None], samples, 0), np.stack([np.zeros(samples), py], 1), wl,
+                                  world_length_mm)
             for ray in path:
                 if np.all(np.isfinite(ray)):
                     ax.plot(ray[:, 2], ray[:, 1], color=colors[wl], lw=0.6, alpha=0.8)

@@ -100,7 +100,8 @@ def _section(parser: argparse.ArgumentParser, summary: str, heading: bool = True
 
 
 def reference() -> str:
-    from warp_vision.__main__ import COMMANDS as PACKAGE_COMMANDS, usage
+    from warp_vision.__main__ import COMMANDS as PACKAGE_COMMANDS
+    from warp_vision.__main__ import usage
 
     if list(PACKAGE_COMMANDS) != list(COMMANDS):
         raise RuntimeError(f"docs/hooks/cli_reference.py: the commands are {list(PACKAGE_COMMANDS)}, the reference "

@@ -18,7 +18,6 @@ from warp_vision.fileio import require_output, write_json
 from warp_vision.limits import require_int
 from warp_vision.provenance import software
 
-
 #: what ``python -m warp_vision.bench`` with no command runs, in order, each on its defaults: the benchmarks of
 #: the two kernels everything else stands on (the liNet layer, the ray tracer)
 KERNELS = ("linet", "raytrace")
@@ -64,16 +63,19 @@ def _parser() -> argparse.ArgumentParser:
     lop = sub.add_parser("loop", help="the closed loop: simulated/wall, time shares and accuracy per visual frame rate")
     lop.add_argument("--frame-every", type=int, nargs="+", default=None,
                      help="settings: the eyes render every N control periods of 10 ms (default: 1, a render every "
-                          "period as the loop used to, and the loop's default)")
+                          "period, and the loop's default)")
     lop.add_argument("--quick", action="store_true", help="the --quick nets of python -m warp_vision.sim")
     lop.add_argument("--no-progress", action="store_true", help="no progress bars")
     rdo = sub.add_parser("readout", help="the foveation CNN's inference: the consensus of N views vs the plain image, "
                                          "float32 vs bfloat16, and the views' binning: CSR product vs index_add_")
-    rdo.add_argument("--views", type=int, nargs="+", default=[1, 4, 8], help="settings (default 1 4 8; the first is the ratios' base)")
-    rdo.add_argument("--batch", type=int, nargs="+", default=[1, 64], help="ONVs per call (default 1, as the loop's eyes, and 64)")
+    rdo.add_argument("--views", type=int, nargs="+", default=[1, 4, 8],
+                     help="settings (default 1 4 8; the first is the ratios' base)")
+    rdo.add_argument("--batch", type=int, nargs="+", default=[1, 64],
+                     help="ONVs per call (default 1, as the loop's eyes, and 64)")
     rdo.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     cnn = sub.add_parser("cnn", help="the retina CNN's training step: float32 vs bfloat16 autocast (--precision)")
-    cnn.add_argument("--channels", type=int, nargs="+", default=[16, 24, 32], help="widths (default 16, the default preset's, 24 and 32)")
+    cnn.add_argument("--channels", type=int, nargs="+", default=[16, 24, 32],
+                     help="widths (default 16, the default preset's, 24 and 32)")
     cnn.add_argument("--batch", type=int, default=64, help="ONVs per step (default 64)")
     cnn.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     repeats = {"linet": 10, "raytrace": 5, "readout": 10, "cnn": 10}  # (memory and loop time no repeats)
@@ -82,7 +84,8 @@ def _parser() -> argparse.ArgumentParser:
             q.add_argument("--repeats", type=int, default=repeats[name],
                            help=f"timed repeats per measurement, the median reported (default {repeats[name]})")
         q.add_argument("--out", default=f"bench_results/{name}.json",
-                       help=f"JSON output path (default bench_results/{name}.json{'; the PNG goes beside it' if q is mem else ''})")
+                       help="JSON output path (default "
+                            f"bench_results/{name}.json{'; the PNG goes beside it' if q is mem else ''})")
         add_debug_flag(q)
     return p
 
@@ -119,7 +122,8 @@ def _device(name: str) -> str:
     n = torch.cuda.device_count()
     if dev.startswith("cuda:") and dev[5:].isdigit() and int(dev[5:]) >= n:
         # asked of torch first: initialising Warp on a machine without a driver prints a warning of its own
-        raise ValueError(f"--device: {name} requested, but torch sees {n} CUDA device(s) on this machine; use --device cpu")
+        raise ValueError(f"--device: {name} requested, but torch sees {n} CUDA device(s) on this machine; use --device "
+                         "cpu")
     try:
         dev = require_device(name)
     except ValueError as e:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import platform
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -52,7 +52,8 @@ def interleaved_ms(
             sync(device)
             times[name].append((time.perf_counter() - t0) * 1e3)
     return {
-        k: {"median_ms": float(np.median(v)), "min_ms": float(np.min(v)), "max_ms": float(np.max(v)), "repeats": repeats}
+        k: {"median_ms": float(np.median(v)), "min_ms": float(np.min(v)), "max_ms": float(np.max(v)),
+            "repeats": repeats}
         for k, v in times.items()
     }
 

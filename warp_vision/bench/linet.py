@@ -31,7 +31,6 @@ thread count) and the kernels-alone timing (CPU launches). The JSON then also ho
 
 from __future__ import annotations
 
-
 import torch
 
 from warp_vision.bench import torch_baselines as tb
@@ -280,11 +279,13 @@ def half_onv(inp: dict, repeats: int, log) -> dict:
             out["median_ms"].setdefault(name, {})[phase] = ms
             out["GBps_vs_min_bytes"].setdefault(name, {})[phase] = mb[phase] / (ms * 1e-3) / 1e9
     for phase in ("forward", "forward_backward"):
-        out["ratio_float32_over_float16"][phase] = out["median_ms"]["float32"][phase] / out["median_ms"]["float16"][phase]
+        out["ratio_float32_over_float16"][phase] = (
+            out["median_ms"]["float32"][phase] / out["median_ms"]["float16"][phase]
+        )
     m, g = out["median_ms"], out["GBps_vs_min_bytes"]
     log(f" first layer, batch-major ONV, no grad x: float32 fwd {m['float32']['forward']:.2f} ms, fwd+bwd "
-        f"{m['float32']['forward_backward']:.2f} ms ({g['float32']['forward_backward']:.2f} GB/s of its floor); float16 fwd "
-        f"{m['float16']['forward']:.2f} ms, fwd+bwd {m['float16']['forward_backward']:.2f} ms "
+        f"{m['float32']['forward_backward']:.2f} ms ({g['float32']['forward_backward']:.2f} GB/s of its floor); "
+        f"float16 fwd {m['float16']['forward']:.2f} ms, fwd+bwd {m['float16']['forward_backward']:.2f} ms "
         f"({g['float16']['forward_backward']:.2f} GB/s); float32/float16 "
         f"{out['ratio_float32_over_float16']['forward_backward']:.2f}x")
     return out

@@ -1,8 +1,8 @@
 """``python -m warp_vision.bench loop``: the closed loop's speed and accuracy at several visual frame rates.
 
 For each setting (the eyes render every N control periods of 10 ms; N = 1 renders every
-period, as the loop used to), one run of :func:`warp_vision.sim.scenarios.experiments` on the same nets (trained first when
-missing, as ``python -m warp_vision.sim`` does): simulated/wall, the wall time's shares (render, nets,
+period), one run of :func:`warp_vision.sim.scenarios.experiments` on the same nets (trained first
+when missing, as ``python -m warp_vision.sim`` does): simulated/wall, the wall time's shares (render, nets,
 MuJoCo, control, other) and the experiments' accuracy (saccade settle time in eight directions, tracking
 errors, vergence). The settings share one process and take turns scenario by scenario, so they meet the
 same machine (a drift in its speed falls on all alike); the eye-ray cache is shared too, so a setting
@@ -56,9 +56,10 @@ def run(frame_every=(1, None), quick: bool = False, progress: bool = True, log=p
         loops[-1].step()  # compiles what the first frame needs (kernels, eye rays) outside the measurement
     results = experiments(loops, progress=progress)
     for n, res in zip(settings, results):
-        row = {"frame_every": n, "frames_per_s": res["timing"]["frames_per_s"], "sim_to_wall": res["timing"]["sim_to_wall"],
-               "share": res["timing"]["share"], "wall_s": res["timing"]["wall_s"], "sim_s": res["timing"]["sim_s"],
-               "accuracy": _accuracy(res), "experiments": res}
+        row = {"frame_every": n, "frames_per_s": res["timing"]["frames_per_s"],
+               "sim_to_wall": res["timing"]["sim_to_wall"], "share": res["timing"]["share"],
+               "wall_s": res["timing"]["wall_s"], "sim_s": res["timing"]["sim_s"], "accuracy": _accuracy(res),
+               "experiments": res}
         log(f"frame every {n} period(s) ({row['frames_per_s']:.0f} Hz): simulated/wall {row['sim_to_wall']:.3f}; "
             + ", ".join(f"{k} {100 * v:.0f}%" for k, v in row["share"].items())
             + f"; saccade settle median {row['accuracy']['saccade_settle_s_median']:.3f} s, tracking 30 deg/s median "
@@ -72,7 +73,9 @@ def run(frame_every=(1, None), quick: bool = False, progress: bool = True, log=p
             "frame_every": row["frame_every"],
             "speedup": row["sim_to_wall"] / base["sim_to_wall"],
             "saccade_settle_relative_change": a["saccade_settle_s_median"] / b["saccade_settle_s_median"] - 1,
-            "tracking_30_relative_change": a["tracking_30deg_s_median_error_deg"] / b["tracking_30deg_s_median_error_deg"] - 1,
-            "tracking_15_relative_change": a["tracking_15deg_s_median_error_deg"] / b["tracking_15deg_s_median_error_deg"] - 1,
+            "tracking_30_relative_change": (a["tracking_30deg_s_median_error_deg"]
+                                            / b["tracking_30deg_s_median_error_deg"] - 1),
+            "tracking_15_relative_change": (a["tracking_15deg_s_median_error_deg"]
+                                            / b["tracking_15deg_s_median_error_deg"] - 1),
         })
     return out

@@ -25,7 +25,7 @@ import json
 import os
 import subprocess
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 from warp_vision.fileio import atomic_write
 from warp_vision.limits import Range
@@ -138,7 +138,8 @@ def run(sizes: Sequence[int] = DEFAULT_SIZES, batch: int = 64, budget_gib: float
             }
             if floor["total"] > budget_gib * 2**30:
                 row.update(estimated=True, peak_bytes=floor["total"])
-                log(f"  {model:6s} {dtype:8s} 3P={onv:>10,d}: floor {floor['total'] / 2**20:10.0f} MiB > budget: estimated")
+                log(f"  {model:6s} {dtype:8s} 3P={onv:>10,d}: floor {floor['total'] / 2**20:10.0f} MiB > budget: "
+                    "estimated")
             else:
                 cmd = [sys.executable, "-m", "warp_vision.bench", "memory", "--worker", model, str(onv), dtype,
                        "--batch", str(batch)]
@@ -147,13 +148,15 @@ def run(sizes: Sequence[int] = DEFAULT_SIZES, batch: int = 64, budget_gib: float
                     raise RuntimeError(f"memory worker {model} {onv} failed:\n{proc.stderr[-3000:]}")
                 res = json.loads(proc.stdout.strip().splitlines()[-1])
                 if res["params"] != row["params"]:
-                    raise RuntimeError(f"{model} 3P={onv}: built model has {res['params']} parameters, formula {row['params']}")
+                    raise RuntimeError(f"{model} 3P={onv}: built model has {res['params']} parameters, formula "
+                                       f"{row['params']}")
                 row.update(estimated=False, peak_bytes=res["peak_bytes"], layer_sizes=res["layer_sizes"],
                            process_peak_bytes=res["process_peak_bytes"])
                 row["peak_over_floor"] = res["peak_bytes"] / floor["total"]
                 log(
-                    f"  {model:6s} {dtype:8s} 3P={onv:>10,d}: params {row['params']:>14,d}  peak {res['peak_bytes'] / 2**20:9.0f} MiB"
-                    f"  floor {floor['total'] / 2**20:9.0f} MiB  ({row['peak_over_floor']:.2f}x)  process {res['process_peak_bytes'] / 2**20:9.0f} MiB"
+                    f"  {model:6s} {dtype:8s} 3P={onv:>10,d}: params {row['params']:>14,d}  peak "
+                    f"{res['peak_bytes'] / 2**20:9.0f} MiB  floor {floor['total'] / 2**20:9.0f} MiB  "
+                    f"({row['peak_over_floor']:.2f}x)  process {res['process_peak_bytes'] / 2**20:9.0f} MiB"
                 )
             rows.append(row)
     return {"batch": batch, "layers": 4, "reduction": 5, "receptive_field": 5, "optimizer": "Adam", "rows": rows}
@@ -175,12 +178,15 @@ def plot(result: dict, path: str) -> None:
             continue
         meas = [r for r in rows if not r["estimated"]]
         est = [r for r in rows if r["estimated"]]
-        ax_m.plot([r["onv"] for r in meas], [r["peak_bytes"] / 2**20 for r in meas], "o-", color=colour, label=f"{label} (measured)")
+        ax_m.plot([r["onv"] for r in meas], [r["peak_bytes"] / 2**20 for r in meas], "o-", color=colour,
+                  label=f"{label} (measured)")
         if est:
             xs = ([meas[-1]] if meas else []) + est
-            ax_m.plot([r["onv"] for r in xs], [r["peak_bytes"] / 2**20 for r in xs], "x--", color=colour, label=f"{label} (estimated floor)")
+            ax_m.plot([r["onv"] for r in xs], [r["peak_bytes"] / 2**20 for r in xs], "x--", color=colour,
+                      label=f"{label} (estimated floor)")
         if dtype == "float32":  # the parameters do not depend on the input's dtype
-            ax_p.plot([r["onv"] for r in rows], [r["params"] for r in rows], "o-", color=colour, label=label.split(",")[0])
+            ax_p.plot([r["onv"] for r in rows], [r["params"] for r in rows], "o-", color=colour,
+                      label=label.split(",")[0])
     ax_m.set(xscale="log", yscale="log", xlabel="ONV dimension 3P", ylabel="peak memory of one training step (MiB)",
              title="(a) memory: batch 64, Adam")
     ax_p.set(xscale="log", yscale="log", xlabel="ONV dimension 3P", ylabel="trainable parameters",

@@ -77,7 +77,8 @@ def big_scene(seed: int = 0, detail: int = 6):
     statue = trimesh.util.concatenate(
         [
             trimesh.creation.icosphere(subdivisions=detail, radius=0.45).apply_translation([-0.6, 0.8, 1.0]),
-            trimesh.creation.torus(0.35, 0.1, major_sections=2 ** (detail + 1), minor_sections=2**detail).apply_translation([0.7, 0.9, 1.2]),
+            trimesh.creation.torus(0.35, 0.1, major_sections=2 ** (detail + 1),
+                                   minor_sections=2**detail).apply_translation([0.7, 0.9, 1.2]),
         ]
     )
     sc.add("statue", statue, Material((0.8, 0.7, 0.6)), static=True)
@@ -152,8 +153,8 @@ def closest_hit_rates(repeats: int = 5, P: int = 14_400, S: int = 16, seed: int 
 
         # launch_split is one ordinary launch (offset 0) on a CUDA device, whatever ``threads`` says
         def packet(threads):
-            _launch.launch_split(closest_hit_kernel, (n + 7) // 8, [sd, oa, da, 0], [t, obj, face], device, threads=threads,
-                                 **rt.TRACE_SPLIT)
+            _launch.launch_split(closest_hit_kernel, (n + 7) // 8, [sd, oa, da, 0], [t, obj, face], device,
+                                 threads=threads, **rt.TRACE_SPLIT)
 
         def mesh_query():
             _launch.launch_split(mesh_query_kernel, n, [mesh.id, oa, da], [t_mesh], device, threads=1)
@@ -178,13 +179,17 @@ def closest_hit_rates(repeats: int = 5, P: int = 14_400, S: int = 16, seed: int 
         elif cpu:
             m = median_ms(lambda: embree.run(o, d, output=0), repeats, warmup=1)
             res["embree_1thread"] = {**m, "mrays_per_s": n / m["median_ms"] / 1e3}
-            res["packet_1thread_over_embree"] = res["warp_packet_1thread"]["mrays_per_s"] / res["embree_1thread"]["mrays_per_s"]
+            res["packet_1thread_over_embree"] = (
+                res["warp_packet_1thread"]["mrays_per_s"] / res["embree_1thread"]["mrays_per_s"]
+            )
         else:
             res["embree_1thread"] = CUDA_SKIPPED["embree_1thread"]
         if embree is not None:  # Embree's hits, on the CPU, are the reference on any device
             res["agree_with_embree"] = _agree(tp, _embree_t(embree, o, d))
         if cpu:
-            res["packet_2threads_over_1"] = res["warp_packet_2thread"]["mrays_per_s"] / res["warp_packet_1thread"]["mrays_per_s"]
+            res["packet_2threads_over_1"] = (
+                res["warp_packet_2thread"]["mrays_per_s"] / res["warp_packet_1thread"]["mrays_per_s"]
+            )
         res["packet_over_warp_mesh"] = res[packet_key]["mrays_per_s"] / res[mesh_key]["mrays_per_s"]
         res["hit_fraction"] = float(np.isfinite(t.numpy()).mean())
         line = ", ".join(f"{k} {v['mrays_per_s']:.2f}" for k, v in res.items() if isinstance(v, dict))
@@ -209,8 +214,8 @@ def onv_rate(P: int = 14_400, S: int = 16, batch: int = 4, repeats: int = 5, see
     eye = NavarroEye()
     sc = make_room(seed=seed)
     poses = np.repeat(eye_look_at(EYE_CENTRE, EYE_TARGET)[None], batch, axis=0)
-    m_eye = median_ms(lambda: rt.eye_rays(retina, eye, S, seed, device), repeats, warmup=1, setup=rt.clear_eye_ray_cache,
-                      device=device)
+    m_eye = median_ms(lambda: rt.eye_rays(retina, eye, S, seed, device), repeats, warmup=1,
+                      setup=rt.clear_eye_ray_cache, device=device)
     m = median_ms(lambda: rt.render_onv(sc, retina, eye, poses, S, seed, device), repeats, warmup=1, device=device)
     res = {
         "P": P,

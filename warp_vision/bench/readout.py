@@ -67,7 +67,8 @@ def run(views=(1, 4, 8), batches=(1, 64), repeats: int = 10, device: str = "cpu"
                        "speedup_over_float32": t[f"{n} {TIMED[0]}"]["median_ms"] / m}
                 out["results"].append(row)
                 log(f"batch {b:4d}, {n:2d} view(s), {p:8s}: median {m:8.1f} ms ({m / b:6.2f} ms an ONV), "
-                    f"{row[base_name]:.2f}x {views[0]} view(s) in {TIMED[0]}, {row['speedup_over_float32']:.2f}x faster than {TIMED[0]}")
+                    f"{row[base_name]:.2f}x {views[0]} view(s) in {TIMED[0]}, {row['speedup_over_float32']:.2f}x "
+                    f"faster than {TIMED[0]}")
         ks = consensus_transforms(max(views))
         with torch.no_grad():
             if not torch.allclose(net.view_images(x, ks), index_add_images(net, x, ks), atol=1e-5):
@@ -75,9 +76,10 @@ def run(views=(1, 4, 8), batches=(1, 64), repeats: int = 10, device: str = "cpu"
             tb = interleaved_ms({"csr": (lambda: net.view_images(x, ks), None),
                                  "index_add": (lambda: index_add_images(net, x, ks), None)},
                                 repeats=repeats, warmup=2, device=device)
-        row = {"batch": b, "views": len(ks), "csr_ms": tb["csr"]["median_ms"], "index_add_ms": tb["index_add"]["median_ms"],
+        row = {"batch": b, "views": len(ks), "csr_ms": tb["csr"]["median_ms"],
+               "index_add_ms": tb["index_add"]["median_ms"],
                "speedup": tb["index_add"]["median_ms"] / tb["csr"]["median_ms"]}
         out["binning"].append(row)
-        log(f"batch {b:4d}, binning {len(ks)} views: CSR product {row['csr_ms']:7.2f} ms, index_add_ {row['index_add_ms']:7.2f} ms "
-            f"({row['speedup']:.2f}x)")
+        log(f"batch {b:4d}, binning {len(ks)} views: CSR product {row['csr_ms']:7.2f} ms, index_add_ "
+            f"{row['index_add_ms']:7.2f} ms ({row['speedup']:.2f}x)")
     return out

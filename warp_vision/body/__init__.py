@@ -33,14 +33,24 @@ import mujoco
 import numpy as np
 
 from warp_vision.body.meshes import ARM_PARTS, HIDDEN_FROM_EYES, geom_mesh, visible_parts
-from warp_vision.body.spec import (BODY_CONTYPE, EYE_MUSCLE_NAMES, EYE_REST_ROTATION, NECK_JOINTS, NECK_MUSCLE_NAMES,
-                                   SCAFFOLD_HEAD_ROTATION, SIDES, BodyConfig, build_spec, quat_from_matrix)
+from warp_vision.body.spec import (
+    BODY_CONTYPE,
+    EYE_MUSCLE_NAMES,
+    EYE_REST_ROTATION,
+    NECK_JOINTS,
+    NECK_MUSCLE_NAMES,
+    SCAFFOLD_HEAD_ROTATION,
+    SIDES,
+    BodyConfig,
+    build_spec,
+    quat_from_matrix,
+)
 from warp_vision.eye.plants import LensPlant, PupilPlant
 from warp_vision.frames import gaze_angles, torsion_angle
 
-__all__ = ["ARM_PARTS", "BODY_CONTYPE", "Body", "BodyConfig", "EYE_MUSCLE_NAMES", "EYE_REST_ROTATION", "HIDDEN_FROM_EYES",
-           "NECK_MUSCLE_NAMES", "SCAFFOLD_HEAD_ROTATION", "SIDES", "SimulationError", "build_spec", "geom_mesh",
-           "quat_from_matrix", "visible_parts"]
+__all__ = ["ARM_PARTS", "BODY_CONTYPE", "Body", "BodyConfig", "EYE_MUSCLE_NAMES", "EYE_REST_ROTATION",
+           "HIDDEN_FROM_EYES", "NECK_MUSCLE_NAMES", "SCAFFOLD_HEAD_ROTATION", "SIDES", "SimulationError", "build_spec",
+           "geom_mesh", "quat_from_matrix", "visible_parts"]
 
 
 class SimulationError(RuntimeError):
@@ -103,7 +113,8 @@ class Body:
 
     def _mirror_plants(self) -> None:
         for s in SIDES:
-            for act, plant in ((self.pupil[s], self.plants[s]["pupil"]), (self.accommodation[s], self.plants[s]["lens"])):
+            for act, plant in ((self.pupil[s], self.plants[s]["pupil"]),
+                               (self.accommodation[s], self.plants[s]["lens"])):
                 self.data.ctrl[act] = plant.state
                 self.data.act[self._act(act)] = plant.state
 
@@ -114,7 +125,8 @@ class Body:
         self._warnings[:] = counts
         if len(new):
             names = [mujoco.mjtWarning(int(i)).name for i in new]
-            raise SimulationError(f"t={d.time:.4f} s: MuJoCo warned {names} (info {[d.warning[i].lastinfo for i in new]})")
+            raise SimulationError(f"t={d.time:.4f} s: MuJoCo warned {names} (info "
+                                  f"{[d.warning[i].lastinfo for i in new]})")
         if not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel)) and np.all(np.isfinite(d.act))):
             raise SimulationError(f"t={d.time:.4f} s: non-finite state")
         if d.ncon:

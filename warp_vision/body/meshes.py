@@ -6,13 +6,13 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-
 #: Bodies the eyes do not see: the skull and cervical spine around them (its inside would shadow every
 #: ray) and the eyes themselves; a third-person camera sees them.
 HIDDEN_FROM_EYES = ("head", "neck", "eye_left", "eye_right", "orbit_left", "orbit_right")
 #: Each arm's parts that move as one in a rendered scene: humerus, ulna, radius and hand (the carpals
 #: with the fingers, as posed when the meshes are taken).
-ARM_PARTS = {"right": ("humerus_r", "ulna_r", "radius_r", "lunate_r"), "left": ("humerus_l", "ulna_l", "radius_l", "lunate_l")}
+ARM_PARTS = {"right": ("humerus_r", "ulna_r", "radius_r", "lunate_r"),
+             "left": ("humerus_l", "ulna_l", "radius_l", "lunate_l")}
 
 
 def geom_mesh(m: mujoco.MjModel, g: int):
@@ -39,8 +39,8 @@ def geom_mesh(m: mujoco.MjModel, g: int):
 
 
 def visible_parts(body, anchors, exclude=()) -> dict[int, list]:
-    """The :class:`~warp_vision.body.Body`'s visible geoms (group 0, not transparent) as meshes with their RGBA as vertex colours,
-    grouped by anchor: {body id: [meshes in that body's frame]}. A geom belongs to the nearest of its
+    """The :class:`~warp_vision.body.Body`'s visible geoms (group 0, not transparent) as meshes with their RGBA as
+    vertex colours, grouped by anchor: {body id: [meshes in that body's frame]}. A geom belongs to the nearest of its
     body's ancestors (itself included) named in ``anchors``, else to the world (id 0: meshes in the
     world frame at the current pose). Bodies named in ``exclude`` (and their geoms) are left out."""
     m, d = body.model, body.data

@@ -15,7 +15,6 @@ import numpy as np
 from warp_vision.eye.plants import LENS_RANGE_D, PUPIL_RANGE_MM
 from warp_vision.frames import fick_rotation, gaze_angles, gaze_direction
 
-
 EYE_RADIUS = 0.012  # m
 EYE_MASS = 0.0075  # kg
 INTEROCULAR = 0.063  # m
@@ -48,19 +47,19 @@ BALL_MASS = 0.06
 #: The ball's contacts (with ``BodyConfig.ball_contacts``). The ball has contype 0 and conaffinity 1
 #: (``BODY_CONTYPE``): myo-sim's collision geoms (contype 1, conaffinity 0, so never with one another)
 #: touch it; the floor does by an explicit pair with the same settings but no margin. Its priority (1, over
-#: everything's 0) makes its solref, solimp, friction and condim the contact's. Settings, measured with
+#: everything's 0) makes its solref, solimp, friction and condim the contact's. The settings were chosen with
 #: 60 g balls shot at 3-25 m/s at a wall and at the torso, head, upper arm, forearm and hand (1 ms steps,
-#: implicitfast; no MuJoCo warning anywhere):
+#: implicitfast), and what they do is in docs/RESULTS.md ("The arms: ...", "Contacts", and "Figures behind the
+#: code's constants"):
 #: - solref (time constant 4 ms, damping ratio 0.3): as stiff as 1 ms steps allow (MuJoCo holds time
-#:   constants at >= 2 steps), with a coefficient of restitution of 0.4 +- 0.1 (a ball on a body).
-#:   Critically damped contacts stop the ball dead (e ~ 0.1); a damping ratio of 0.2 or less, or a direct
-#:   (negative) solref, throws it back faster than it came: a contact starts a random fraction of a step
-#:   deep (a 15 m/s ball moves 15 mm a step) and a stiffer spring gives that depth back as energy.
+#:   constants at >= 2 steps), with the restitution of a ball on a body. A damping ratio near critical stops
+#:   the ball dead; a lower one, or a direct (negative) solref, throws it back faster than it came: a contact
+#:   starts a random fraction of a step deep (a 15 m/s ball moves 15 mm a step) and a stiffer spring gives
+#:   that depth back as energy.
 #: - solimp (0.95, 0.99, 1 mm): impedance near 1 at once, so the ball is stopped within a few steps.
 #: - margin 5 mm: the contact acts from 5 mm off the body's surface, which takes 5 mm off the depth at
-#:   which a fast ball is first caught. Deepest penetrations measured (shots at 11 collision geoms of the
-#:   torso, head and left arm): 6 mm at 15 m/s, 11 mm at 20 m/s, 17 mm at 25 m/s (``max_penetration`` is
-#:   20 mm; against a wall, without the margin, 19 mm at 20 m/s).
+#:   which a fast ball is first caught, and keeps the deepest penetration of a 25 m/s shot below
+#:   ``max_penetration``.
 #: - no tunnelling at these speeds: the thinnest collision geom (a fingertip, 2 mm half-thickness) and
 #:   the ball (radius 40 mm) overlap along at least 84 mm of path: 5.6 steps at 15 m/s, 4.2 at 20 m/s.
 #: - condim 3, sliding friction 0.5 (a ball on skin or clothes): glancing hits take some spin.
@@ -114,7 +113,8 @@ class BodyConfig:
     timestep: float = TIMESTEP  # s
     cannon_position: tuple = (1.2, -2.6, 0.9)  # m, the barrel's muzzle
     #: m: deeper contacts raise SimulationError. myo-sim's rest pose already has each humerus's collision
-    #: capsule 11.4 mm inside the thorax's (measured), hence 2 cm.
+    #: capsule inside the thorax's (by how much: docs/RESULTS.md, "Figures behind the code's constants"); 2 cm
+    #: leaves room above that.
     max_penetration: float = 0.02
     #: The ball collides with the arms, torso and head (myo-sim's collision geoms; the bare torso of
     #: ``arms=False`` has none, so there it flies through). False: only with the floor.
@@ -207,25 +207,30 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
     lat = {"left": 1.0, "right": -1.0}[side] * INTEROCULAR / 2  # world x of the eye centre
     centre_world = np.array([lat, -ORBIT_FORWARD_OF_HEAD, ORBIT_HEIGHT_ABOVE_HEAD])
     # an "orbit" frame in the head, aligned with the eye at rest; the eye body sits at its origin
-    orbit = head.add_body(name=f"orbit_{side}", pos=Rh.T @ centre_world, quat=quat_from_matrix(Rh.T @ EYE_REST_ROTATION))
+    orbit = head.add_body(name=f"orbit_{side}", pos=Rh.T @ centre_world,
+                          quat=quat_from_matrix(Rh.T @ EYE_REST_ROTATION))
     eye = orbit.add_body(name=f"eye_{side}")
     eye.add_joint(name=f"eye_{side}", type=mujoco.mjtJoint.mjJNT_BALL, stiffness=EYE_STIFFNESS, damping=EYE_DAMPING,
-                  range=[0, _angle(spec, np.radians(EYE_RANGE_DEG))], limited=mujoco.mjtLimited.mjLIMITED_TRUE, armature=1e-7)
+                  range=[0, _angle(spec, np.radians(EYE_RANGE_DEG))], limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                  armature=1e-7)
     eye.add_geom(name=f"globe_{side}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[EYE_RADIUS, 0, 0], mass=EYE_MASS,
                  rgba=[0.95, 0.95, 0.92, 1], contype=0, conaffinity=0, group=0)
     # the cornea and iris as a dark disc on the front pole, so a third-person view shows where it looks
-    eye.add_geom(name=f"iris_{side}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.006, 0.0015, 0], pos=[0, 0, EYE_RADIUS - 0.001],
-                 mass=1e-5, rgba=[0.25, 0.15, 0.08, 1], contype=0, conaffinity=0, group=0)
+    eye.add_geom(name=f"iris_{side}", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.006, 0.0015, 0],
+                 pos=[0, 0, EYE_RADIUS - 0.001], mass=1e-5, rgba=[0.25, 0.15, 0.08, 1], contype=0, conaffinity=0,
+                 group=0)
     mirror = np.array([n, 1.0, 1.0])  # nasal-x table -> eye-frame x
     for name, (origin, via, insertion, wrap_side, _action) in EYE_MUSCLES.items():
         tag = f"{name}_{side}"
         orbit.add_site(name=f"{tag}_origin", pos=origin * mirror, size=[0.001, 0, 0], group=3)
         if via is not None:
             orbit.add_site(name=f"{tag}_trochlea", pos=via * mirror, size=[0.001, 0, 0], group=3)
-        orbit.add_site(name=f"{tag}_side", pos=0.02 * np.asarray(wrap_side, float) * mirror, size=[0.001, 0, 0], group=3)
+        orbit.add_site(name=f"{tag}_side", pos=0.02 * np.asarray(wrap_side, float) * mirror, size=[0.001, 0, 0],
+                       group=3)
         # half a millimetre off the surface (the tendon's thickness): MuJoCo's sphere wrapping needs its end
         # points outside the sphere, and one on the surface flips between wrapping and not
-        eye.add_site(name=f"{tag}_insertion", pos=insertion * mirror * (1 + INSERTION_LIFT / EYE_RADIUS), size=[0.001, 0, 0], group=3)
+        eye.add_site(name=f"{tag}_insertion", pos=insertion * mirror * (1 + INSERTION_LIFT / EYE_RADIUS),
+                     size=[0.001, 0, 0], group=3)
         t = spec.add_tendon(name=tag, width=0.0008, rgba=[0.8, 0.2, 0.2, 1], group=3)
         t.wrap_site(f"{tag}_origin")
         if via is not None:
@@ -238,7 +243,8 @@ def _add_eye(spec: mujoco.MjSpec, head, side: str) -> None:
     # intraocular state: force-free filters that mirror the plants (ctrl = act = the plant's state, so
     # MuJoCo's filter holds it; the plants in eye/plants.py move it)
     for quantity, rng in (("pupil", PUPIL_RANGE_MM), ("accommodation", ACCOMMODATION_RANGE_D)):
-        a = spec.add_actuator(name=f"{quantity}_{side}", target=f"eye_{side}", trntype=mujoco.mjtTrn.mjTRN_JOINT, group=2)
+        a = spec.add_actuator(name=f"{quantity}_{side}", target=f"eye_{side}", trntype=mujoco.mjtTrn.mjTRN_JOINT,
+                              group=2)
         a.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
         a.dynprm[0] = 0.1
         a.gaintype = mujoco.mjtGain.mjGAIN_FIXED
@@ -254,13 +260,16 @@ def _add_neck(spec: mujoco.MjSpec, head) -> None:
     axes = {"yaw": [0, 0, 1.0], "pitch": [-1.0, 0, 0], "roll": [0, -1.0, 0]}  # world axes; + = left, up, right ear down
     for j in NECK_JOINTS:
         r = np.radians(NECK_RANGE_DEG[j])
-        head.add_joint(name=f"neck_{j}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=Rh.T @ axes[j], range=[_angle(spec, -r), _angle(spec, r)],
-                       limited=mujoco.mjtLimited.mjLIMITED_TRUE, stiffness=NECK_STIFFNESS, damping=NECK_DAMPING, armature=0.005)
+        head.add_joint(name=f"neck_{j}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=Rh.T @ axes[j],
+                       range=[_angle(spec, -r), _angle(spec, r)], limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                       stiffness=NECK_STIFFNESS, damping=NECK_DAMPING, armature=0.005)
         for s, sign in (("pos", -1.0), ("neg", 1.0)):  # a muscle shortens as its joint turns its way
             t = spec.add_tendon(name=f"neck_{j}_{s}")
             t.wrap_joint(f"neck_{j}", sign * NECK_MOMENT_ARM)
-            a = spec.add_actuator(name=f"neck_{j}_{s}", target=f"neck_{j}_{s}", trntype=mujoco.mjtTrn.mjTRN_TENDON, group=1)
-            a.set_to_muscle(timeconst=list(NECK_MUSCLE_TIMECONST), tausmooth=0.0, range=[0.75, 1.05], force=NECK_MUSCLE_FORCE)
+            a = spec.add_actuator(name=f"neck_{j}_{s}", target=f"neck_{j}_{s}", trntype=mujoco.mjtTrn.mjTRN_TENDON,
+                                  group=1)
+            a.set_to_muscle(timeconst=list(NECK_MUSCLE_TIMECONST), tausmooth=0.0, range=[0.75, 1.05],
+                            force=NECK_MUSCLE_FORCE)
 
 
 def _add_world(spec: mujoco.MjSpec, cfg: BodyConfig) -> None:
@@ -286,11 +295,12 @@ def _add_world(spec: mujoco.MjSpec, cfg: BodyConfig) -> None:
         geom.friction, geom.condim = list(BALL_FRICTION), BALL_CONDIM
         geom.margin = BALL_MARGIN
         # the floor by an explicit pair, without the margin (a contact takes the larger of its geoms'
-        # margins; a geom's gap did not offset it in MuJoCo 3.17, as measured): the ball lands on the
-        # floor, not 5 mm above it
+        # margins, and in MuJoCo 3.17 a geom's gap does not offset it): the ball lands on the floor, not
+        # 5 mm above it
         spec.add_pair(name="ball_floor", geomname1="floor", geomname2="ball", condim=BALL_CONDIM, margin=0.0,
                       solref=list(BALL_SOLREF), solimp=list(BALL_SOLIMP),
-                      friction=[BALL_FRICTION[0], BALL_FRICTION[0], BALL_FRICTION[1], BALL_FRICTION[2], BALL_FRICTION[2]])
+                      friction=[BALL_FRICTION[0], BALL_FRICTION[0], BALL_FRICTION[1], BALL_FRICTION[2],
+                                BALL_FRICTION[2]])
 
 
 def _frame_z(z) -> np.ndarray:
@@ -348,7 +358,8 @@ def _eye_lengths() -> dict:
         tid = [model.tendon(f"{m}_{side}").id for m in EYE_MUSCLE_NAMES]
         L = np.empty((n, len(tid)))
         for k in range(n):
-            d = gaze_direction(np.arctan2(np.sin(ecc[k]) * np.cos(phi[k]), np.cos(ecc[k])), np.arcsin(np.sin(ecc[k]) * np.sin(phi[k])))
+            d = gaze_direction(np.arctan2(np.sin(ecc[k]) * np.cos(phi[k]), np.cos(ecc[k])),
+                               np.arcsin(np.sin(ecc[k]) * np.sin(phi[k])))
             yaw, pitch = gaze_angles(d)
             R = fick_rotation(yaw, pitch) @ _rot_z(tor[k])
             data.qpos[adr:adr + 4] = quat_from_matrix(R)

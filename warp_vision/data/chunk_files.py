@@ -18,8 +18,9 @@ import platform
 import re
 import socket
 import uuid
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -47,7 +48,8 @@ class MissingStoreError(ValueError):
 
     def __init__(self, root: os.PathLike | str):
         self.root = Path(root)
-        super().__init__(f"{self.root / MANIFEST_NAME} not found: {self.root} is not a ChunkedStore (or was never created)")
+        super().__init__(f"{self.root / MANIFEST_NAME} not found: {self.root} is not a ChunkedStore (or was never "
+                         "created)")
 
 
 class IncompleteStoreError(ValueError):
@@ -64,7 +66,7 @@ class IncompleteStoreError(ValueError):
         super().__init__(f"{self.root}: dataset incomplete: {len(self.missing)} of {self.num_chunks} chunks missing "
                          f"(chunks {head}); {how}")
 
-    def finished_by(self, command: str) -> "IncompleteStoreError":
+    def finished_by(self, command: str) -> IncompleteStoreError:
         """This error, naming ``command`` as the one that renders the missing chunks."""
         return IncompleteStoreError(self.root, self.missing, self.num_chunks, command)
 
@@ -266,7 +268,8 @@ def read_record(path: Path, c: int, expect: Mapping[str, Any], data_files: Mappi
         with open(path, encoding="utf-8") as f:
             rec = json.load(f)
     except FileNotFoundError:
-        raise CorruptChunkError(path, c, "record missing: the chunk was never written or its write was interrupted") from None
+        raise CorruptChunkError(path, c,
+                                "record missing: the chunk was never written or its write was interrupted") from None
     except (OSError, ValueError) as e:
         raise CorruptChunkError(path, c, f"record unreadable: {e}") from None
     if not isinstance(rec, dict):
@@ -387,7 +390,8 @@ def read_npy(path: Path, c: int, entry: dict, want_shape: tuple, dtype: str, out
             out = np.empty(want_shape, dtype=np.dtype(dtype))
         nbytes = out.nbytes
         if offset + nbytes != size:
-            raise CorruptChunkError(path, c, f"{size} bytes, but header ({offset}) + data ({nbytes}) = {offset + nbytes}")
+            raise CorruptChunkError(path, c,
+                                    f"{size} bytes, but header ({offset}) + data ({nbytes}) = {offset + nbytes}")
         sha = hashlib.sha256()
         if check_hash:
             f.seek(0)

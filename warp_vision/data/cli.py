@@ -51,7 +51,8 @@ def config_of(kind: str, args: argparse.Namespace):
     """The dataset config of a parsed command line: its preset's settings with the flags given over them."""
     from warp_vision.data import faces, foveation
 
-    cls, presets = (FoveationDataConfig, foveation.PRESET_DATA) if kind == "foveation" else (faces.FaceDataConfig, faces.PRESET_DATA)
+    cls, presets = (FoveationDataConfig,
+                    foveation.PRESET_DATA) if kind == "foveation" else (faces.FaceDataConfig, faces.PRESET_DATA)
     given = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if getattr(args, f.name) is not None}
     return cls(**{**presets[args.preset], **given})
 
@@ -62,7 +63,8 @@ def parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.data", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="kind", required=True)
     fov = sub.add_parser("foveation", help="ONVs of a ball in a room (--generator 7: a glowing white ball; 8: ordinary "
-                                           "balls among distractors; 9: and decoys), with the eye rotation that foveates it")
+                                           "balls among distractors; 9: and decoys), with the eye rotation that "
+                                           "foveates it")
     from warp_vision.data.foveation_scenes import CONDITIONS, ROOM_FAMILIES
 
     _add_config_flags(fov, FoveationDataConfig, foveation.PRESET_DATA,
@@ -89,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg.validate()
         out = a.out or str(Path("runs/datasets") / f"{a.kind}-{cfg.key()}")
         # a whole dataset may lie on a read-only disk; one still to be rendered needs a directory that can be
-        # written (/proc/x was "No such file or directory" from the first mkdir)
+        # written, checked before the first mkdir (which would name a missing file, not the option)
         require_output(out, "--out", writable=not ChunkedStore.whole_at(out))
         cache = getattr(a, "identities_cache", None)
         if cache:  # (read where it holds the identities, written where it does not)
@@ -107,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
             out, store = job()
         except KeyboardInterrupt as e:
             print("interrupted: the chunks written are kept; the same command carries on from them", file=sys.stderr)
-            raise told(e)
+            raise told(e)  # noqa: B904 (told returns e: the caught exception, raised again)
         left = len(store.missing_chunks())
         print(f"{out}: shard {a.shard} done; dataset {'complete' if store.complete else 'still missing other shards'}"
               f"{'' if not left else f' ({left} chunks of this shard missing)'}")

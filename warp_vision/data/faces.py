@@ -147,7 +147,7 @@ class FaceIdentities:
     def __len__(self) -> int:
         return len(self.vertices)
 
-    def subset(self, n: int) -> "FaceIdentities":
+    def subset(self, n: int) -> FaceIdentities:
         return FaceIdentities(self.vertices[:n], self.faces, self.colours[:n], self.pivot[:n], self.face_centre[:n],
                               self.params[:n], self.param_names, self.seed)
 
@@ -170,7 +170,7 @@ class FaceIdentities:
         atomic_write(path, write)
 
     @classmethod
-    def load(cls, path) -> "FaceIdentities":
+    def load(cls, path) -> FaceIdentities:
         """The identities :meth:`save` wrote to ``path``; any other file is a ValueError naming it (it read as
         numpy's "pickled (object) data" error, or a KeyError), and is left as it is."""
         try:
@@ -194,9 +194,8 @@ class FaceIdentities:
 
 
 def _anny_model():
-    import torch
-
     import anny
+    import torch
 
     return anny.Anny(**ANNY_MODEL).to(dtype=torch.float32)
 
@@ -204,10 +203,9 @@ def _anny_model():
 def _region_masks(model) -> dict:
     """Per-vertex weights in [0, 1] of anny's regions: UV masks (face, lips, eyelids, ears) sampled at
     each vertex's texture coordinates, and part labels (eyeball front/back, cavities, tongue)."""
-    from PIL import Image
-
     from anny.face_segmentation import get_face_segmentation_mask
     from anny.paths import get_anny_root_dir
+    from PIL import Image
 
     faces = model.faces.cpu().numpy()
     V = int(faces.max()) + 1
@@ -312,7 +310,8 @@ def build_identities(n: int, seed: int = 0, progress: bool = True) -> FaceIdenti
         v = out["vertices"][0].cpu().numpy().astype(np.float64)
         eye_l, eye_r, mouth, pivot = _landmarks(v, masks)
         col, cpar = _colours(rng, v, masks, (eye_l, eye_r))
-        centre = np.array([0.5 * (eye_l[0] + eye_r[0]), 0.5 * (eye_l[1] + eye_r[1]), 0.5 * (0.5 * (eye_l[2] + eye_r[2]) + mouth[2])])
+        centre = np.array([0.5 * (eye_l[0] + eye_r[0]), 0.5 * (eye_l[1] + eye_r[1]),
+                           0.5 * (0.5 * (eye_l[2] + eye_r[2]) + mouth[2])])
         V.append(v.astype(np.float32))
         C.append(col)
         P.append(pivot)
@@ -345,7 +344,8 @@ def load_identities(n: int, seed: int = 0, cache: str | Path | None = None, prog
     log(f"building {n} identities with anny (its first model build in a fresh environment takes minutes)")
     ids = build_identities(n, seed, progress)
     ids.save(path)
-    log(f"built {n} identities in {time.perf_counter() - t0:.0f} s; cached in {path} ({path.stat().st_size / 2**20:.1f} MiB)")
+    log(f"built {n} identities in {time.perf_counter() - t0:.0f} s; cached in {path} "
+        f"({path.stat().st_size / 2**20:.1f} MiB)")
     return ids
 
 

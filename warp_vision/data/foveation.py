@@ -50,7 +50,7 @@ GENERATOR_VERSION = 7
 
 
 def generator_flag(text: str) -> int:
-    """``--generator``'s value: a version as the docs name it, ``9`` or ``v9`` (``v9`` was "invalid int value")."""
+    """``--generator``'s value: a version as the docs name it, ``9`` or ``v9`` (a plain int type refuses ``v9``)."""
     import argparse
 
     t = text.strip()
@@ -101,7 +101,8 @@ class FoveationDataConfig:
     pupil_diameter_mm: float = 4.0  # the pupil's diameter (mm)
     seed: int = 0  # seed of the scenes (the training command's --data-seed)
     chunk_size: int = 256  # ONVs per stored chunk (a shard's unit)
-    generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room), 8 (ordinary balls: foveation_scenes) or 9 (v8 + decoys)
+    generator: int = GENERATOR_VERSION  # 7 (glowing ball, dim room), 8 (ordinary
+                                        # balls: foveation_scenes) or 9 (v8 + decoys)
     rooms: str = "train"  # v8: the room family, "train" or "heldout" (disjoint seeds)
     condition: str = "mixed"  # v8: "mixed" (training) or one held-out test condition
 
@@ -123,7 +124,8 @@ class FoveationDataConfig:
         if self.condition not in CONDITIONS:
             raise ValueError(f"condition: expected one of {list(CONDITIONS)}, got {self.condition!r}")
         if self.generator == 7 and (self.rooms, self.condition) != ("train", "mixed"):
-            raise ValueError("rooms and condition belong to generators 8 and 9; generator 7 has one room and one condition")
+            raise ValueError("rooms and condition belong to generators 8 and 9; generator 7 has one room and one "
+                             "condition")
         if self.generator == 8 and self.condition == "decoy":
             raise ValueError("condition 'decoy' belongs to generator 9 (v8 has no decoys)")
         self._check_field()
@@ -139,13 +141,14 @@ class FoveationDataConfig:
         if len(too_big):
             e = float(np.degrees(ecc[too_big[0]]))
             raise ValueError(
-                f"photoreceptors: {self.photoreceptors:,} are too few for balls out to max_field_deg={self.max_field_deg:g}: "
-                f"from {e:.1f} deg out they lie so far apart that the smallest ball seen there "
-                f"({np.degrees(least[too_big[0]]):.0f} deg across, {MIN_RECEPTORS_ACROSS:g} spacings) is larger than the "
-                f"largest allowed ({MAX_APPARENT_DIAMETER_DEG:g} deg); use more photoreceptors or a smaller --max-field-deg")
+                f"photoreceptors: {self.photoreceptors:,} are too few for balls out to "
+                f"max_field_deg={self.max_field_deg:g}: from {e:.1f} deg out they lie so far apart that the smallest "
+                f"ball seen there ({np.degrees(least[too_big[0]]):.0f} deg across, {MIN_RECEPTORS_ACROSS:g} spacings) "
+                f"is larger than the largest allowed ({MAX_APPARENT_DIAMETER_DEG:g} deg); use more photoreceptors or a "
+                "smaller --max-field-deg")
 
     @classmethod
-    def saved(cls, d: dict) -> "FoveationDataConfig":
+    def saved(cls, d: dict) -> FoveationDataConfig:
         """The config recorded as ``d`` (a checkpoint's ``data``); one saved before ``generator`` existed is v7's."""
         return cls(**{"generator": 7, **d})
 
@@ -194,7 +197,7 @@ def make_scene(seed: int):
     sc.set_visible("ball", False)  # the room's own ball: the sized ones above replace it
     # 25 x 25 cm, 2 cm thick along its local z: posed face-on to the eye (z along the line of sight)
     panel = trimesh.creation.box((0.25, 0.25, 0.02))
-    # as dim as the room: v5's panel had the undimmed albedo and outshone the room beside the ball
+    # as dim as the room: with the undimmed albedo it would outshine the room beside the ball
     sc.add("occluder", panel, Material(tuple(ROOM_ALBEDO * np.array([0.35, 0.3, 0.25]))))
     sc.lights[0].position = np.array([0.0, 0.0, ROOM_SIZE[2] - 0.6])  # a hanging lamp, not a hot spot on the ceiling
     return sc
@@ -202,12 +205,13 @@ def make_scene(seed: int):
 
 #: The ball's apparent diameter is at least this (deg), and at least MIN_RECEPTORS_ACROSS times the
 #: photoreceptor spacing where it lies (v7): a smaller ball falls between the periphery's photoreceptors
-#: and leaves no trace in the ONV, making its target noise. With v6's flat 1.5 deg, small balls far in the
-#: periphery (where the spacing is about 1.8 deg) were most of a trained net's worst training errors.
+#: and leaves no trace in the ONV, making its target noise: such balls far in the periphery, under a flat
+#: 1.5 deg floor alone, were most of a trained net's worst training errors (docs/RESULTS.md, "Figures behind
+#: the code's constants").
 MIN_APPARENT_DIAMETER_DEG = 1.5
 MIN_RECEPTORS_ACROSS = 3.0
-#: ... and at most this (deg, v7): a ball 0.3 m away filled up to 84 deg of the field, and those, mostly
-#: half hidden, were the rest of the worst errors (its centre is where nothing of it is seen).
+#: ... and at most this (deg, v7): a ball near the eye fills much of the field, mostly half hidden, and its
+#: centre is where nothing of it is seen; such balls were the rest of the worst errors (the same entry).
 MAX_APPARENT_DIAMETER_DEG = 30.0
 
 
@@ -240,7 +244,8 @@ def _spacing_profile(photoreceptors: int, eye: str, accommodation_D: float, pupi
 def min_apparent_diameter(cfg: FoveationDataConfig, eccentricity: float) -> float:
     """The smallest apparent diameter (rad) a ball may have at ``eccentricity`` rad from the axis."""
     ecc, spacing = _spacing_profile(cfg.photoreceptors, cfg.eye, cfg.accommodation_D, cfg.pupil_diameter_mm)
-    return max(np.radians(MIN_APPARENT_DIAMETER_DEG), MIN_RECEPTORS_ACROSS * float(np.interp(eccentricity, ecc, spacing)))
+    return max(np.radians(MIN_APPARENT_DIAMETER_DEG),
+               MIN_RECEPTORS_ACROSS * float(np.interp(eccentricity, ecc, spacing)))
 
 
 def sample_params(cfg: FoveationDataConfig, index: int, attempt: int = 0) -> dict:
@@ -330,7 +335,8 @@ def ball_visible(scene, p: dict, batch: int, device: str = "cpu") -> bool:
 
 def render_samples(cfg: FoveationDataConfig, indices, scene, retina, eye, device: str = "cpu") -> dict:
     """Render samples ``indices`` of ``cfg`` (v7 in one batch of ``scene``; v8 and v9 per room, building each
-    room's scene, ``scene`` unused): {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3 (v7), 7 (v8) or 8 (v9)]}."""
+    room's scene, ``scene`` unused):
+    {"onv": [B, 3P] float16, "target": [B, 2], "meta": [B, 3 (v7), 7 (v8) or 8 (v9)]}."""
     if cfg.generator >= 8:
         return _render_v8(cfg, indices, retina, eye, device)
     return _render_v7(cfg, indices, scene, retina, eye, device)
@@ -355,7 +361,8 @@ def _render_v7(cfg: FoveationDataConfig, indices, scene, retina, eye, device: st
             if attempts[k] > 50:  # pragma: no cover - the room is mostly empty; never seen
                 raise RuntimeError(f"sample {indices[k]}: no visible ball in 50 draws")
             ps[k] = sample_params(cfg, int(indices[k]), attempts[k])
-    onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed, device=device)
+    onv = render_onv(scene, retina, eye, np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor, seed=cfg.seed,
+                     device=device)
     return {
         "onv": onv.cpu().numpy().astype(np.float16),
         "target": np.stack([p["target"] for p in ps]),
@@ -442,7 +449,8 @@ def _placed_v8(cfg: FoveationDataConfig, indices, device: str = "cpu"):
             for k in todo:
                 attempts[k] += 1
                 if attempts[k] > 50:  # pragma: no cover - never seen
-                    raise RuntimeError(f"sample {idx[k]}: no visible ball (or, condition decoy, no decoy in sight) in 50 draws")
+                    raise RuntimeError(f"sample {idx[k]}: no visible ball (or, condition decoy, no decoy in sight) in "
+                                       "50 draws")
                 ps[k] = draw(idx[k], attempts[k])
         yield scene, idx, ps
 
@@ -478,8 +486,8 @@ def _landed_class(name: str | None) -> str:
     return f"furniture: {furniture_shape(name)}" if name.startswith("object_") else "wall, floor or ceiling"
 
 
-def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu", with_onv: bool = False,
-                progress: bool = False, chance_directions=None) -> dict:
+def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None, device: str = "cpu",
+                with_onv: bool = False, progress: bool = False, chance_directions=None) -> dict:
     """How much of each sample's ball its ONV holds: samples ``indices`` of ``cfg`` (v8 or v9) are rendered
     room by room as the dataset has them and again, everything placed alike, with the ball hidden. Per
     sample, in the order of ``indices``:
@@ -509,7 +517,8 @@ def ball_signal(cfg: FoveationDataConfig, indices, retina, eye, directions=None,
     if len(set(indices)) != len(indices):
         raise ValueError("ball_signal: indices must be distinct")
     probes = {}  # out key -> [N, 2] directions followed from the eye
-    for key, name, v in (("landed_on", "directions", directions), ("chance_landed_on", "chance_directions", chance_directions)):
+    for key, name, v in (("landed_on", "directions", directions),
+                         ("chance_landed_on", "chance_directions", chance_directions)):
         if v is not None:
             probes[key] = np.asarray(v, dtype=np.float64)
             if probes[key].shape != (len(indices), 2):
@@ -562,8 +571,8 @@ def dataset_fields(cfg: FoveationDataConfig) -> dict:
     return {"onv": ((3 * cfg.photoreceptors,), "float16"), "target": ((2,), "float32"), "meta": ((meta,), "float32")}
 
 
-def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16, device: str = "cpu", progress: bool = True,
-               log=print) -> ChunkedStore:
+def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16, device: str = "cpu",
+               progress: bool = True, log=print) -> ChunkedStore:
     """Render the dataset ``cfg`` into ``out_dir`` (or this shard's part of it), resuming what is there.
 
     Chunks already written (and recorded) are kept; the rest are rendered ``batch`` samples per launch.
@@ -577,7 +586,8 @@ def synthesize(out_dir, cfg: FoveationDataConfig, shard=(0, 1), batch: int = 16,
     todo, mine = pending(store)
     if not todo:
         return store
-    log(f"synthesising {todo:,} of {mine:,} ONVs (P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into {out_dir}")
+    log(f"synthesising {todo:,} of {mine:,} ONVs (P={cfg.photoreceptors:,}, S={cfg.samples_per_receptor}) into "
+        f"{out_dir}")
     eye = make_eye(cfg)
     scene = make_scene(cfg.seed) if cfg.generator == 7 else None
     render_missing(store, lambda r: render_samples(cfg, r, scene, retina, eye, device), batch, progress, log)

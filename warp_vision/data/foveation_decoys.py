@@ -68,7 +68,7 @@ def _material(rng: np.random.Generator) -> tuple[np.ndarray, float]:
         colour = np.full(3, level)
     else:
         colour = level * rng.uniform(0.5, 1.0, 3)
-    glossy = rng.uniform() < 0.3  # drawn before the specular level, as it always was
+    glossy = rng.uniform() < 0.3  # drawn before the specular level: the draws' order fixes every sample
     return np.clip(colour, 0.0, 1.0), (float(rng.uniform(0.0, 0.4)) if glossy else 0.0)
 
 
@@ -94,7 +94,8 @@ def draw_decoys(cfg, p: dict, index: int, attempt: int, max_tries: int = 200) ->
         for _ in range(max_tries):
             a_dec = a_ball * rng.uniform(*APPARENT_RATIO)
             behind = rng.uniform() < BEHIND_SHARE
-            if behind:  # the disc's centre up to 1.5 summed radii from the ball's (0: the ball at the muzzle), farther away
+            # the disc's centre up to 1.5 summed radii from the ball's (0: the ball at the muzzle), farther away
+            if behind:
                 sep = (a_ball + a_dec) * rng.uniform(0.0, 1.5)
                 u = np.cos(sep) * u_ball + np.sin(sep) * _unit_perp(u_ball, rng)
             else:

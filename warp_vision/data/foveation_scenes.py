@@ -25,9 +25,10 @@ glow). v8 draws every sample from a family:
 
 ``FoveationDataConfig.condition`` picks the mixture: "mixed" (training) or one held-out test condition
 ("glow_dim": v7's glowing ball in a dim room; "white": a lit white ball; "matte": a coloured matte ball;
-"distractor": a lamp or brighter object in view; "arm": the body's arm in view; "decoy", generator v9's: a round decoy in view, :mod:`warp_vision.data.foveation_decoys`). Every sample's
-parameters come from a generator seeded with (dataset seed, sample index, attempt) and its room's from
-(family, dataset seed, block), so a sample never depends on how it is batched.
+"distractor": a lamp or brighter object in view; "arm": the body's arm in view; "decoy", generator v9's: a round decoy
+in view, :mod:`warp_vision.data.foveation_decoys`). Every sample's parameters come from a generator seeded with (dataset
+seed, sample index, attempt) and its room's from (family, dataset seed, block), so a sample never depends on how it is
+batched.
 """
 
 from __future__ import annotations
@@ -65,8 +66,10 @@ def room_layout(family: int, seed: int, block: int) -> dict:
     rng = np.random.default_rng([8, family, seed, block])
     size = (float(rng.uniform(5, 10)), float(rng.uniform(5, 10)), float(rng.uniform(2.6, 4.0)))
     tint = lambda: rng.uniform(0.2, 0.8) * (1 + rng.uniform(-0.15, 0.15, 3))  # noqa: E731
-    surfaces = {n: np.clip(tint(), 0.0, 1.0) for n in ("floor", "ceiling", "wall_north", "wall_south", "wall_east", "wall_west")}
-    return {"size": size, "objects": int(rng.integers(3, 9)), "surfaces": surfaces, "furniture_seed": int(rng.integers(2**31))}
+    surfaces = {n: np.clip(tint(), 0.0, 1.0) for n in ("floor", "ceiling", "wall_north", "wall_south", "wall_east",
+                                                       "wall_west")}
+    return {"size": size, "objects": int(rng.integers(3, 9)), "surfaces": surfaces,
+            "furniture_seed": int(rng.integers(2**31))}
 
 
 @lru_cache(maxsize=1)
@@ -94,7 +97,7 @@ class ArmKit:
 
     @staticmethod
     @lru_cache(maxsize=1)
-    def load() -> "ArmKit":
+    def load() -> ArmKit:
         import trimesh
 
         from warp_vision.body import ARM_PARTS, HIDDEN_FROM_EYES, Body, visible_parts
@@ -204,8 +207,8 @@ def _lighting(kind: dict, size, rng: np.random.Generator) -> dict:
     brightness = 10 ** rng.uniform(*BRIGHTNESS_DECADES)
     n = int(rng.integers(1, LAMPS + 1))
     for i in range(n):
-        pos[i] = [rng.uniform(-size[0] / 2 + 0.4, size[0] / 2 - 0.4), rng.uniform(-size[1] / 2 + 0.4, size[1] / 2 - 0.4),
-                  size[2] - rng.uniform(0.2, 0.9)]
+        pos[i] = [rng.uniform(-size[0] / 2 + 0.4, size[0] / 2 - 0.4),
+                  rng.uniform(-size[1] / 2 + 0.4, size[1] / 2 - 0.4), size[2] - rng.uniform(0.2, 0.9)]
         colour[i] = rng.uniform(0.6, 1.0, 3)
         intensity[i] = brightness * rng.uniform(2.0, 10.0) / n ** 0.5
     ambient = brightness * rng.uniform(0.01, 0.08) * rng.uniform(0.8, 1.0, 3)
@@ -216,7 +219,9 @@ def ball_radiance(light: dict, mat: dict, ball) -> float:
     """A rough upper estimate of the ball's brightest radiance: its albedo (and specular peak) under the
     lamps' irradiance at its centre (no shadows, normal incidence) and the ambient light, plus its emission."""
     d2 = np.sum((light["pos"] - ball) ** 2, axis=1)
-    E = float(np.max(light["ambient"])) + float(np.sum(light["intensity"] * light["colour"].max(axis=1) / np.maximum(d2, 1e-4)))
+    E = float(np.max(light["ambient"])) + float(
+        np.sum(light["intensity"] * light["colour"].max(axis=1) / np.maximum(d2, 1e-4))
+    )
     return float(np.max(mat["diffuse"]) * E / np.pi * (1 + mat["specular"]) + np.max(mat["emission"]))
 
 
@@ -250,7 +255,8 @@ def field_direction(rng, max_field_deg: float) -> tuple[np.ndarray, float, float
 
 def _distractors(kind, R, eye, u_ball, ball_angle, size, light, mat, ball, rng) -> dict:
     """Poses, visibility and emission of the distractors: one or two, in view, away from the ball."""
-    out = {n: {"pose": translation(_HIDDEN), "visible": False, "emission": np.zeros(3), "diffuse": np.full(3, 0.5)} for n in DISTRACTORS}
+    out = {n: {"pose": translation(_HIDDEN), "visible": False, "emission": np.zeros(3),
+               "diffuse": np.full(3, 0.5)} for n in DISTRACTORS}
     if not kind["distractor"]:
         return out
     L = ball_radiance(light, mat, ball)
@@ -281,8 +287,8 @@ def _distractors(kind, R, eye, u_ball, ball_angle, size, light, mat, ball, rng) 
 def occluder_pose(rng, eye, ball, R, phi: float, radius: float, occluded: bool) -> np.ndarray:
     """The occluding panel's [4, 4] pose (v7's rule, shared by v8): between the eye and the ball, its near
     edge crossing the ball's disc from 0.2 of its apparent radius beyond the centre to 0.8 short of it (so
-    it hides about 5% to 60% of the ball); face-on to the eye (its thin local z along the line of sight;
-    generator v4 had it edge-on, hiding at most a 2 cm strip), its local x along the side direction so its
+    it hides about 5% to 60% of the ball); face-on to the eye (its thin local z along the line of sight:
+    edge-on, it would hide at most a 2 cm strip), its local x along the side direction so its
     near edge runs straight past the ball. Parked out of sight when not ``occluded`` (the same two draws
     from ``rng`` either way)."""
     side = R @ np.array([np.cos(phi + np.pi / 2), np.sin(phi + np.pi / 2), 0.0])
@@ -322,7 +328,8 @@ def sample_params(cfg, index: int, attempt: int, radii, diameter_limits) -> dict
             # the body set down at a random place and heading, the eye at least 0.8 m inside the walls
             Tw = np.eye(4)
             Tw[:3, :3] = _yaw(rng.uniform(-np.pi, np.pi))
-            spot = np.array([rng.uniform(-size[0] / 2 + 0.8, size[0] / 2 - 0.8), rng.uniform(-size[1] / 2 + 0.8, size[1] / 2 - 0.8)])
+            spot = np.array([rng.uniform(-size[0] / 2 + 0.8, size[0] / 2 - 0.8),
+                             rng.uniform(-size[1] / 2 + 0.8, size[1] / 2 - 0.8)])
             Tw[:2, 3] = spot - (Tw[:3, :3] @ centre)[:2]
             eye = Tw[:3, :3] @ centre + Tw[:3, 3]
             fwd = Tw[:3, :3] @ (look - centre)
@@ -330,8 +337,8 @@ def sample_params(cfg, index: int, attempt: int, radii, diameter_limits) -> dict
             fwd = fwd / np.linalg.norm(fwd) + np.tan(np.radians(rng.uniform(0, 20))) * _unit_perp(fwd, rng)
             arm = {n: Tw @ T for n, T in parts.items()}
         else:
-            eye = np.array([rng.uniform(-size[0] / 2 + 0.6, size[0] / 2 - 0.6), rng.uniform(-size[1] / 2 + 0.6, size[1] / 2 - 0.6),
-                            rng.uniform(0.9, 1.8)])
+            eye = np.array([rng.uniform(-size[0] / 2 + 0.6, size[0] / 2 - 0.6),
+                            rng.uniform(-size[1] / 2 + 0.6, size[1] / 2 - 0.6), rng.uniform(0.9, 1.8)])
             yaw0, pitch0 = rng.uniform(-np.pi, np.pi), rng.uniform(-0.35, 0.35)
             fwd = np.array([np.cos(pitch0) * np.cos(yaw0), np.cos(pitch0) * np.sin(yaw0), np.sin(pitch0)])
         R = look_rotation(fwd)
@@ -365,8 +372,8 @@ def sample_params(cfg, index: int, attempt: int, radii, diameter_limits) -> dict
         "panel_pose": Tp, "panel_albedo": panel_albedo, "light": light, "ball_material": mat, "distractors": distract,
         "arm": arm,
         "target": np.array([yaw, pitch], dtype=np.float32),
-        "meta": np.array([dist, radius, float(occluded), float(kind["glow"]), float(kind["distractor"]), float(arm is not None),
-                          light["brightness"]], dtype=np.float32),
+        "meta": np.array([dist, radius, float(occluded), float(kind["glow"]), float(kind["distractor"]),
+                          float(arm is not None), light["brightness"]], dtype=np.float32),
     }
 
 
@@ -391,7 +398,8 @@ def make_scene(family: int, seed: int, block: int, radii, with_arms: bool = True
             o.material.diffuse = tuple(float(v) for v in room["surfaces"][o.name])
     sc.set_visible("ball", False)
     for k, mesh in enumerate(_ball_meshes(tuple(radii))):
-        sc.add(f"ball_{k}", mesh, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True), translation(_HIDDEN))
+        sc.add(f"ball_{k}", mesh, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True),
+               translation(_HIDDEN))
     sc.add("occluder", _occluder_mesh(), Material((0.5, 0.5, 0.5)), translation(_HIDDEN))
     for name, mesh in _distractor_meshes().items():
         sc.add(name, mesh, Material((0.8, 0.8, 0.8)), translation(_HIDDEN))
@@ -423,8 +431,9 @@ def place(scene, ps: list) -> None:
             scene.set_material(o.name, [dim if p["kind"]["dim"] else m for p in ps])
         else:
             scene.set_material(o.name, m)
-    balls = [Material(tuple(p["ball_material"]["diffuse"]), p["ball_material"]["specular"], p["ball_material"]["shininess"],
-                      emission=tuple(p["ball_material"]["emission"]), smooth=True) for p in ps]
+    balls = [Material(tuple(p["ball_material"]["diffuse"]), p["ball_material"]["specular"],
+                      p["ball_material"]["shininess"], emission=tuple(p["ball_material"]["emission"]),
+                      smooth=True) for p in ps]
     for k in range(sum(o.name.startswith("ball_") for o in scene.objects)):
         scene.set_transform(f"ball_{k}", np.stack([translation(p["ball"] if p["size"] == k else _HIDDEN) for p in ps]))
         scene.set_visible(f"ball_{k}", [p["size"] == k for p in ps])

@@ -92,7 +92,7 @@ class PupilDataConfig:
                                    samples_per_receptor=self.samples_per_receptor, generator=8, rooms=self.rooms,
                                    seed=self.seed, accommodation_D=self.accommodation_D)
 
-    def heldout(self, samples: int | None = None) -> "PupilDataConfig":
+    def heldout(self, samples: int | None = None) -> PupilDataConfig:
         """The held-out set of this config: held-out rooms, sample seeds offset by 1000."""
         return PupilDataConfig(**{**asdict(self), "rooms": "heldout", "seed": self.seed + 1000,
                                   "samples": samples or max(200, self.samples // 6)})
@@ -185,7 +185,7 @@ EYE_RAY_SEED = 0
 #: set of textures (same geometry, so the cards' BVHs are built once) every TEXTURE_SET_BLOCKS blocks of
 #: 16 samples: the default 16,000 samples see 400 textures. The texel's angular size (card size / CARD_VERTICES / d)
 #: tells the distance within a size bin; the nets are therefore not given the accommodation, which with
-#: the distance would give the defocus away (docs/RESULTS.md: measured).
+#: the distance would give the defocus away (docs/RESULTS.md, "The pupil and the lens: the intraocular nets").
 CARD_SIZES_M = tuple(float(s) for s in 3 * 0.021 * 1.58 ** np.arange(8))
 CARD_TEXTURES = 2
 CARD_VERTICES = 384
@@ -240,9 +240,10 @@ class LensDataConfig:
     def key(self) -> str:
         return hashlib.sha256(json.dumps(self.manifest(), sort_keys=True).encode()).hexdigest()[:12]
 
-    def heldout(self, samples: int | None = None) -> "LensDataConfig":
+    def heldout(self, samples: int | None = None) -> LensDataConfig:
         """The held-out set: new card textures, lamps and distances (seed + 1000)."""
-        return LensDataConfig(**{**asdict(self), "seed": self.seed + 1000, "samples": samples or max(200, self.samples // 6)})
+        return LensDataConfig(**{**asdict(self), "seed": self.seed + 1000,
+                                 "samples": samples or max(200, self.samples // 6)})
 
 
 def central_photoreceptors(retina, central_deg: float) -> np.ndarray:
@@ -352,8 +353,8 @@ def render_lens_samples(cfg: LensDataConfig, indices, positions_mm: np.ndarray, 
             light.color = np.stack([p["lamps"][j][1] for p in ps])
             light.intensity = np.array([p["lamps"][j][2] for p in ps])
         sc.set_ambient(np.stack([p["ambient"] for p in ps]))
-        onv = render_onv(sc, positions_mm, NavarroEye(acc, pupil), np.tile(np.eye(4), (B, 1, 1)), cfg.samples_per_receptor,
-                         seed=EYE_RAY_SEED, device=device)
+        onv = render_onv(sc, positions_mm, NavarroEye(acc, pupil), np.tile(np.eye(4), (B, 1, 1)),
+                         cfg.samples_per_receptor, seed=EYE_RAY_SEED, device=device)
         out["onv"].append(onv.cpu().numpy().astype(np.float16))
         out["defocus"].append(np.array([p["defocus"] for p in ps], np.float32))
         out["accommodation"].append(np.full(B, acc, np.float32))

@@ -47,8 +47,9 @@ import math
 import os
 import re
 import time
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -199,7 +200,7 @@ class ChunkedStore:
         chunk_size: int,
         fields: Mapping[str, tuple[tuple[int, ...], str]],
         shard: tuple[int, int] = (0, 1),
-    ) -> "ChunkedStore":
+    ) -> ChunkedStore:
         """Create the store in ``root`` (writing ``root/manifest.json``) or resume the one already there.
 
         config: JSON-serialisable dict of the settings that produced the data (compared on resume).
@@ -248,10 +249,10 @@ class ChunkedStore:
         if (root / MANIFEST_NAME).exists():
             manifest = read_manifest(root)
             _refuse_other_settings(root / MANIFEST_NAME, manifest, {"config": json_roundtrip(config)})
-            ChunkedStore(root, manifest, (0, 1), writable=False).complete  # (a chunk of another dataset: named)
+            _ = ChunkedStore(root, manifest, (0, 1), writable=False).complete  # (a chunk of another dataset: named)
 
     @classmethod
-    def open(cls, root: os.PathLike | str) -> "ChunkedStore":
+    def open(cls, root: os.PathLike | str) -> ChunkedStore:
         """Open an existing store for reading (shard (0, 1); ``write_chunk`` is refused).
 
         Raises ValueError if ``root/manifest.json`` is missing or not a valid manifest.
@@ -410,7 +411,9 @@ class ChunkedStore:
             if a.shape != want:
                 raise ValueError(f"chunk {c} field {name!r}: expected shape {want}, got {a.shape}")
             if a.dtype != np.dtype(dtype):
-                raise ValueError(f"chunk {c} field {name!r}: expected dtype {dtype}, got {a.dtype} (no casting is done)")
+                raise ValueError(
+                    f"chunk {c} field {name!r}: expected dtype {dtype}, got {a.dtype} (no casting is done)"
+                )
             if a.dtype.kind in "fc" and not np.isfinite(a).all():
                 bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
                 raise ValueError(f"chunk {c} field {name!r}: {bad} non-finite values (NaN or inf)")
@@ -471,7 +474,8 @@ class ChunkedStore:
             missing = self._all_missing()
         if missing:
             raise IncompleteStoreError(self.root, missing, self.num_chunks)
-        out = {name: np.empty((self.total, *self.fields[name][0]), dtype=np.dtype(self.fields[name][1])) for name in names}
+        out = {name: np.empty((self.total, *self.fields[name][0]),
+                              dtype=np.dtype(self.fields[name][1])) for name in names}
         for c in range(self.num_chunks):
             rec = self._read_record(c)
             start, stop = self.chunk_range(c)

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from warp_vision.data.store import ChunkedStore, dataset_bytes
 
 
-def open_store(out_dir, manifest: dict, total: int, chunk_size: int, fields: dict, shard, retina, batch: int) -> ChunkedStore:
+def open_store(out_dir, manifest: dict, total: int, chunk_size: int, fields: dict, shard, retina,
+               batch: int) -> ChunkedStore:
     """Create or resume the store in ``out_dir`` and keep ``retina`` in ``out_dir/retina.npz`` (a store
     whose saved retina differs from ``retina`` is refused with ``ValueError``)."""
     from warp_vision.eye.retina import Retina
@@ -50,10 +51,12 @@ def render_missing(store: ChunkedStore, render: Callable[[range], dict], batch: 
     todo, mine = pending(store)
     if todo:
         probe_writable(store.root)  # a read-only or full directory fails now, not after the first chunk
-        require_disk(dataset_bytes(store.fields, todo), store.root, "the dataset's missing chunks")  # (a small disk, too)
+        # (a small disk, too)
+        require_disk(dataset_bytes(store.fields, todo), store.root, "the dataset's missing chunks")
     t0, skipped = time.perf_counter(), 0
     unit = "ONV" if what == "ONVs" else "sample"
-    with tqdm(total=mine, initial=mine - todo, unit=unit, desc="synthesis", disable=not progress, dynamic_ncols=True) as bar:
+    with tqdm(total=mine, initial=mine - todo, unit=unit, desc="synthesis", disable=not progress,
+              dynamic_ncols=True) as bar:
         for c in store.missing_chunks():
             lo, hi = store.chunk_range(c)
             if store.written(c):  # another process (a run of the same dataset, `data`) wrote it meanwhile

@@ -76,7 +76,8 @@ class VerifyDataConfig:
         if not 0.0 < self.positive_share < 1.0:
             raise ValueError(f"positive_share: expected a share in (0, 1), got {self.positive_share}")
         if not 0.0 <= self.max_offset_deg < self.central_deg:
-            raise ValueError(f"max_offset_deg: expected 0 to central_deg ({self.central_deg:g}), got {self.max_offset_deg}")
+            raise ValueError(f"max_offset_deg: expected 0 to central_deg ({self.central_deg:g}), got "
+                             f"{self.max_offset_deg}")
         if self.rooms not in _ROOMS:
             raise ValueError(f"rooms: expected one of {_ROOMS}, got {self.rooms!r}")
 
@@ -84,9 +85,9 @@ class VerifyDataConfig:
         """The generator-v9 foveation config whose scenes (rooms, lighting, objects) the samples look into."""
         from warp_vision.data.foveation import FoveationDataConfig
 
-        return FoveationDataConfig(samples=-(-self.samples // FIXATIONS), photoreceptors=self.photoreceptors, eye=self.eye,
-                                   samples_per_receptor=self.samples_per_receptor, seed=self.seed, generator=9,
-                                   rooms=self.rooms, condition="mixed")
+        return FoveationDataConfig(samples=-(-self.samples // FIXATIONS), photoreceptors=self.photoreceptors,
+                                   eye=self.eye, samples_per_receptor=self.samples_per_receptor, seed=self.seed,
+                                   generator=9, rooms=self.rooms, condition="mixed")
 
     def manifest(self) -> dict:
         return {"generator": "verify", "generator_version": VERIFY_DATA_VERSION, **asdict(self)}
@@ -94,7 +95,7 @@ class VerifyDataConfig:
     def key(self) -> str:
         return hashlib.sha256(json.dumps(self.manifest(), sort_keys=True).encode()).hexdigest()[:12]
 
-    def heldout(self, samples: int | None = None) -> "VerifyDataConfig":
+    def heldout(self, samples: int | None = None) -> VerifyDataConfig:
         """The held-out set: rooms of the held-out family (never trained on), other scenes (seed + 1000)."""
         return VerifyDataConfig(**{**asdict(self), "rooms": "heldout", "seed": self.seed + 1000,
                                    "samples": samples or max(200, self.samples // 6)})
@@ -230,16 +231,16 @@ def fixation(cfg: VerifyDataConfig, scene, p: dict, index: int, batch: int, devi
     if label and cls != "ball":
         cls = "ball"  # a look-alike next to the ball (its shadow, a decoy behind it): the ball is at the fovea
     return {"pose": T, "cls": CLASSES.index(cls), "label": label, "offset": gaze_angles(to_ball).astype(np.float32),
-            "ball_ecc_deg": ecc, "ball_radius_deg": float(np.degrees(np.arcsin(min(1.0, p["radius"] / np.linalg.norm(ball - eye)))))}
+            "ball_ecc_deg": ecc,
+            "ball_radius_deg": float(np.degrees(np.arcsin(min(1.0, p["radius"] / np.linalg.norm(ball - eye)))))}
 
 
 def _ball_at_loop_size(cfg: VerifyDataConfig, p: dict, index: int) -> dict:
     """Scene sample ``p`` with its ball moved along its line of sight so that its apparent radius is drawn
     log-uniformly from BALL_RADIUS_DEG (the sizes the loop's ball has at arm's length and beyond; v9's
     balls can fill the whole central field); the ball stays where it was if the room has no such place."""
-    from warp_vision.data.foveation_scenes import _in_room, _room_exit
-
     from warp_vision.data.foveation import BALL_RADII
+    from warp_vision.data.foveation_scenes import _in_room, _room_exit
 
     rng = np.random.default_rng([cfg.seed, index, 65])
     size = int(rng.integers(BALL_SIZES))  # one of the smallest balls: the loop's has a radius of 4 cm
@@ -275,8 +276,8 @@ def render_verify_samples(cfg: VerifyDataConfig, indices, positions_mm: np.ndarr
         rep = [ps[k] for _, k in mine]
         V.place(scene, rep)
         D.place_decoys(scene, rep)
-        onv = render_onv(scene, positions_mm, make_eye(fcfg), np.stack([f["pose"] for f in fx]), cfg.samples_per_receptor,
-                         seed=cfg.seed, device=device)
+        onv = render_onv(scene, positions_mm, make_eye(fcfg), np.stack([f["pose"] for f in fx]),
+                         cfg.samples_per_receptor, seed=cfg.seed, device=device)
         out["onv"].append(onv.cpu().numpy().astype(np.float16))
         for key in ("label", "ball_ecc_deg", "ball_radius_deg"):
             out[key].append(np.array([f[key] for f in fx], np.float32))

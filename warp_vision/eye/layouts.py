@@ -106,8 +106,8 @@ _QUADRATURE_POINTS = 100_001
 
 
 # --- validation -----------------------------------------------------------------------------------
-#: memory per photoreceptor while a layout is built (polar and 3D positions, Morton sort, temporaries;
-#: measured ~132 B for the log-polar layout)
+#: memory per photoreceptor while a layout is built (polar and 3D positions, Morton sort, temporaries), an
+#: upper bound of the log-polar layout's peak (docs/RESULTS.md, "Figures behind the code's constants")
 LAYOUT_BYTES_PER_RECEPTOR = 160
 
 

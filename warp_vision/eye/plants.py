@@ -14,7 +14,7 @@ state toward the command they received one latency ago, exponentially with a tim
   the luminance is the one the command stands for (the luminance whose Watson & Yellott diameter is the
   command): ``latency = clip(0.25 - 0.025 log10(L / 1 cd m^-2), 0.20, 0.30)`` s.
 - Constriction is faster than dilation: time constants 0.15 s and 0.45 s (dilation 3 times slower;
-  Ellis (1981), "The pupillary light reflex in normal subjects", Br J Ophthalmol 65:754-759, measured
+  Ellis (1981), "The pupillary light reflex in normal subjects", Br J Ophthalmol 65:754-759, reports
   constriction velocities about three times the redilation velocities).
 
 **Lens** (:class:`LensPlant`, 0-10 D at this age).

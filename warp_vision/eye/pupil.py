@@ -138,7 +138,7 @@ def pupil_diameter_mm(
     All numeric arguments broadcast against each other.
 
     Returns:
-        Pupil diameter [mm] (entrance pupil, as measured in the studies fitted): a float when every
+        Pupil diameter [mm] (the entrance pupil, as the fitted studies report it): a float when every
         argument is a scalar, else a float64 ndarray of the broadcast shape. 7.75 mm in the dark at
         age y0; it decreases monotonically with luminance.
 

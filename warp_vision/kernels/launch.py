@@ -23,8 +23,9 @@ import sys
 import tempfile
 import threading
 from collections import OrderedDict
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 import warp as wp
@@ -215,7 +216,8 @@ class _RecordedLaunches:
         for cmd in self.cmds[1:]:
             for i in index:
                 packed = first.params[i + 1]  # params[0]: the launch bounds
-                cmd.set_param_at_index_from_ctype(i, packed if isinstance(packed, (ctypes.Structure, ctypes.Array)) else packed.value)
+                cmd.set_param_at_index_from_ctype(
+                    i, packed if isinstance(packed, (ctypes.Structure, ctypes.Array)) else packed.value)
 
     def release(self) -> None:
         """Drop the commands' references to the last arguments (Warp keeps the arrays, and so the
@@ -289,7 +291,8 @@ def launch_split(
         return
     n = 1 if device != "cpu" else (threads or cpu_threads())
     n = min(n, max(1, dim // max(1, min_per_slice)))
-    parts = [(0, dim)] if n == 1 else slices(dim, n * max(1, min(chunks_per_thread, dim // (n * max(1, min_per_slice)))))
+    parts = [(0, dim)] if n == 1 else slices(dim,
+                                             n * max(1, min(chunks_per_thread, dim // (n * max(1, min_per_slice)))))
     rec = _recorded_launches(kernel, parts, inputs, outputs, device)
     with rec.lock:
         rec.bind(inputs, outputs)

@@ -37,7 +37,9 @@ def unit_directions(linet: LiNet, input_angles: np.ndarray | Tensor) -> list[Ten
     then for each hidden unit the mean over its receptive field of the previous layer's."""
     a = torch.as_tensor(np.asarray(input_angles, dtype=np.float64))
     if a.shape != (linet.in_features, 2) or not torch.isfinite(a).all():
-        raise ValueError(f"input_angles: expected finite values of shape ({linet.in_features}, 2), got {tuple(a.shape)}")
+        raise ValueError(
+            f"input_angles: expected finite values of shape ({linet.in_features}, 2), got {tuple(a.shape)}"
+        )
     out = [a]
     for layer in linet.layers:
         a = a[layer.index.cpu().long()].mean(1)
@@ -86,7 +88,8 @@ class FoveationNet(StandardisedTargets):
                 raise ValueError("head: 'softargmax' needs a liNet backbone (its units have retinal positions)")
             H = backbone.num_layers
             if outputs != 2 or directions is None or len(directions) != H + 1:
-                raise ValueError("directions: expected one [N_h, 2] tensor per layer h = 0..H (0: the inputs), and outputs=2")
+                raise ValueError("directions: expected one [N_h, 2] tensor per layer h = 0..H (0: the inputs), and "
+                                 "outputs=2")
             for h, (d, n) in enumerate(zip(directions, backbone.layer_sizes)):
                 if tuple(d.shape) != (n, 2):
                     raise ValueError(f"directions[{h}]: expected shape ({n}, 2), got {tuple(d.shape)}")
@@ -228,11 +231,13 @@ class OculomotorNet(nn.Module):
 
     def __init__(self, hidden: int = 256):
         super().__init__()
-        self.mlp = nn.Sequential(nn.Linear(8, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(), nn.Linear(hidden, 12))
+        self.mlp = nn.Sequential(nn.Linear(8, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(),
+                                 nn.Linear(hidden, 12))
 
     def forward(self, change: torch.Tensor, activations: torch.Tensor) -> torch.Tensor:
         if change.shape[-1] != 2 or activations.shape[-1] != 6 or change.shape[:-1] != activations.shape[:-1]:
-            raise ValueError(f"change [B, 2] and activations [B, 6] expected, got {tuple(change.shape)} and {tuple(activations.shape)}")
+            raise ValueError(f"change [B, 2] and activations [B, 6] expected, got {tuple(change.shape)} and "
+                             f"{tuple(activations.shape)}")
         c = change * (180 / np.pi / 10)  # in units of 10 deg
         J = 0.1 * self.mlp(torch.cat([c, 4 * activations - 1], -1)).unflatten(-1, (6, 2))
         return (activations + (J @ c.unsqueeze(-1)).squeeze(-1)).clamp(0.0, 1.0)

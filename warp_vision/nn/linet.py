@@ -114,7 +114,7 @@ class LocallyConnected(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """x [B, in_features] (the parameters' dtype, or float16/bfloat16 with float32 parameters) -> y
         [B, out_features] in the parameters' dtype, on their device."""
-        if not isinstance(x, Tensor):  # (a numpy batch was "expected shape [B, N], got ndarray")
+        if not isinstance(x, Tensor):  # a numpy batch is told how to convert, not given a shape error
             hint = " (torch.from_numpy(x))" if isinstance(x, np.ndarray) else ""
             raise ValueError(f"x: expected a torch tensor [B, {self.in_features}], got a {type(x).__name__}{hint}")
         if x.dim() != 2 or x.shape[1] != self.in_features:

@@ -73,13 +73,14 @@ RANGE_GATE_DEG = 5.6
 PRECISIONS = ("auto", "float32", "bfloat16")
 
 
-@functools.lru_cache(maxsize=None)  # a property of the machine, asked on every training forward
+@functools.cache  # a property of the machine, asked on every training forward
 def native_bfloat16(device_type: str) -> bool:
     """Whether ``device_type`` ("cpu", "cuda") runs bfloat16 convolutions in hardware: a CPU with AVX512-BF16
     or AMX tiles, a CUDA GPU that torch says supports bfloat16 without emulation (compute capability 8.0 on).
     Elsewhere torch would emulate bfloat16, so "auto" keeps float32 there."""
     if device_type == "cpu":
-        probes = (getattr(torch.cpu, "_is_avx512_bf16_supported", None), getattr(torch.cpu, "_is_amx_tile_supported", None))
+        probes = (getattr(torch.cpu, "_is_avx512_bf16_supported", None),
+                  getattr(torch.cpu, "_is_amx_tile_supported", None))
         return any(bool(f()) for f in probes if f is not None)
     if device_type == "cuda" and torch.cuda.is_available():
         try:
@@ -246,7 +247,8 @@ class RetinaImageCNN(StandardisedTargets):
         if key not in self._matrices:
             parts = [self.binning(k) for k in key[0]]
             n2 = self.warp.size ** 2
-            idx = torch.stack([torch.cat([pix + v * n2 for v, (pix, _, _) in enumerate(parts)]), torch.cat([pr for _, pr, _ in parts])])
+            idx = torch.stack([torch.cat([pix + v * n2 for v, (pix, _, _) in enumerate(parts)]),
+                               torch.cat([pr for _, pr, _ in parts])])
             coo = torch.sparse_coo_tensor(idx, torch.cat([w for _, _, w in parts]), (len(parts) * n2, self.P),
                                           check_invariants=True).coalesce()
             with warnings.catch_warnings():  # "sparse CSR support is in beta": used here for sparse @ dense only
@@ -271,7 +273,8 @@ class RetinaImageCNN(StandardisedTargets):
             raise ValueError(f"onv: expected [B, {3 * self.P}], got {tuple(x.shape)}")
         b, n, v = x.shape[0], self.warp.size, len(ks)
         cols = x.reshape(b, self.P, 3).permute(1, 0, 2).reshape(self.P, b * 3).float()
-        with torch.autocast(x.device.type, enabled=False):  # float32 under any caller's autocast (no bfloat16 CSR product)
+        # float32 under any caller's autocast (no bfloat16 CSR product)
+        with torch.autocast(x.device.type, enabled=False):
             img = self.binning_matrix(tuple(ks), x.device) @ cols  # [V n^2, B*3]
         # [V, n, n, B, 3] -> [V, B, n, n, 3] (the one copy) -> [V B, 3, n, n] with channels_last strides
         return img.reshape(v, n, n, b, 3).permute(0, 3, 1, 2, 4).reshape(v * b, n, n, 3).permute(0, 3, 1, 2)
@@ -289,8 +292,9 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
     (yaw, pitch) [B, 2] of the ball: resampling to a foveated image, a CNN with a feature pyramid, a
     heat map and a local soft-arg-max (module docstring)."""
 
-    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
-                 power: float = 1.5, window: int = 5, window_deg: float = WINDOW_DEG, views: int = 1):
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16,
+                 max_ecc_deg: float = 50.0, power: float = 1.5, window: int = 5, window_deg: float = WINDOW_DEG,
+                 views: int = 1):
         consensus_transforms(views)  # (validates)
         if not (isinstance(window, int) and window >= 1 and window % 2 == 1):
             raise ValueError(f"window: expected an odd positive int, got {window!r}")
@@ -303,7 +307,8 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
         self.smooth = _cbr(lat, lat)
         self.heat = nn.Conv2d(lat, 1, 1)
         cells = size // 2
-        self.register_buffer("cell_dirs", torch.as_tensor(self.warp.uv_to_dirs(self.warp.grid_uv(cells)), dtype=torch.float32),
+        self.register_buffer("cell_dirs",
+                             torch.as_tensor(self.warp.uv_to_dirs(self.warp.grid_uv(cells)), dtype=torch.float32),
                              persistent=False)
 
     def logits(self, img: Tensor) -> Tensor:
@@ -326,7 +331,8 @@ class RetinaCNNFoveationNet(RetinaImageCNN):
         m = self.warp.size // 2
         r = self.window // 2
         cell = torch.arange(m * m, device=peak.device)
-        near_cells = ((cell[None] // m - (peak // m)[:, None]).abs() <= r) & ((cell[None] % m - (peak % m)[:, None]).abs() <= r)
+        rows = (cell[None] // m - (peak // m)[:, None]).abs() <= r
+        near_cells = rows & ((cell[None] % m - (peak % m)[:, None]).abs() <= r)
         return near_cells | (self.cell_dirs[peak] @ self.cell_dirs.T >= math.cos(math.radians(self.window_deg)))
 
     def _peak_weights(self, logits: Tensor, peak: Tensor) -> Tensor:
@@ -404,7 +410,8 @@ class RetinaImageRegression(RetinaImageCNN):
                  hidden: int, outputs: int):
         super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, outputs=outputs)
         last = self.stage_channels[-1] * (size // 16) ** 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, outputs))
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(last, hidden), nn.ReLU(inplace=True),
+                                  nn.Linear(hidden, outputs))
 
     def forward(self, x: Tensor, transform=0) -> Tensor:
         img = self.image(x, transform)
@@ -417,8 +424,8 @@ class RetinaCNNLimbNet(RetinaImageRegression):
     the right arm, eye frame; the limb vision task, :mod:`warp_vision.train.limb`): a
     :class:`RetinaImageRegression` of the whole foveated image."""
 
-    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16, max_ecc_deg: float = 50.0,
-                 power: float = 1.5, hidden: int = 128):
+    def __init__(self, photoreceptor_angles: np.ndarray, size: int = IMAGE_SIZE, channels: int = 16,
+                 max_ecc_deg: float = 50.0, power: float = 1.5, hidden: int = 128):
         super().__init__(photoreceptor_angles, size, channels, max_ecc_deg, power, hidden, outputs=6)
 
     @staticmethod

@@ -48,7 +48,8 @@ def site_counts(n_sites: int, layers: int, stride: float) -> list[int]:
     for h in range(1, layers + 1):
         n = int(counts[-1] // stride)
         if n < 1 or counts[-1] < 7:
-            raise ValueError(f"layers: layer {h} would have no sites ({counts[-1]} sites in layer {h - 1}, stride {stride})")
+            raise ValueError(f"layers: layer {h} would have no sites ({counts[-1]} sites in layer {h - 1}, stride "
+                             f"{stride})")
         counts.append(n)
     return counts
 
@@ -137,7 +138,8 @@ class RetinaConvFoveationNet(StandardisedTargets):
         super().__init__()
         a = torch.as_tensor(np.asarray(photoreceptor_angles, dtype=np.float32))
         if a.shape != (backbone.sites, 2) or not torch.isfinite(a).all():
-            raise ValueError(f"photoreceptor_angles: expected finite values of shape ({backbone.sites}, 2), got {tuple(a.shape)}")
+            raise ValueError(f"photoreceptor_angles: expected finite values of shape ({backbone.sites}, 2), got "
+                             f"{tuple(a.shape)}")
         self.backbone = backbone
         self.voting = list(range(max(1, first_vote), backbone.num_layers + 1))
         self.init_target_norm(2)
@@ -155,7 +157,8 @@ class RetinaConvFoveationNet(StandardisedTargets):
     def saliency_logits(self, onv: Tensor) -> list[Tensor]:
         """Each voting layer's saliency over its sites [B, N_h] (the soft-argmax's logits)."""
         maps = self.backbone(onv)
-        return [self.saliency[k](maps[h - 1]).squeeze(-1) * self.log_temperature[k].exp() for k, h in enumerate(self.voting)]
+        return [self.saliency[k](maps[h - 1]).squeeze(-1) * self.log_temperature[k].exp() for k,
+                h in enumerate(self.voting)]
 
     def votes(self, onv: Tensor, logits: list[Tensor] | None = None) -> list[Tensor]:
         """Each voting layer's gaze vote [B, 2] (radians)."""

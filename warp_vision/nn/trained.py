@@ -40,14 +40,16 @@ def _foveation(spec: dict):
         from warp_vision.nn.retina_conv import RetinaConv, RetinaConvFoveationNet
 
         torch.manual_seed(spec["seed"])
-        backbone = RetinaConv(_array(spec["photoreceptor_xy"]), spec["layers"], spec["reduction"], spec["channels"], spec["seed"])
+        backbone = RetinaConv(_array(spec["photoreceptor_xy"]), spec["layers"], spec["reduction"], spec["channels"],
+                              spec["seed"])
         return RetinaConvFoveationNet(backbone, angles)
     if spec["model"] == "cnn":
         from warp_vision.nn.retina_cnn import CONSENSUS_VIEWS, RetinaCNNFoveationNet
 
         torch.manual_seed(spec["seed"])
         # a spec from before the consensus read-out reads with it too (inference only: the weights are the same)
-        return RetinaCNNFoveationNet(angles, spec["image_size"], spec["channels"], views=spec.get("views", CONSENSUS_VIEWS))
+        return RetinaCNNFoveationNet(angles, spec["image_size"], spec["channels"],
+                                     views=spec.get("views", CONSENSUS_VIEWS))
     return foveation_net(spec["model"], onv_positions(_array(spec["photoreceptor_xy"])), spec["layers"],
                          spec["receptive_field"], spec["reduction"], spec["seed"], head=spec["head"],
                          input_angles=None if angles is None else np.repeat(angles, 3, axis=0))
@@ -116,8 +118,8 @@ def _verify(spec: dict):
 
 
 #: spec["kind"] -> the function that builds the untrained net from the spec
-BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor, "pupil": _pupil, "lens": _lens, "arm": _arm,
-            "limb": _limb, "verify": _verify}
+BUILDERS = {"foveation": _foveation, "afr": _afr, "oculomotor": _oculomotor, "pupil": _pupil, "lens": _lens,
+            "arm": _arm, "limb": _limb, "verify": _verify}
 
 #: the ONV dtypes a net can read (spec["onv_dtype"]; checkpoints without one read float32)
 ONV_DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
@@ -138,7 +140,8 @@ def _read_half_onvs(model: torch.nn.Module, spec: dict) -> torch.nn.Module:
     if onv_dtype(spec) != torch.float32:
         first = _first_layer(model)
         if not hasattr(first, "fold_input_standardisation"):
-            raise ValueError(f"onv_dtype: {spec['onv_dtype']} ONVs need a liNet backbone; use float32 for {spec.get('model')!r}")
+            raise ValueError(f"onv_dtype: {spec['onv_dtype']} ONVs need a liNet backbone; use float32 for "
+                             f"{spec.get('model')!r}")
         first.fold_input_standardisation()
     return model
 
@@ -202,7 +205,8 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such checkpoint")
-    if path.is_file() and not zipfile.is_zipfile(path):  # (torch's own words for a text file advised weights_only=False)
+    # (torch's own words for a text file advised weights_only=False)
+    if path.is_file() and not zipfile.is_zipfile(path):
         raise ValueError(f"{path}: not a readable checkpoint: not a whole zip archive as torch.save writes "
                          f"(truncated, or another kind of file)")
     try:
@@ -217,7 +221,8 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     if not isinstance(seal_, dict) or "sha256" not in seal_:
         raise ValueError(f"{path}: the checkpoint carries no checksum (not written by this version); retrain it")
     if content_digest(ck) != seal_["sha256"]:
-        raise ValueError(f"{path}: checksum mismatch: the file is damaged (its contents differ from when it was written)")
+        raise ValueError(f"{path}: checksum mismatch: the file is damaged (its contents differ from when it was "
+                         "written)")
     return ck
 
 
@@ -302,7 +307,7 @@ TRAINING_LOCK = ".training.lock"
 
 def read_run_config(run_dir) -> dict | None:
     """``run_dir/config.json`` as a dict, or None where there is none. A file that is not a JSON object (cut
-    short, edited by hand) is a ValueError naming it, where it was a bare JSON error or a traceback."""
+    short, edited by hand) is a ValueError naming it, not a bare JSON error or a traceback."""
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         return None
@@ -311,7 +316,8 @@ def read_run_config(run_dir) -> dict | None:
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: not a run's config, it does not read as JSON ({e})") from None
     if not isinstance(cfg, dict):
-        raise ValueError(f"{path}: not a run's config: a JSON {type(cfg).__name__}, where a run writes an object of settings")
+        raise ValueError(f"{path}: not a run's config: a JSON {type(cfg).__name__}, where a run writes an object of "
+                         "settings")
     return cfg
 
 
@@ -351,7 +357,8 @@ def not_a_run(run_dir, name: str) -> FileNotFoundError:
     return FileNotFoundError(errno.ENOENT, f"no {name}: is this a training run directory?", str(run_dir / name))
 
 
-def net_from_checkpoint(ck: dict, device: str = "cpu", views: int | None = None, source="checkpoint") -> torch.nn.Module:
+def net_from_checkpoint(ck: dict, device: str = "cpu", views: int | None = None,
+                        source="checkpoint") -> torch.nn.Module:
     """The trained net of checkpoint ``ck`` (read from ``source``, named in errors), in eval mode. ``views``:
     a foveation CNN reads out by the consensus of that many views instead of its spec's (1: the plain image)."""
     if "net" not in ck:
@@ -359,8 +366,8 @@ def net_from_checkpoint(ck: dict, device: str = "cpu", views: int | None = None,
     spec = ck["net"]
     if views is not None:
         if not (spec.get("kind") == "foveation" and spec.get("model") == "cnn"):
-            raise ValueError(f"views: only the retina CNN (--model cnn) reads out by a consensus of views; {source} holds a "
-                             f"{spec.get('kind')} {spec.get('model', '')} net")
+            raise ValueError(f"views: only the retina CNN (--model cnn) reads out by a consensus of views; {source} "
+                             f"holds a {spec.get('kind')} {spec.get('model', '')} net")
         spec = {**spec, "views": views}
     model = build_net(spec, device)
     model.load_state_dict(ck["model"])

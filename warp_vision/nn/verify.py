@@ -62,7 +62,8 @@ class FovealVerifier(nn.Module):
         """[B, 3]: the logit and the offset (deg). ``transform`` (the CNN, in training): the augmentation(s) of
         :meth:`warp_vision.nn.retina_cnn.RetinaImageCNN.image`, whose offsets are :func:`transform_offsets`'."""
         if x.ndim != 2 or x.shape[1] != 3 * self.N:
-            raise ValueError(f"central field: expected [B, {3 * self.N}] (3 x {self.N:,} photoreceptors), got {tuple(x.shape)}")
+            raise ValueError(f"central field: expected [B, {3 * self.N}] (3 x {self.N:,} photoreceptors), got "
+                             f"{tuple(x.shape)}")
         if self.model == "cnn":
             return self.backbone(x, transform)
         if transform != 0:

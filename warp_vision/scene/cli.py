@@ -21,8 +21,10 @@ def _parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.scene", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("demo", help="render the room with a ball through one eye and write figures")
-    d.add_argument("--photoreceptors", type=int, default=14_400, help="P, photoreceptors on the retina (default 14,400)")
-    d.add_argument("--layout", choices=["log-polar", "cone-density"], default="log-polar", help="retina layout (default log-polar)")
+    d.add_argument("--photoreceptors", type=int, default=14_400,
+                   help="P, photoreceptors on the retina (default 14,400)")
+    d.add_argument("--layout", choices=["log-polar", "cone-density"], default="log-polar",
+                   help="retina layout (default log-polar)")
     d.add_argument("--samples", type=int, default=16, help="S rays per photoreceptor and channel (default 16)")
     d.add_argument("--accommodation", type=float, default=0.0, help="lens accommodation in dioptres (default 0)")
     d.add_argument("--pupil", type=float, default=4.0, help="pupil diameter in mm (default 4)")

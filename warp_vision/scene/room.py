@@ -40,7 +40,8 @@ def make_room(
     sx, sy, sz = (float(v) for v in size)
     sc = Scene(ambient=(0.06, 0.06, 0.06), background=(0.0, 0.0, 0.0))
     t = 0.05
-    sc.add_box("floor", (sx, sy, t), translation([0, 0, -t / 2]), Material((0.45, 0.42, 0.38), reflectivity=0.15), static=True)
+    sc.add_box("floor", (sx, sy, t), translation([0, 0, -t / 2]), Material((0.45, 0.42, 0.38), reflectivity=0.15),
+               static=True)
     sc.add_box("ceiling", (sx, sy, t), translation([0, 0, sz + t / 2]), Material((0.8, 0.8, 0.8)), static=True)
     walls = [
         ("wall_north", (sx, t, sz), [0, sy / 2 + t / 2, sz / 2], (0.62, 0.55, 0.45)),
@@ -60,7 +61,9 @@ def make_room(
         else:
             mesh = trimesh.creation.cylinder(radius=float(rng.uniform(0.1, 0.3)), height=h, sections=24)
         rot = trimesh.transformations.rotation_matrix(float(rng.uniform(0, np.pi)), [0, 0, 1])
-        sc.add(f"object_{i}", mesh, Material(col, specular=float(rng.uniform(0, 0.3)), shininess=16), translation([x, y, h / 2]) @ rot, static=True)
-    sc.add_sphere("ball", ball_radius, ball_centre, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True), subdivisions=ball_subdivisions)
+        sc.add(f"object_{i}", mesh, Material(col, specular=float(rng.uniform(0, 0.3)), shininess=16),
+               translation([x, y, h / 2]) @ rot, static=True)
+    sc.add_sphere("ball", ball_radius, ball_centre, Material((1.0, 1.0, 1.0), specular=0.4, shininess=32, smooth=True),
+                  subdivisions=ball_subdivisions)
     sc.add_light((0.0, 0.0, sz - 0.1), color=(1.0, 0.97, 0.9), intensity=8.0)
     return sc

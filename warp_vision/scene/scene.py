@@ -104,6 +104,11 @@ def _as_ambient(ambient) -> np.ndarray:
     return a
 
 
+#: The default world-from-object transform: one read-only array, shared by every object added without a transform.
+IDENTITY = np.eye(4)
+IDENTITY.setflags(write=False)
+
+
 def _as_transforms(name: str, T) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     if T.shape == (4, 4):
@@ -150,7 +155,8 @@ class Scene:
 
     # --- building -----------------------------------------------------------------------------
     def add(
-        self, name: str, mesh: trimesh.Trimesh, material: Material | None = None, transform=np.eye(4), static: bool = False
+        self, name: str, mesh: trimesh.Trimesh, material: Material | None = None, transform=IDENTITY,
+        static: bool = False
     ) -> int:
         """Add a mesh (object frame, metres). Returns the object's index.
 
@@ -171,9 +177,9 @@ class Scene:
         return len(self.objects) - 1
 
     def add_sphere(self, name, radius, centre=(0, 0, 0), material=None, subdivisions: int = 3, static=False) -> int:
-        """An icosphere of ``radius`` m at ``centre``; smooth-shaded unless the material says otherwise. ``subdivisions``
-        (:data:`warp_vision.limits.SUBDIVISIONS`) is refused, before the mesh is built, where its triangles would not
-        fit in memory."""
+        """An icosphere of ``radius`` m at ``centre``; smooth-shaded unless the material says otherwise.
+        ``subdivisions`` (:data:`warp_vision.limits.SUBDIVISIONS`) is refused, before the mesh is built, where its
+        triangles would not fit in memory."""
         from warp_vision.limits import SUBDIVISIONS, icosphere_bytes, require_int
         from warp_vision.resources import require_memory
 
@@ -186,11 +192,11 @@ class Scene:
         mat = material or Material(smooth=True)
         return self.add(name, m, mat, translation(centre), static)
 
-    def add_box(self, name, extents, transform=np.eye(4), material=None, static=False) -> int:
+    def add_box(self, name, extents, transform=IDENTITY, material=None, static=False) -> int:
         """An axis-aligned box of ``extents`` (m) in its object frame, placed by ``transform``."""
         return self.add(name, trimesh.creation.box(extents=extents), material, transform, static)
 
-    def add_plane(self, name, size, transform=np.eye(4), material=None, static=False) -> int:
+    def add_plane(self, name, size, transform=IDENTITY, material=None, static=False) -> int:
         """A two-triangle rectangle of ``size`` (w, h) m in the object's xy plane, normal +z."""
         w, h = 0.5 * float(size[0]), 0.5 * float(size[1])
         v = np.array([[-w, -h, 0], [w, -h, 0], [w, h, 0], [-w, h, 0]], dtype=np.float64)
@@ -199,7 +205,8 @@ class Scene:
 
     def add_light(self, position, color=(1.0, 1.0, 1.0), intensity=1.0) -> int:
         """A point light at ``position`` m; position [3] or [B, 3], color [3] or [B, 3], intensity scalar or [B]."""
-        self.lights.append(PointLight(np.asarray(position, float), np.asarray(color, float), np.asarray(intensity, float)))
+        self.lights.append(PointLight(np.asarray(position, float), np.asarray(color, float),
+                                      np.asarray(intensity, float)))
         return len(self.lights) - 1
 
     def index(self, name: str) -> int:
@@ -214,7 +221,9 @@ class Scene:
         T = _as_transforms(f"transform of {name!r}", transform)
         if self.objects[i].static:
             if T.shape[0] != 1:
-                raise ValueError(f"transform of {name!r}: a static object has one [4, 4] pose; add it with static=False")
+                raise ValueError(
+                    f"transform of {name!r}: a static object has one [4, 4] pose; add it with static=False"
+                )
             self._version += 1  # the merged static BVH must be rebuilt
         self.objects[i].transform = T
 
@@ -288,7 +297,8 @@ class Scene:
         sizes = {o.transform.shape[0] for o in self.objects} | {len(o.visible) for o in self.objects}
         sizes |= {len(o.batch_materials) for o in self.objects if o.batch_materials is not None}
         for li in self.lights:
-            sizes |= {np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0], np.atleast_1d(li.intensity).shape[0]}
+            sizes |= {np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0],
+                      np.atleast_1d(li.intensity).shape[0]}
         sizes.add(np.atleast_2d(self.ambient).shape[0])
         sizes.discard(1)
         if len(sizes) > 1:

@@ -47,7 +47,7 @@ def card_pattern(n: int, seed) -> np.ndarray:
     return np.clip((lo + (hi - lo) * g)[..., None] * tint, 0.0, 1.0)
 
 
-def textured_card(size_m: float, n: int, seed) -> "trimesh.Trimesh":
+def textured_card(size_m: float, n: int, seed) -> trimesh.Trimesh:
     """A square card ``size_m`` across in the object's x-y plane, centred on the origin, facing +z, as an
     n x n grid of vertices coloured by :func:`card_pattern`."""
     import trimesh

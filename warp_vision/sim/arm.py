@@ -36,7 +36,7 @@ activations, trained on transitions between held postures (:func:`reach_pairs`).
 **Why feedback.** The least-effort holding activations of a posture hold it (the hand drifts by tens of
 micrometres in a second for most postures), but they are a poor command for *reaching* it: with so little
 co-contraction the arm has almost no stiffness, and from another posture it swings past and settles
-elsewhere (measured: a median 0.2 m from the target after 0.6 s). So what both nets learn is the static
+elsewhere (how far: docs/RESULTS.md, "Figures behind the code's constants"). So what both nets learn is the static
 optimisation of a torque beyond holding (:func:`demanded_torque`): a saturating spring toward the goal
 posture's joints and a damper, which, solved exactly on the body every 10 ms, reaches to a few cm. The
 nets learn it from each posture's torque balance (A, b, stored with the dataset) without solving it per
@@ -279,7 +279,8 @@ def solve_postures(arm: Arm, cfg: ArmDataConfig, r: range) -> dict:
     return out
 
 
-def synthesize_arm(out_dir, cfg: ArmDataConfig, shard=(0, 1), progress: bool = True, log=print, body: Body | None = None):
+def synthesize_arm(out_dir, cfg: ArmDataConfig, shard=(0, 1), progress: bool = True, log=print,
+                   body: Body | None = None):
     """Solve the holding activations of ``cfg``'s postures into a chunked store in ``out_dir`` (resuming
     what is there); fields as :func:`solve_postures`. Returns the store."""
     from warp_vision.data.store import ChunkedStore
@@ -290,12 +291,14 @@ def synthesize_arm(out_dir, cfg: ArmDataConfig, shard=(0, 1), progress: bool = T
     fields = {"angles": ((7,), "float64"), "qpos": ((body_arm_joints,), "float64"), "act": ((63,), "float64"),
               "hand": ((3,), "float64"), "residual": ((), "float64"), "torque_A": ((27, 63), "float32"),
               "torque_b": ((27,), "float32")}
-    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.postures, cfg.chunk_size, fields, shard=tuple(shard))
+    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.postures, cfg.chunk_size, fields,
+                                          shard=tuple(shard))
     todo, mine = pending(store)
     if todo:
         log(f"solving the holding activations of {todo:,} of {mine:,} postures ({cfg.side} arm) into {out_dir}")
         arm = Arm(body or Body(), cfg.side)
-        render_missing(store, lambda r: solve_postures(arm, cfg, r), batch=50, progress=progress, log=log, what="postures")
+        render_missing(store, lambda r: solve_postures(arm, cfg, r), batch=50, progress=progress, log=log,
+                       what="postures")
     return store
 
 
@@ -395,8 +398,7 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
     - posture hold: the posture net in closed loop (every 10 ms from the true joint angles and
       velocities); the hand's drift after 0.3, 0.6 and 1 s; and the same under the exact holding activations."""
     arm = Arm(body, side)
-    m = body.model
-    scratch = mujoco.MjData(m)
+    scratch = mujoco.MjData(body.model)
     rng = np.random.default_rng(seed)
     te = np.asarray(held_out)
     hand, angles, qpos, act = data["hand"], data["angles"], data["qpos"], data["act"]
@@ -406,31 +408,11 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
     keep = keep if len(keep) else np.nonzero(dist > 0)[0][:n]
     i, j = i[keep], j[keep]
     marks = (0.3, 0.6)
-    f32 = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float32)[None]  # noqa: E731
-    d = body.data
 
     def reach(k, mode):
         hold_start(body, arm, qpos[i[k]], act[i[k]])
-        target = hand[j[k]]
-
-        def control(t):
-            if mode == "teacher_hold":
-                a = act[j[k]]
-            elif mode == "teacher_feedback":
-                Ap, bp = projected_torques(arm, d.qpos.copy(), scratch)
-                a = least_effort(Ap, bp + demanded_torque(angles[j[k]] - arm.angles(d), arm.velocities(d), **(torque or {})), EFFORT)[0]
-            elif mode == "open" and t > 0:
-                return
-            elif mode == "open":
-                with torch.no_grad():
-                    a = net.voluntary(f32(target - hand[i[k]]), f32(act[i[k]]), f32(angles[i[k]]))[0].double().numpy()
-            else:
-                with torch.no_grad():
-                    q = f32(arm.angles(d))
-                    a = net.voluntary(f32(gain * (target - arm.hand(d))), net.posture(q), q, f32(arm.velocities(d)))[0].double().numpy()
-            d.ctrl[arm.actuators] = np.clip(a, 0, 1)
-
-        return np.linalg.norm(run_arm(body, arm, marks, control) - target, axis=1)
+        control = _reach_control(net, arm, body.data, scratch, data, i[k], j[k], mode, gain, torque)
+        return np.linalg.norm(run_arm(body, arm, marks, control) - hand[j[k]], axis=1)
 
     out = {"reach_pairs": int(len(i)), "reach_distance_median_m": float(np.median(dist[keep])) if len(keep) else None}
     names = {"closed": "reach_closed_loop", "open": "reach_open_loop", "teacher_hold": "reach_teacher_hold",
@@ -444,15 +426,8 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
     for mode in ("posture_net", "teacher") if hold else ():
         drift = []
         for s in starts:
-            def control(t, s=s):
-                if mode == "teacher":
-                    a = act[s]
-                else:
-                    with torch.no_grad():
-                        a = net.posture(f32(arm.angles(d)), f32(arm.velocities(d)))[0].double().numpy()
-                d.ctrl[arm.actuators] = np.clip(a, 0, 1)
-
             hold_start(body, arm, qpos[s], act[s])
+            control = _hold_control(net, arm, body.data, act[s], mode)
             drift.append(np.linalg.norm(run_arm(body, arm, hold_marks, control) - hand[s], axis=1))
         drift = np.array(drift)
         name = "hold_posture_net" if mode == "posture_net" else "hold_teacher"
@@ -460,6 +435,54 @@ def evaluate_on_body(net, body: Body, side: str, data: dict, held_out: np.ndarra
             out.update(_stats(drift[:, c], f"{name}_drift_{int(t * 1000)}ms"))
     out["hold_postures"] = int(len(starts))
     return out
+
+
+def _f32(x) -> torch.Tensor:
+    """A batch of one float32 row: what the nets read."""
+    return torch.as_tensor(np.asarray(x), dtype=torch.float32)[None]
+
+
+def _reach_control(net, arm: Arm, d, scratch, data: dict, start: int, goal: int, mode: str, gain: float,
+                   torque: dict | None):
+    """The controller ``(t) -> None`` of :func:`evaluate_on_body`'s reach from posture ``start`` to ``goal``
+    under ``mode`` ("closed", "open", "teacher_hold", "teacher_feedback"), setting the arm's muscles in ``d``."""
+    hand, angles, act = data["hand"], data["angles"], data["act"]
+    target = hand[goal]
+
+    def control(t):
+        if mode == "teacher_hold":
+            a = act[goal]
+        elif mode == "teacher_feedback":
+            Ap, bp = projected_torques(arm, d.qpos.copy(), scratch)
+            a = least_effort(Ap, bp + demanded_torque(angles[goal] - arm.angles(d), arm.velocities(d),
+                                                      **(torque or {})), EFFORT)[0]
+        elif mode == "open" and t > 0:
+            return
+        elif mode == "open":
+            with torch.no_grad():
+                a = net.voluntary(_f32(target - hand[start]), _f32(act[start]), _f32(angles[start]))[0].double().numpy()
+        else:
+            with torch.no_grad():
+                q = _f32(arm.angles(d))
+                a = net.voluntary(_f32(gain * (target - arm.hand(d))), net.posture(q), q,
+                                  _f32(arm.velocities(d)))[0].double().numpy()
+        d.ctrl[arm.actuators] = np.clip(a, 0, 1)
+
+    return control
+
+
+def _hold_control(net, arm: Arm, d, act_s, mode: str):
+    """The controller ``(t) -> None`` of :func:`evaluate_on_body`'s hold: the posture net in closed loop, or
+    (``mode`` "teacher") the exact holding activations ``act_s`` throughout."""
+    def control(t):
+        if mode == "teacher":
+            a = act_s
+        else:
+            with torch.no_grad():
+                a = net.posture(_f32(arm.angles(d)), _f32(arm.velocities(d)))[0].double().numpy()
+        d.ctrl[arm.actuators] = np.clip(a, 0, 1)
+
+    return control
 
 
 def load_arm(run_dir, side: str | None = None):

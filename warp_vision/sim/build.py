@@ -1,6 +1,6 @@
 """What a ``python -m warp_vision.sim`` command runs on: the nets it needs, provided (trained where
 missing, :mod:`warp_vision.sim.provision`), and the body and closed loop built from them. Used by the
-commands of :mod:`warp_vision.sim.cli` and by ``intercept`` (:mod:`warp_vision.sim.strike`)."""
+commands of :mod:`warp_vision.sim.cli` and by ``intercept`` (:mod:`warp_vision.sim.intercept_trials`)."""
 
 from __future__ import annotations
 
@@ -37,12 +37,13 @@ def net_specs(args) -> list:
 
 
 def refuse_unused_given(args) -> None:
-    """A run directory named for nets the command will not run is a ValueError (it was dropped without a
-    word): ``--pupil`` or ``--lens`` with ``--intraocular analytic`` (intercept's default), ``--limb`` with
-    an intercept whose ``--perception`` is not vision."""
+    """A run directory named for nets the command will not run is a ValueError, not an option left unread:
+    ``--pupil`` or ``--lens`` with ``--intraocular analytic`` (intercept's default), ``--limb`` with an
+    intercept whose ``--perception`` is not vision."""
     unused = []
     if getattr(args, "intraocular", "nets") == "analytic":
-        unused += [f"--{flag} {getattr(args, flag)}: the {flag} nets run with --intraocular nets; this command's is analytic"
+        unused += [f"--{flag} {getattr(args, flag)}: the {flag} nets run with --intraocular nets; this command's is "
+                   "analytic"
                    for flag in ("pupil", "lens") if getattr(args, flag, None) is not None]
     if getattr(args, "limb", None) is not None and getattr(args, "perception", "vision") != "vision":
         unused.append(f"--limb {args.limb}: the limb vision nets run with --perception vision; "
@@ -63,7 +64,8 @@ def refuse_missing_given(args, specs: list) -> None:
             missing.append(f"--{flag} {given}: no {spec.what} in {spec.run} (train it with python -m warp_vision.train "
                            f"{' '.join(spec.command())})")
     if missing:
-        raise ValueError("; ".join(missing) + "; or leave the flag out for the default nets, trained first where missing")
+        raise ValueError("; ".join(missing) + "; or leave the flag out for the default nets, trained first where "
+                                              "missing")
 
 
 def setup_loop(args):
@@ -82,7 +84,8 @@ def setup_loop(args):
     old = [spec.run for s, spec in zip(SIDES, specs[:2]) if fov[s].generator < 8]
     if old and args.ball == "ordinary":
         print(f"note: {', '.join(old)} learnt on generator v7 (a glowing ball in a dim room); with --ball ordinary "
-              "it will not find the ball. Retrain it (python -m warp_vision.train --eye EYE --overwrite) or use --ball glowing.")
+              "it will not find the ball. Retrain it (python -m warp_vision.train --eye EYE --overwrite) or use --ball "
+              "glowing.")
     ocu_root = os.path.dirname(specs[2].run)
     runs = {(spec.kind, spec.eye): spec.run for spec in specs}
     pupil = {s: load_pupil(runs["pupil", s], eye=s) for s in SIDES} if ("pupil", "left") in runs else None

@@ -33,11 +33,11 @@ DEFLECTING_PARTS = ("hand", "forearm")
 #: beyond gravity, over the steps in which it touches them.
 DEFLECTION_DV = 1.0
 #: The left shoulder (glenohumeral joint centre, the ``humerus_l`` body's origin, m) with the pelvis on the
-#: stool and the arms hanging: measured on the model (``tests/test_cannon.py`` checks it); the right is the
+#: stool and the arms hanging: read off the model (``tests/test_cannon.py`` checks it); the right is the
 #: mirror image (x -> -x).
 SHOULDER_LEFT = (0.170, 0.101, 1.095)
 #: The arm's reach (m): shoulder -> elbow (0.291) -> wrist (0.258) -> third knuckle (0.081) along
-#: myo-sim's bones (``humerus``, ``ulna``, ``lunate``, ``3proxph`` origins), measured on the model; the
+#: myo-sim's bones (``humerus``, ``ulna``, ``lunate``, ``3proxph`` origins), read off the model; the
 #: fingertips reach 0.08 m further.
 ARM_REACH = 0.630
 
@@ -297,7 +297,8 @@ class DeflectionDetector:
             part, side = self.parts[other]
             name = part_name(part, side)
             if name not in self.first:
-                self.first[name] = Contact(self.t, self.body.model.geom(other).name, _floats(p), float(np.linalg.norm(v_prev)))
+                self.first[name] = Contact(self.t, self.body.model.geom(other).name, _floats(p),
+                                           float(np.linalg.norm(v_prev)))
             if part in DEFLECTING_PARTS:
                 touched_arm = True
                 if self.arm_contact is None:

@@ -46,16 +46,16 @@ from pathlib import Path
 
 import numpy as np
 
+from warp_vision.body import SIDES, Body, BodyConfig
 from warp_vision.errors import ArgumentParser, add_debug_flag, guarded, long_options
 from warp_vision.fileio import require_output, write_json
 from warp_vision.limits import COUNT, PIXELS, SEED, VIDEO_FPS, Range, integer, number, video_bytes
-from warp_vision.resources import require_memory
 from warp_vision.provenance import software
-from warp_vision.body import SIDES, Body, BodyConfig
-from warp_vision.sim.scenarios import SETTLE_S, experiments, goal_lines, plot_experiments, run_scenario
+from warp_vision.resources import require_memory
 from warp_vision.sim.build import net_specs, refuse_missing_given, refuse_unused_given, setup_loop
+from warp_vision.sim.intercept_trials import intercept, pick_shots
 from warp_vision.sim.loop import CONTROL_DT, set_eye_view, sync_scene
-from warp_vision.sim.strike import intercept, pick_shots
+from warp_vision.sim.scenarios import SETTLE_S, experiments, goal_lines, plot_experiments, run_scenario
 
 
 class _Viewer:
@@ -125,7 +125,8 @@ def _demo_recorder(args, body, loop, viewer, writers, retinas: list, size: list)
     t_start = body.time
     cam = look_at([-1.3, 1.6, 2.0], [0.4, -1.0, 1.0])
     rasters = {s: RetinaRaster(loop.fov[s].retina, size=args.height // 2) for s in SIDES}
-    white: dict = {}  # one exposure per eye for the whole video (set on the first frame), so brightness changes are real
+    white: dict = {}  # one exposure per eye for the whole video (set on the first frame), so brightness changes are
+                      # real
 
     def record(lp):
         k = len(retinas)
@@ -227,7 +228,14 @@ def intraocular(args) -> dict:
     import matplotlib.pyplot as plt
 
     from warp_vision.sim.loop import VisuomotorLoop
-    from warp_vision.sim.scenarios import FOCUS_CARD_SEED, FOCUS_PHASES, LIGHT_PHASES, focus_steps, focus_summary, light_steps
+    from warp_vision.sim.scenarios import (
+        FOCUS_CARD_SEED,
+        FOCUS_PHASES,
+        LIGHT_PHASES,
+        focus_steps,
+        focus_summary,
+        light_steps,
+    )
 
     args.intraocular = "nets"
     _body, nets_loop = setup_loop(args)
@@ -239,7 +247,8 @@ def intraocular(args) -> dict:
     light = {m: light_steps(lp, progress=not args.no_progress) for m, lp in loops.items()}
     focus = {m: focus_steps(lp, progress=not args.no_progress) for m, lp in loops.items()}
     # the nets on more cards (the vergence law does not look at the card): how often the near and far steps focus
-    more = [{"card_seed": c, "steps": focus_steps(nets_loop, progress=not args.no_progress, snapshots=False, card_seed=c)["steps"]}
+    more = [{"card_seed": c,
+             "steps": focus_steps(nets_loop, progress=not args.no_progress, snapshots=False, card_seed=c)["steps"]}
             for c in range(FOCUS_CARD_SEED + 1, FOCUS_CARD_SEED + args.cards)]
     fig_dir = os.path.join(args.out, "figures")
     os.makedirs(fig_dir, exist_ok=True)
@@ -273,7 +282,8 @@ def intraocular(args) -> dict:
                      "focus_traces": {k: v.tolist() for k, v in focus[mode]["traces"].items()}}
     out["nets"]["more_cards"] = more
     for mode in loops:
-        out[mode]["focus_summary"] = focus_summary([focus[mode]["steps"]] + ([m["steps"] for m in more] if mode == "nets" else []))
+        cards = [focus[mode]["steps"]] + ([m["steps"] for m in more] if mode == "nets" else [])
+        out[mode]["focus_summary"] = focus_summary(cards)
     return out
 
 
@@ -294,7 +304,8 @@ def _focus_retinas(shots: list, retina, path: str) -> None:
         ax.set(title=f"t = {sh['t']:.2f} s, defocus {sh['defocus_D']:+.2f} D", xticks=[], yticks=[])
         ax.set_aspect("equal")
         ax.title.set_fontsize(9)
-    fig.suptitle("left retina, central 3 deg, lens nets in the loop: after each step (blurred) and at its end (sharp)", fontsize=9)
+    fig.suptitle("left retina, central 3 deg, lens nets in the loop: after each step (blurred) and at its end (sharp)",
+                 fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -365,7 +376,8 @@ def _scene_flags(g, name: str) -> None:
                        help="the number of trials (default 200), each run under the active search and under the "
                             "foveation nets' single answer")
         g.add_argument("--seed", type=integer(SEED), default=0,
-                       help="the first trial: seed 1,000,000 + --seed of the held-out split, or --seed of the training split")
+                       help="the first trial: seed 1,000,000 + --seed of the held-out split, or --seed of the training "
+                            "split")
         g.add_argument("--split", choices=("heldout", "train"), default="heldout",
                        help="held-out trials (default: rooms, balls and look-alikes never used to tune the search) or "
                             "training ones")
@@ -374,8 +386,8 @@ def _scene_flags(g, name: str) -> None:
         g.add_argument("--no-baseline", action="store_true", help="skip the single-answer runs of the same trials")
         g.add_argument("--cannon", type=integer(Range(0, 10_000, "shots")), default=50,
                        help="also N cannon shots of the split (seeds as sim intercept's, default 50; 0: none) in the "
-                            "trials' rooms, arms passive: the share of shots with both eyes within 2 deg of the ball for "
-                            "90%% of the flight after its first 0.15 s, under each perception")
+                            "trials' rooms, arms passive: the share of shots with both eyes within 2 deg of the ball "
+                            "for 90%% of the flight after its first 0.15 s, under each perception")
     elif name == "intercept":  # the arms strike
         g.set_defaults(no_arms=False)
         g.add_argument("--seed", type=integer(SEED), default=0,
@@ -388,10 +400,11 @@ def _scene_flags(g, name: str) -> None:
         return
     g.add_argument("--ball", choices=BALLS, default="ordinary",
                    help="ordinary (default): a grey-white ball lit by the room's lamps, in a room at its everyday "
-                        "albedos (generators v8 and v9's kind of scene, what the default foveation nets learn); glowing: "
-                        "a white ball that glows, in the room dimmed (generator v7's scene: use it with v7 nets, "
-                        "python -m warp_vision.train --generator 7 --model linet ...)"
-                        + ("; the limb vision nets must have learnt the same ball (train limb --ball)" if name == "intercept" else ""))
+                        "albedos (generators v8 and v9's kind of scene, what the default foveation nets learn); "
+                        "glowing: a white ball that glows, in the room dimmed (generator v7's scene: use it with v7 "
+                        "nets, python -m warp_vision.train --generator 7 --model linet ...)"
+                        + ("; the limb vision nets must have learnt the same ball (train limb --ball)"
+                           if name == "intercept" else ""))
     every = INTERCEPT_FRAME_EVERY if name == "intercept" else FRAME_EVERY
     g.add_argument("--frame-every", type=integer(PERIODS), default=every,
                    help=f"the eyes render (and the foveation nets run) every N control periods of 10 ms "
@@ -410,7 +423,8 @@ def _scene_flags(g, name: str) -> None:
         g.add_argument("--stop", type=number(STOP), default=1.0,
                        help="m from the head where the ball's flight is aimed (default 1)")
     if name == "intercept":
-        g.add_argument("--side", choices=SIDES, default="left", help="the striking arm: left (default) or right (the other hangs)")
+        g.add_argument("--side", choices=SIDES, default="left",
+                       help="the striking arm: left (default) or right (the other hangs)")
         g.add_argument("--shots", type=integer(COUNT), default=None,
                        help="N held-out shots (seeds 1,000,000 + --seed ...), each run several ways: the closed loop "
                             "with the chosen --perception (with vision also with the eyes' fixation), the true ball "
@@ -430,7 +444,8 @@ def _output_flags(g, name: str) -> None:
     g.add_argument("--no-progress", action="store_true", help="no progress bars")
     if name == "oculomotor":  # (it writes the nets' runs alone)
         return
-    g.add_argument("--out", default=None, help=f"output directory (default runs/sim_{name}, or runs/quick/sim_{name} with --quick)")
+    g.add_argument("--out", default=None,
+                   help=f"output directory (default runs/sim_{name}, or runs/quick/sim_{name} with --quick)")
     if name not in ("demo", "intercept"):
         return
     retina = "the left retina beside it is" if name == "intercept" else "the retina images beside it are"
@@ -448,7 +463,8 @@ def _output_flags(g, name: str) -> None:
     else:
         g.add_argument("--gif", action="store_true", help="also write demo.gif (same frames)")
         g.add_argument("--viewer", action="store_true",
-                       help="open MuJoCo's passive viewer on the running loop (skipped, with a note, without a display)")
+                       help="open MuJoCo's passive viewer on the running loop (skipped, with a note, without a "
+                            "display)")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -502,13 +518,14 @@ def _refuse_bad_settings(args) -> None:
         every = getattr(args, "video_every", 1)
         fps = 1.0 / (every * CONTROL_DT * args.slow_motion)
         if not VIDEO_FPS.lo <= fps <= VIDEO_FPS.hi:
-            raise ValueError(f"--slow-motion: {args.slow_motion:g} with a frame every {every} period(s) makes a video of "
-                             f"{fps:.3g} frames a second; expected {VIDEO_FPS.words()}")
+            raise ValueError(f"--slow-motion: {args.slow_motion:g} with a frame every {every} period(s) makes a video "
+                             f"of {fps:.3g} frames a second; expected {VIDEO_FPS.words()}")
         seconds = getattr(args, "duration", SHOT_SECONDS)
         gif = getattr(args, "gif", False) or getattr(args, "video_format", "mp4") == "gif"
         frames = int(seconds / (CONTROL_DT * every)) + 1
         require_memory(video_bytes(args.width, args.height, frames, kept=gif),
-                       f"the video ({frames} frames of a {args.width} x {args.height} view{', kept for the GIF' if gif else ''})",
+                       f"the video ({frames} frames of a {args.width} x {args.height} "
+                       f"view{', kept for the GIF' if gif else ''})",
                        "--width, --height" + (", --duration or --video-every" if hasattr(args, "duration") else ""))
     if getattr(args, "out", None) is not None:
         require_output(args.out, "--out")
@@ -531,7 +548,8 @@ def _intercept(args) -> None:
     pick_shots(args)
     bad = [e for e in args.perception_error_cm if not (np.isfinite(e) and 0 <= e <= 500)]
     if bad or (args.perception_error_cm and args.shots is None):
-        raise ValueError(f"--perception-error-cm: expected distances of 0-500 cm with --shots, got {args.perception_error_cm}")
+        raise ValueError("--perception-error-cm: expected distances of 0-500 cm with --shots, got "
+                         f"{args.perception_error_cm}")
     if args.height < 8:
         raise ValueError(f"--height: expected >= 8, got {args.height}")
     intercept(args)
@@ -549,14 +567,15 @@ def _intraocular(args) -> None:
     result = intraocular(args)
     for mode in ("nets", "analytic"):
         for st in result[mode]["light_steps"]:
-            print(f"{mode:8s} {st['eye']:5s} eye, {st['log_units']:+.0f} log units at {st['at_s']:.1f} s ({st['direction']}): "
-                  f"{st['from_mm']:.2f} -> {st['end_mm']:.2f} mm (steady state {st['steady_state_mm']:.2f}, off by "
-                  f"{100 * st['end_relative_error']:.1f}%), latency {_secs(st['latency_s'])}, 10-90% {_secs(st['rise_10_90_s'])}, "
-                  f"settled within 5% after {_secs(st['settle_s'])}")
+            print(f"{mode:8s} {st['eye']:5s} eye, {st['log_units']:+.0f} log units at {st['at_s']:.1f} s "
+                  f"({st['direction']}): {st['from_mm']:.2f} -> {st['end_mm']:.2f} mm (steady state "
+                  f"{st['steady_state_mm']:.2f}, off by {100 * st['end_relative_error']:.1f}%), latency "
+                  f"{_secs(st['latency_s'])}, 10-90% {_secs(st['rise_10_90_s'])}, settled within 5% after "
+                  f"{_secs(st['settle_s'])}")
         for st in result[mode]["focus_steps"]:
             print(f"{mode:8s} {st['eye']:5s} eye, card {st['from_m']:.2f} -> {st['to_m']:.2f} m at {st['at_s']:.1f} s: "
-                  f"{st['from_D']:.2f} -> {st['to_D']:.2f} D, latency {_secs(st['latency_s'])}, in focus (0.25 D) after "
-                  f"{_secs(st['in_focus_s'])}, defocus at the end {st['end_defocus_D']:+.3f} D")
+                  f"{st['from_D']:.2f} -> {st['to_D']:.2f} D, latency {_secs(st['latency_s'])}, in focus (0.25 D) "
+                  f"after {_secs(st['in_focus_s'])}, defocus at the end {st['end_defocus_D']:+.3f} D")
         for direction, f in result[mode]["focus_summary"].items():
             print(f"{mode:8s} {direction} steps ({f['steps']} eye-steps): in focus within {f['goal_s']} s: "
                   f"{f['in_focus_within_goal']}/{f['steps']}, median time to focus {_secs(f['median_in_focus_s'])}, "
@@ -596,10 +615,10 @@ def oculomotor_line(eye: str, run: str, summary: dict) -> str:
     """What ``sim oculomotor`` prints of an eye's net: its check on the body (held-out gazes), and where the
     rest lies."""
     s = summary
-    return (f"{eye} eye, {run}: on the body, {s['transitions']} held-out saccades land {s['gaze_error_deg_median']:.2f} "
-            f"deg from their gazes (median; p90 {s['gaze_error_deg_p90']:.2f}), pursuits of 30 of its steps end "
-            f"{s['pursuit_chain_error_deg_median']:.2f} deg off (p90 {s['pursuit_chain_error_deg_p90']:.2f}); the rest in "
-            f"{os.path.join(run, 'summary.json')}")
+    return (f"{eye} eye, {run}: on the body, {s['transitions']} held-out saccades land "
+            f"{s['gaze_error_deg_median']:.2f} deg from their gazes (median; p90 {s['gaze_error_deg_p90']:.2f}), "
+            f"pursuits of 30 of its steps end {s['pursuit_chain_error_deg_median']:.2f} deg off (p90 "
+            f"{s['pursuit_chain_error_deg_p90']:.2f}); the rest in {os.path.join(run, 'summary.json')}")
 
 
 def demo_lines(result: dict, out: str) -> list[str]:

@@ -5,12 +5,12 @@ predicted path, and the arm's motor nets driving the hand there.
   :func:`warp_vision.sim.cannon.run_shot`. Every :data:`~warp_vision.sim.arm.CONTROL_PERIOD` (10 ms) it
   (a) asks its *perception* for the ball's position and velocity: ``"oracle"`` reads the simulation's true
   state; any callable ``(body, t) -> (position [3], velocity [3])`` or None (nothing seen yet: hold) can
-  stand in for it, as the limb vision nets do (:class:`warp_vision.sim.limb.LimbVision`); (b) predicts the ball's ballistic path under gravity (no drag, no spin:
-  ``p(tau) = p + v tau + g tau^2 / 2``) and picks an interception point on it with :func:`intercept_point`;
-  (c) feeds the arm's voluntary net (:class:`warp_vision.nn.arm.ArmNets`) the desired hand displacement,
-  ``gain`` x (point - hand), as :func:`warp_vision.sim.arm.evaluate_on_body` runs it in closed loop (the true
-  main joint angles and velocities, and the posture net's holding activations at the current angles as
-  the "current activations"), and sets the arm's 63 muscle controls from its output. Without a reachable
+  stand in for it, as the limb vision nets do (:class:`warp_vision.sim.limb.LimbVision`); (b) predicts the ball's
+  ballistic path under gravity (no drag, no spin: ``p(tau) = p + v tau + g tau^2 / 2``) and picks an interception point
+  on it with :func:`intercept_point`; (c) feeds the arm's voluntary net (:class:`warp_vision.nn.arm.ArmNets`) the
+  desired hand displacement, ``gain`` x (point - hand), as :func:`warp_vision.sim.arm.evaluate_on_body` runs it in
+  closed loop (the true main joint angles and velocities, and the posture net's holding activations at the current
+  angles as the "current activations"), and sets the arm's 63 muscle controls from its output. Without a reachable
   point on the path (the ball gone past, or flying wide) it holds the arm with the posture net.
   Before the launch (:meth:`ArmInterceptor.ready`, ``run_shot``'s ``ready``) it puts the arm at a *ready
   posture*: main joint angles found by :func:`ready_angles` (least squares on the arm's kinematics) that
@@ -18,9 +18,9 @@ predicted path, and the arm's motor nets driving the hand there.
   cannon's reach envelope, :data:`warp_vision.sim.cannon.ENVELOPE`), and holds it there with the posture
   net. The other arm stays passive (zero activation; it hangs).
   Defaults (``aim="plane"``, the plane :data:`PLANE_FRONT` in front of the shoulder, ``gain`` :data:`GAIN`)
-  are the best of the variants measured on 50 held-out left shots
-  (``sample_shots(50, seed=0, split="heldout", side="left")``, the default left arm nets): 92% deflected,
-  against 16% with passive arms; the plane through the ready hand at gain 1: 72%.
+  are the best of the variants tried on 50 held-out left shots
+  (``sample_shots(50, seed=0, split="heldout", side="left")``, the default left arm nets; the figures:
+  docs/RESULTS.md, "Figures behind the code's constants").
 - :func:`intercept_point`: where on the predicted path to put the hand. ``aim="plane"``: where the path
   crosses a frontal plane (y = const; the controller's: :data:`PLANE_FRONT` in front of the shoulder), if
   that point is within reach;
@@ -65,10 +65,11 @@ MIN_FRONT = 0.15
 HORIZON_S = 0.8
 PATH_STEP_S = 0.002
 #: m: the default plane of ``aim="plane"``: this far in front of the hanging shoulder (the envelope's
-#: nearest targets; measured on 50 held-out shots it beats the ready hand's plane, 0.375 m: more time to reach).
+#: nearest targets): it leaves the arm more time to reach than the ready hand's plane, 0.375 m, and deflects
+#: more shots (docs/RESULTS.md, "Figures behind the code's constants").
 PLANE_FRONT = 0.25
 #: The default displacement gain: the net is asked for twice the remaining displacement (at gain 1 the arm
-#: is too slow for the 0.2-0.55 s flights: its reaches are 16 cm off after 0.3 s).
+#: is too slow for the 0.2-0.55 s flights: docs/RESULTS.md, "Figures behind the code's constants").
 GAIN = 2.0
 #: m: the largest displacement the voluntary net is fed (its training reaches: hands 0.2-0.6 m in front).
 MAX_DISPLACEMENT = 0.6
@@ -101,7 +102,8 @@ def intercept_point(position, velocity, shoulder, hand, aim: str = "plane", plan
     taus = np.arange(0.0, horizon + step / 2, step)
     path = ballistic_path(position, velocity, taus)
     shoulder, hand = np.asarray(shoulder, float), np.asarray(hand, float)
-    ok = (np.linalg.norm(path - shoulder, axis=1) <= reach_fraction * ARM_REACH) & (path[:, 1] <= shoulder[1] - min_front)
+    ok = (np.linalg.norm(path - shoulder,
+                         axis=1) <= reach_fraction * ARM_REACH) & (path[:, 1] <= shoulder[1] - min_front)
     if not ok.any():
         return None
     if aim == "plane":
@@ -206,7 +208,8 @@ class ArmInterceptor:
         self.reach_fraction, self.min_front = float(reach_fraction), float(min_front)
         self.arm = Arm(body, side)
         self.shoulder = shoulder(side)
-        self.ready_hand = self.shoulder + _mirror(READY_OFFSET, side) if ready_hand is None else np.asarray(ready_hand, float)
+        self.ready_hand = self.shoulder + _mirror(READY_OFFSET,
+                                                  side) if ready_hand is None else np.asarray(ready_hand, float)
         self.plane_y = float(self.shoulder[1] - PLANE_FRONT) if plane_y is None else float(plane_y)
         self._scratch = mujoco.MjData(body.model)
         self.ready_q = ready_angles(self.arm, self.ready_hand, self._scratch)
@@ -318,7 +321,10 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
     if runner is None:
         body = body or Body()
         ctrl = controller_factory(body) if controller_factory is not None else None
-        runner = lambda shot: run_shot(body, shot, ctrl, settle, frontal_y, ready=getattr(ctrl, "ready", None))  # noqa: E731
+
+        def runner(shot):
+            return run_shot(body, shot, ctrl, settle, frontal_y, ready=getattr(ctrl, "ready", None))
+
     rows = []
     for shot in tqdm(shots, desc=desc, unit="shot", disable=not progress, dynamic_ncols=True):
         t0 = time.perf_counter()
@@ -331,8 +337,10 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
                      "direction": [float(x) for x in shot.direction], "wall_s": time.perf_counter() - t0})
     out = {"shots": rows, **_summary(rows)}
     edges = list(speed_bins)
-    out["by_speed"] = {f"{lo:g}-{hi:g}": _summary([r for r in rows if lo <= r["speed"] < hi or (hi == edges[-1] and r["speed"] == hi)])
-                       for lo, hi in zip(edges, edges[1:])}
+    out["by_speed"] = {
+        f"{lo:g}-{hi:g}": _summary([r for r in rows if lo <= r["speed"] < hi or (hi == edges[-1] and r["speed"] == hi)])
+        for lo, hi in zip(edges, edges[1:])
+    }
     out["wall_s_per_shot"] = float(np.mean([r["wall_s"] for r in rows])) if rows else None
     return out
 
@@ -344,7 +352,8 @@ def intercept_stats(shots, controller_factory=None, body: Body | None = None, se
 FIXATE_S = 0.4
 #: ``sim intercept`` renders every INTERCEPT_FRAME_EVERY control periods: 50 frames a second. A fast shot
 #: leaves the ranging gate after about 0.13 s of its 0.2-0.3 s flight; at 25 frames a second that is
-#: four observations (measured on 50 held-out shots: 38 deflected at 25 Hz, 42 at 50 Hz; docs/RESULTS.md)
+#: four observations, too few for the ballistic fit (docs/RESULTS.md, "The arms: ...", what made the
+#: difference)
 INTERCEPT_FRAME_EVERY = 2
 
 

@@ -79,7 +79,8 @@ class LimbDataConfig:
     rooms: str = "train"  # "train" or "heldout" room family
     shots: str = "train"  # the cannon's seed split the on-path balls come from
     chunk_size: int = ROOM_CHUNK
-    ball: str = "ordinary"  # the loop's ball (warp_vision.sim.loop.BALLS): ordinary, or glowing (the datasets before it)
+    ball: str = "ordinary"  # the loop's ball (warp_vision.sim.loop.BALLS):
+                            # ordinary, or glowing (the datasets before it)
 
     def validate(self) -> None:
         require_seeds(self)
@@ -96,7 +97,7 @@ class LimbDataConfig:
             raise ValueError(f"ball: expected one of {BALLS}, got {self.ball!r}")
 
     @classmethod
-    def from_manifest(cls, m: dict) -> "LimbDataConfig":
+    def from_manifest(cls, m: dict) -> LimbDataConfig:
         """The config a dataset store recorded (:meth:`manifest`)."""
         return cls(**{"ball": "glowing", **{k: v for k, v in m.items() if k != "generator_version"}})
 
@@ -221,7 +222,11 @@ def sample_params(cfg: LimbDataConfig, index: int, poser: Poser) -> dict:
         else:
             ball = hands[near] + rng.uniform(0.06, NEAR_M) * _unit(rng)
         # in front of the body, above the stool, clear of both hands
-        if ball[1] < SHOULDER_LEFT[1] - 0.12 and ball[2] > 0.55 and min(np.linalg.norm(ball - h) for h in hands.values()) > 0.05:
+        if (
+            ball[1] < SHOULDER_LEFT[1] - 0.12
+            and ball[2] > 0.55
+            and min(np.linalg.norm(ball - h) for h in hands.values()) > 0.05
+        ):
             break
     # the head turned toward the ball by a random share of its direction (the neck's synergy)
     mid = 0.5 * (poser.eye_centre("left") + poser.eye_centre("right"))
@@ -286,7 +291,7 @@ def render_samples(cfg: LimbDataConfig, indices, poser: Poser, retina, device: s
     ps, poses = [], {name: [] for name, _ in sc._mj_bodies}
     for i in indices:
         p = sample_params(cfg, i, poser)
-        for (name, b), T in zip(sc._mj_bodies, poser.body_poses([b for _, b in sc._mj_bodies])):
+        for (name, _b), T in zip(sc._mj_bodies, poser.body_poses([b for _, b in sc._mj_bodies])):
             poses[name].append(T)
         ps.append(p)
     for name, Ts in poses.items():
@@ -296,8 +301,8 @@ def render_samples(cfg: LimbDataConfig, indices, poser: Poser, retina, device: s
     sc.set_transform("mj_ball", ball)
     rng = np.random.default_rng([13, cfg.seed, indices[0]])
     acc, pupil = float(rng.choice(ACCOMMODATIONS_D)), float(rng.choice(PUPILS_MM))
-    onv = render_onv(sc, retina, NavarroEye(acc, pupil), np.stack([p["eye_pose"] for p in ps]), cfg.samples_per_receptor,
-                     seed=cfg.seed, device=device).cpu().numpy()
+    onv = render_onv(sc, retina, NavarroEye(acc, pupil), np.stack([p["eye_pose"] for p in ps]),
+                     cfg.samples_per_receptor, seed=cfg.seed, device=device).cpu().numpy()
     light = np.array([p["light"] for p in ps])
     onv = onv * light[:, None]
     meta = np.array([[p["ball_eye"], *(np.linalg.norm(p["ball"] - p["hands"][s]) for s in SIDES), p["err_deg"],
@@ -318,7 +323,8 @@ def synthesize(out_dir, cfg: LimbDataConfig, shard=(0, 1), batch: int = 16, devi
     todo, mine = pending(store)
     if not todo:
         return store
-    log(f"synthesising {todo:,} of {mine:,} limb vision ONVs ({cfg.eye} eye, rooms {cfg.rooms}, shots {cfg.shots}) into {out_dir}")
+    log(f"synthesising {todo:,} of {mine:,} limb vision ONVs ({cfg.eye} eye, rooms {cfg.rooms}, shots {cfg.shots}) "
+        f"into {out_dir}")
     poser = Poser()
     render_missing(store, lambda r: render_samples(cfg, r, poser, retina, device), batch, progress, log)
     return store
@@ -445,7 +451,8 @@ class LimbVision(BallisticPerception):
                                  f"{ck.get('net', {}).get('kind')!r} net")
             if ck["data"]["eye"] != s:
                 raise ValueError(f"{rd}: a net of the {ck['data']['eye']} eye, given for the {s} eye")
-            self.nets[s], self.norms[s], self.dtypes[s], self.data[s] = model, ck["norm"], onv_dtype(ck["net"]), ck["data"]
+            self.nets[s], self.norms[s] = model, ck["norm"]
+            self.dtypes[s], self.data[s] = onv_dtype(ck["net"]), ck["data"]
             models[s] = ck["net"]["model"]
         ranging = {s: m == "range" for s, m in models.items()}
         if len(set(ranging.values())) > 1:
@@ -461,16 +468,17 @@ class LimbVision(BallisticPerception):
         for s in SIDES:
             learnt = self.data[s].get("ball", "glowing")
             if learnt != ball:
-                raise ValueError(f"{self.run_dirs[s]}: the {s} eye's limb vision net learnt the {learnt} ball, the loop shows "
-                                 f"the {ball} one (--ball {learnt}, or train it again: python -m warp_vision.train limb "
-                                 f"--eye {s} --ball {ball} --out {self.run_dirs[s]})")
+                raise ValueError(f"{self.run_dirs[s]}: the {s} eye's limb vision net learnt the {learnt} ball, the "
+                                 f"loop shows the {ball} one (--ball {learnt}, or train it again: python -m "
+                                 f"warp_vision.train limb --eye {s} --ball {ball} --out {self.run_dirs[s]})")
 
     def check_retinas(self, retinas: dict) -> None:
         """ValueError unless each eye's net reads the photoreceptors of ``retinas[eye]`` (the loop's)."""
         for s in SIDES:
             P = int(self.data[s]["photoreceptors"])
             if retinas[s].P != P:
-                raise ValueError(f"limb vision net of the {s} eye: trained on P={P} photoreceptors, the loop renders {retinas[s].P}")
+                raise ValueError(f"limb vision net of the {s} eye: trained on P={P} photoreceptors, the loop renders "
+                                 f"{retinas[s].P}")
 
     def _predict(self, s: str, onv) -> np.ndarray:
         from warp_vision.nn.trained import predict_targets

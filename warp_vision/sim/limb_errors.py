@@ -10,7 +10,6 @@ from warp_vision.data.store import ChunkedStore, IncompleteStoreError, MissingSt
 from warp_vision.frames import gaze_direction
 from warp_vision.sim.limb import NEAR_M, LimbDataConfig, Poser, ball_in_eye
 
-
 #: m: the distance bins of the summary
 BINS_M = (0.0, 0.2, 0.4, 0.6, 1.0, 2.0, 4.0)
 #: m: the ranging summary's bins of the eye-ball distance
@@ -59,7 +58,8 @@ def range_errors(pred_log: np.ndarray, true_log: np.ndarray, hand_m: np.ndarray)
     every = np.ones(len(t), bool)
     out = {"depth_" + k: v for k, v in stats(every).items()}
     out["near_hand"] = stats(near)
-    out["by_distance"] = {f"{lo:g}-{hi:g} m": stats((dist >= lo) & (dist < hi)) for lo, hi in zip(RANGE_BINS_M, RANGE_BINS_M[1:])}
+    out["by_distance"] = {f"{lo:g}-{hi:g} m": stats((dist >= lo) & (dist < hi)) for lo,
+                          hi in zip(RANGE_BINS_M, RANGE_BINS_M[1:])}
     return out
 
 
@@ -111,7 +111,8 @@ def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False)
 
     net, ck = load_net(limb_run)
     if ck["net"].get("model") != "range":
-        raise ValueError(f"{limb_run}: expected a ranging limb vision run (--model range), got {ck['net'].get('model')!r}")
+        raise ValueError(f"{limb_run}: expected a ranging limb vision run (--model range), got "
+                         f"{ck['net'].get('model')!r}")
     summary = _json.loads((Path(limb_run) / "summary.json").read_text())
     again = f"python -m warp_vision.train evaluate {limb_run}"  # (renders the run's datasets where they are not whole)
     try:
@@ -129,7 +130,8 @@ def heldout_limb_vision_errors(limb_run: str, foveation, progress: bool = False)
     idx = np.flatnonzero(seen)
     dist = np.exp(predict_targets(net, onv[torch.as_tensor(idx)], ck["norm"], "cpu").numpy()[:, 0])
     poser = Poser()
-    true_ball = np.stack([ball_in_eye(cfg, int(i), poser) for i in tqdm(idx, desc="held-out balls", disable=not progress)])
+    true_ball = np.stack([ball_in_eye(cfg, int(i), poser)
+                          for i in tqdm(idx, desc="held-out balls", disable=not progress)])
     est_ball = dist[:, None] * u[idx]
     target = d["target"][idx].astype(np.float64)  # ball - hand, each arm, eye frame
     pred = target + np.tile(est_ball - true_ball, 2)  # the hands at their true places

@@ -27,8 +27,8 @@ import mujoco
 import numpy as np
 import torch
 
-from warp_vision.frames import gaze_angles, gaze_direction, line_crossing
 from warp_vision.body import ARM_PARTS, HIDDEN_FROM_EYES, SIDES, Body, visible_parts
+from warp_vision.frames import gaze_angles, gaze_direction, line_crossing
 from warp_vision.sim.gaze import CONTROL_DT, GazeController
 from warp_vision.sim.oculomotor import holding_activations
 
@@ -124,11 +124,13 @@ class Foveator:
         if not hasattr(self.model, "candidates"):
             return dirs, scores
         with torch.no_grad():
-            d, sc = self.model.candidates(net_input(onv[:1], self.norm, self.device, self.onv_dtype), k + 1, min_sep_deg)
+            d, sc = self.model.candidates(net_input(onv[:1], self.norm, self.device, self.onv_dtype), k + 1,
+                                          min_sep_deg)
         d, sc = d[0].cpu().numpy().astype(np.float64), sc[0].cpu().numpy().astype(np.float64)
         cos_sep = np.cos(np.radians(min_sep_deg))
         best_dir = gaze_direction(*best)
-        near_best = [j for j in range(len(d)) if np.isfinite(d[j]).all() and gaze_direction(*d[j]) @ best_dir >= cos_sep]
+        near_best = [j for j in range(len(d))
+                     if np.isfinite(d[j]).all() and gaze_direction(*d[j]) @ best_dir >= cos_sep]
         scores[0] = float(sc[near_best[0]]) if near_best else 0.0
         rest = [j for j in range(len(d)) if j not in near_best and np.isfinite(d[j]).all()][: k - 1]
         for n, j in enumerate(rest, start=1):
@@ -179,7 +181,8 @@ def body_scene(body: Body, seed: int = 0, ball: str = "glowing"):
     parts = visible_parts(body, SCENE_ANCHORS, exclude=("ball",))
     if glowing:
         for meshes in parts.values():
-            for mesh in meshes:  # dimmed like the room (x ROOM_ALBEDO / 0.4), so the glowing ball stays the brightest thing in view
+            # dimmed like the room (x ROOM_ALBEDO / 0.4), so the glowing ball stays the brightest thing in view
+            for mesh in meshes:
                 c = np.array(mesh.visual.vertex_colors)
                 c[:, :3] = (c[:, :3] * min(1.0, ROOM_ALBEDO / 0.4)).astype(np.uint8)
                 mesh.visual.vertex_colors = c
@@ -228,7 +231,8 @@ class VisuomotorLoop:
         if perception not in PERCEPTION:
             raise ValueError(f"perception: expected one of {PERCEPTION}, got {perception!r}")
         if (perception == "search") != (search is not None):
-            raise ValueError("search: an ActiveSearch (warp_vision.sim.search) goes with perception='search', and only with it")
+            raise ValueError("search: an ActiveSearch (warp_vision.sim.search) goes with perception='search', and only "
+                             "with it")
         #: the active search (:class:`warp_vision.sim.search.ActiveSearch`) with perception "search", else None
         self.search = search
         #: "nets" (the foveation nets' estimates) or "oracle" (the true directions; the eyes still render)
@@ -334,7 +338,8 @@ class VisuomotorLoop:
                                 self.fov[s].samples_per_receptor, seed=0, packed=packed) * self.light_scale
             if self.lens_nets is not None:  # the lens net's central field, at the S it was trained with
                 self.lens_onv[s] = render_onv(self.scene, self._lens_field(s), eye, self.body.eye_pose(s)[None],
-                                              self.lens_nets[s].samples_per_receptor, seed=0, packed=packed) * self.light_scale
+                                              self.lens_nets[s].samples_per_receptor, seed=0,
+                                              packed=packed) * self.light_scale
         self.timing["render"] += time.perf_counter() - t0
         self.onv = out
         return out
@@ -419,7 +424,8 @@ class VisuomotorLoop:
         if cached is None or cached[0] is not net:
             pos = np.asarray(self.fov[s].retina.positions_optical_mm)
             if net.P != len(pos):
-                raise ValueError(f"lens_nets[{s!r}]: reads a retina of {net.P:,} photoreceptors, the {s} eye has {len(pos):,}")
+                raise ValueError(f"lens_nets[{s!r}]: reads a retina of {net.P:,} photoreceptors, the {s} eye has "
+                                 f"{len(pos):,}")
             cached = self._lens_positions[s] = (net, np.ascontiguousarray(pos[net.central.cpu().numpy()]))
         return cached[1]
 
@@ -435,15 +441,18 @@ class VisuomotorLoop:
             self.lens_teacher[s] = 1.0 / max(dist, 0.1)
             if seen or s not in self._pupil_command:
                 acc_looked, looked = self._optics[s]  # the (quantised) lens and pupil the frame was rendered through
-                self.pupil_teacher[s] = float(pupil_diameter_mm(adapting_luminance(max(float(self.onv[s].mean()), 1e-12), looked)))
+                luminance = adapting_luminance(max(float(self.onv[s].mean()), 1e-12), looked)
+                self.pupil_teacher[s] = float(pupil_diameter_mm(luminance))
                 with torch.no_grad():
                     if self.pupil_nets is None:
                         self._pupil_command[s] = self.pupil_teacher[s]
                     else:
-                        self._pupil_command[s] = float(self.pupil_nets[s](self.onv[s].float(), torch.tensor([looked]))[0])
+                        self._pupil_command[s] = float(self.pupil_nets[s](self.onv[s].float(),
+                                                                          torch.tensor([looked]))[0])
                     if self.lens_nets is not None:
                         self._lens_command[s], self.defocus_estimate[s] = _lens_command(
-                            self.lens_nets[s], self.lens_onv[s], acc_looked, looked, self._lens_command.get(s, acc_looked))
+                            self.lens_nets[s], self.lens_onv[s], acc_looked, looked,
+                            self._lens_command.get(s, acc_looked))
         if self.lens_nets is not None and self.yoked_lens and seen:
             # accommodation is yoked: one command drives both lenses (the consensual response; Campbell
             # 1960, Ball 1952), the mean of the vergences the two eyes' nets read. Their errors are in part
@@ -459,10 +468,10 @@ class VisuomotorLoop:
 
 def _lens_command(net, onv: torch.Tensor, acc_looked: float, pupil: float, hold: float) -> tuple[float, float | None]:
     """(accommodation command, defocus estimate or None) of a lens net for its central field ``onv`` (the
-    photoreceptors ``net.central`` only) rendered at ``acc_looked`` through ``pupil``. The defocus is the accommodation minus the object's vergence, so the
-    command is the vergence the net sees: an absolute target (the plant's latency winds nothing up). An
-    image without fine contrast (``net.contrast`` under its floor: a uniform glowing ball filling the
-    fovea) carries no defocus cue: the lens holds ``hold``, its last command. The estimate is calibrated by
+    photoreceptors ``net.central`` only) rendered at ``acc_looked`` through ``pupil``. The defocus is the accommodation
+    minus the object's vergence, so the command is the vergence the net sees: an absolute target (the plant's latency
+    winds nothing up). An image without fine contrast (``net.contrast`` under its floor: a uniform glowing ball filling
+    the fovea) carries no defocus cue: the lens holds ``hold``, its last command. The estimate is calibrated by
     the accommodation it was seen with (:meth:`~warp_vision.nn.intraocular.LensNet.calibrated`)."""
     with torch.no_grad():
         raw = net.raw_features(onv.float(), torch.tensor([pupil]), central_only=True)

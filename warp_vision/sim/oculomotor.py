@@ -10,10 +10,10 @@ least squares). For an eye the pose is a gaze (yaw, pitch) with no torsion (the 
 The oculomotor net of each eye (:class:`warp_vision.nn.heads.OculomotorNet`, trained by
 ``python -m warp_vision.train oculomotor``, :mod:`warp_vision.train.oculomotor`) maps (desired change of
 gaze, current six activations) to the next six activations. Its data (:func:`synthesize_holding`): gazes
-sampled in a disc, their holding activations, and transitions between them (:func:`transition_pairs`) (the current activations hold gaze g, the next ones
-hold g + change): a tenth stay put, 36% go to a gaze within 3 deg (the small corrections the loop asks
-for every period) and the rest, 54%, to a random gaze (saccades); the fit weighs each error by the
-inverse square of (1 deg + the change). Its held-out accuracy is measured where it matters, on the body:
+sampled in a disc, their holding activations, and transitions between them (:func:`transition_pairs`) (the current
+activations hold gaze g, the next ones hold g + change): a tenth stay put, 36% go to a gaze within 3 deg (the small
+corrections the loop asks for every period) and the rest, 54%, to a random gaze (saccades); the fit weighs each error by
+the inverse square of (1 deg + the change). Its held-out accuracy is evaluated where it matters, on the body:
 the gaze the eye settles at under the net's activations against the gaze asked for, after one saccade
 and after 30 small steps with the net fed its own output (:func:`evaluate_on_body`).
 """
@@ -30,9 +30,9 @@ import numpy as np
 import torch
 from scipy.optimize import lsq_linear
 
+from warp_vision.body import EYE_MUSCLE_NAMES, SIDES, Body, BodyConfig, quat_from_matrix
 from warp_vision.frames import fick_rotation
 from warp_vision.nn.heads import OculomotorNet
-from warp_vision.body import EYE_MUSCLE_NAMES, SIDES, Body, BodyConfig, quat_from_matrix
 
 #: Effort weight: small next to the torque residual (N m), so the pose is held exactly where it can be.
 EFFORT = 1e-8
@@ -71,7 +71,8 @@ def muscle_torques(body: Body, actuators, dofs, qpos, data: mujoco.MjData | None
     return A, tau0, rest
 
 
-def holding_activations(body: Body, actuators, dofs, qpos, effort=EFFORT, weights=None, data=None) -> tuple[np.ndarray, float]:
+def holding_activations(body: Body, actuators, dofs, qpos, effort=EFFORT, weights=None,
+                        data=None) -> tuple[np.ndarray, float]:
     """Least-effort activations in [0, 1] that hold joints ``dofs`` still at ``qpos``; returns
     (activations [len(actuators)], residual torque norm N m). ``effort``: a weight, or one per muscle;
     ``weights``: one per dof on the torque residual."""
@@ -113,9 +114,10 @@ def eye_holding_activations(body: Body, side: str, gazes, progress: bool = False
     d = mujoco.MjData(body.model)
     out = np.empty((len(gazes), len(EYE_MUSCLE_NAMES)))
     res = np.empty(len(gazes))
-    for k, (yaw, pitch) in enumerate(tqdm(gazes, desc=f"holding activations ({side} eye)", disable=not progress, leave=False)):
-        out[k], res[k] = holding_activations(body, body.eye_muscles[side], eye_dofs(body, side), eye_qpos(body, side, yaw, pitch),
-                                             weights=EYE_TORQUE_WEIGHTS, data=d)
+    for k, (yaw, pitch) in enumerate(tqdm(gazes, desc=f"holding activations ({side} eye)", disable=not progress,
+                                          leave=False)):
+        out[k], res[k] = holding_activations(body, body.eye_muscles[side], eye_dofs(body, side),
+                                             eye_qpos(body, side, yaw, pitch), weights=EYE_TORQUE_WEIGHTS, data=d)
     return out, res
 
 
@@ -169,7 +171,8 @@ def synthesize_holding(out_dir, cfg: HoldingDataConfig, shard=(0, 1), progress: 
 
     cfg.validate()
     fields = {"gaze": ((2,), "float64"), "act": ((len(EYE_MUSCLE_NAMES),), "float64"), "residual": ((), "float64")}
-    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.gazes, cfg.chunk_size, fields, shard=tuple(shard))
+    store = ChunkedStore.create_or_resume(out_dir, cfg.manifest(), cfg.gazes, cfg.chunk_size, fields,
+                                          shard=tuple(shard))
     todo, mine = pending(store)
     if todo:
         log(f"solving the holding activations of {todo:,} of {mine:,} gazes ({cfg.eye} eye) into {out_dir}")
@@ -229,12 +232,13 @@ def evaluate_on_body(net: OculomotorNet, body: Body, side: str, gaze: np.ndarray
     i, j = transition_pairs(te, n, rng)
     g, acts = gaze, act
     with torch.no_grad():
-        pred = net(torch.as_tensor(g[j] - g[i], dtype=torch.float32), torch.as_tensor(acts[i], dtype=torch.float32)).numpy()
+        pred = net(torch.as_tensor(g[j] - g[i], dtype=torch.float32),
+                   torch.as_tensor(acts[i], dtype=torch.float32)).numpy()
     err = np.array([np.degrees(np.linalg.norm(settle_gaze(body, side, pred[k]) - g[j[k]])) for k in range(n)])
     exact = np.array([np.degrees(np.linalg.norm(settle_gaze(body, side, acts[j[k]]) - g[j[k]])) for k in range(n)])
     chain = []
     lim = np.radians(30.0)
-    for k in range(n // 4):
+    for _ in range(n // 4):
         start = g[te[rng.integers(len(te))]]
         phi = rng.uniform(0, 2 * np.pi)
         step = np.radians(0.5) * np.array([np.cos(phi), np.sin(phi)])
@@ -243,7 +247,8 @@ def evaluate_on_body(net: OculomotorNet, body: Body, side: str, gaze: np.ndarray
         a = eye_holding_activations(body, side, start)[0][0]
         with torch.no_grad():
             for _ in range(30):
-                a = net(torch.as_tensor(step, dtype=torch.float32)[None], torch.as_tensor(a, dtype=torch.float32)[None])[0].numpy()
+                a = net(torch.as_tensor(step, dtype=torch.float32)[None],
+                        torch.as_tensor(a, dtype=torch.float32)[None])[0].numpy()
         chain.append(np.degrees(np.linalg.norm(settle_gaze(body, side, a) - (start + 30 * step))))
     return {
         "gaze_error_deg_median": float(np.median(err)),
@@ -266,7 +271,7 @@ def load_oculomotor(run_root) -> dict:
         # checkpoints saved before the version travelled with them learnt from v1
         version = int(ck["data"].get("generator_version", 1))
         if version != HOLDING_VERSION:
-            raise ValueError(f"{run}: an oculomotor net of holding data v{version}, solved on an eye plant since corrected "
-                             f"(now v{HOLDING_VERSION}: see HOLDING_VERSION); retrain it: python -m warp_vision.train "
-                             f"oculomotor --eye {side} --out {run} --overwrite")
+            raise ValueError(f"{run}: an oculomotor net of holding data v{version}, solved on an eye plant since "
+                             f"corrected (now v{HOLDING_VERSION}: see HOLDING_VERSION); retrain it: python -m "
+                             f"warp_vision.train oculomotor --eye {side} --out {run} --overwrite")
     return nets

@@ -31,13 +31,20 @@ from dataclasses import dataclass
 from warp_vision.body import SIDES
 from warp_vision.errors import Terminated
 from warp_vision.fileio import FileLock
-from warp_vision.nn.trained import TRAINING_LOCK, read_checkpoint, read_run_config, require_binding, run_identity, saved_task
+from warp_vision.nn.trained import (
+    TRAINING_LOCK,
+    read_checkpoint,
+    read_run_config,
+    require_binding,
+    run_identity,
+    saved_task,
+)
 
 #: the lock a simulation holds in a net's run directory while it has the net trained there: a second
 #: simulation that needs the net waits for it rather than starting a training the run lock refuses
 PROVIDING_LOCK = ".providing.lock"
 
-#: Wall minutes of each training on the 2-core reference CPU (measured; docs/RESULTS.md has the runs): the
+#: Wall minutes of each training on the 2-core reference CPU (docs/RESULTS.md has the runs): the
 #: foveation net's dataset synthesis plus its training, the oculomotor net's holding-activation dataset
 #: plus its training, the pupil and lens nets' datasets plus their training (the lens net's first run on
 #: a machine also builds its textured cards' BVHs, about 2 minutes, cached on disk afterwards); an arm's
@@ -120,7 +127,8 @@ class NetSpec:
 
 def default_runs(quick: bool) -> dict:
     """The run directories of the default (or ``quick``) nets: {"left", "right", "oculomotor", "pupil", "lens",
-    "arm", "limb", "verify"} (the last six: directories holding one run per side, ``<dir>/left`` and ``<dir>/right``)."""
+    "arm", "limb", "verify"} (the last six: directories holding one run per side, ``<dir>/left`` and
+    ``<dir>/right``)."""
     root = os.path.join("runs", "quick") if quick else "runs"
     return {"left": os.path.join(root, "foveation_left"), "right": os.path.join(root, "foveation_right"),
             "oculomotor": os.path.join(root, "oculomotor"), "pupil": os.path.join(root, "pupil"),
@@ -137,7 +145,8 @@ def plan(left: str, right: str, oculomotor: str, quick: bool = False, pupil: str
     fov = {"left": left, "right": right}
     return ([NetSpec("foveation", s, fov[s], preset) for s in SIDES]
             + [NetSpec("oculomotor", s, os.path.join(oculomotor, s), preset) for s in SIDES]
-            + [NetSpec(kind, s, os.path.join(root, s), preset) for kind, root in (("pupil", pupil), ("lens", lens)) if root
+            + [NetSpec(kind, s, os.path.join(root, s), preset) for kind,
+               root in (("pupil", pupil), ("lens", lens)) if root
                for s in SIDES])
 
 
@@ -226,8 +235,8 @@ def _training_slot(s: NetSpec, log):
     """Within the block, ``s``'s run directory is this process's to have trained: another simulation
     having it trained holds :data:`PROVIDING_LOCK` there, and a training command started by hand holds
     the run's :data:`TRAINING_LOCK`; this one waits for each, saying so (the run is then ready, or is
-    resumed where the other stopped). Two simulations started together on a fresh clone train each net
-    once; the second used to fail at once: its training was refused by the run lock."""
+    resumed where the other stopped). So two simulations started together on a fresh clone train each net
+    once, where without the wait the second's training would be refused by the run lock."""
     os.makedirs(s.run, exist_ok=True)
     slot = FileLock(os.path.join(s.run, PROVIDING_LOCK))
     if not slot.acquire():

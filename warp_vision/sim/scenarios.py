@@ -1,5 +1,5 @@
 """The closed loop's scenarios: :func:`run_scenario` runs the loop with the ball free or placed by a
-function of time and records traces; :func:`experiments` is the measured set (saccades in eight
+function of time and records traces; :func:`experiments` is the set of experiments (saccades in eight
 directions, vergence at 1 m, tracking at 15 and 30 deg/s) that ``python -m warp_vision.sim experiments``
 and ``python -m warp_vision.bench loop`` report."""
 
@@ -34,7 +34,8 @@ def run_scenario(loop, duration: float, ball=None, record=None, progress: bool =
 
     body = loop.body
     t0 = body.time
-    tr = {"t": [], "ball": [], "neck": [], "eye_in_head": [], **{f"error_{s}": [] for s in SIDES}, **{f"line_{s}": [] for s in SIDES}}
+    tr = {"t": [], "ball": [], "neck": [], "eye_in_head": [], **{f"error_{s}": [] for s in SIDES},
+          **{f"line_{s}": [] for s in SIDES}}
     for _ in tqdm(range(int(round(duration / CONTROL_DT))), desc="closed loop", disable=not progress, leave=False):
         if ball is not None:
             body.set_ball(ball(body.time - t0))
@@ -63,7 +64,8 @@ def _scenarios():
     for d in SACCADE_DIRECTIONS_DEG:
         ang = np.radians(d)
         out.append((f"saccade_{d}", 0.8,
-                    lambda body, ang=ang: _fixed(point_at(body, SACCADE_DEG * np.cos(ang), SACCADE_DEG * np.sin(ang), 1.0))))
+                    lambda body,
+                    ang=ang: _fixed(point_at(body, SACCADE_DEG * np.cos(ang), SACCADE_DEG * np.sin(ang), 1.0))))
     for omega in TRACKING_SPEEDS:
         for way in TRACKING_WAYS:
             out.append((f"tracking_{omega:g}_{way}", 1.2, lambda body, omega=omega, way=way: _orbit(body, omega, way)))
@@ -140,7 +142,8 @@ def goal_lines(result: dict) -> list[str]:
     when = (f"after {slowest:.2f} s at the slowest" if np.isfinite(slowest) else
             "not in every direction within the run")
     lines = [f"saccades to {SACCADE_DEG:g} deg, {len(sac['trials'])} directions: both eyes within "
-             f"{SACCADE_WITHIN_DEG:g} deg {when} (goal: by {SACCADE_BY_S:g} s): {verdict(sac['all_within_1deg_by_0.3s'])}",
+             f"{SACCADE_WITHIN_DEG:g} deg {when} (goal: by {SACCADE_BY_S:g} s): "
+             f"{verdict(sac['all_within_1deg_by_0.3s'])}",
              f"vergence at 1 m: the gaze lines {verg['gaze_line_distance_cm_max']:.2f} cm apart at the most (goal: "
              f"< {VERGENCE_WITHIN_CM:g} cm): {verdict(verg['gaze_line_distance_cm_max'] < VERGENCE_WITHIN_CM)}"]
     for omega in TRACKING_SPEEDS:
@@ -162,21 +165,29 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
         tr = st["traces"][f"saccade_{d}"]
         both = np.maximum(tr["error_left"], tr["error_right"])
         within = both < SACCADE_WITHIN_DEG
-        trials.append({"direction_deg": float(d), "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
+        trials.append({"direction_deg": float(d),
+                       "time_both_within_1deg_s": float(tr["t"][np.argmax(within)]) if within.any() else None,
                        "error_at_0.3s_deg": float(np.interp(SACCADE_BY_S, tr["t"], both)),
                        "max_error_after_0.3s_deg": float(both[tr["t"] >= SACCADE_BY_S].max()),
                        "gaze_line_distance_cm": 100 * float(max(tr["line_left"][-1], tr["line_right"][-1])),
                        # the eye-head synergy: the eyes' eccentricity in the head falls as the head turns
-                       "eye_in_head_deg_peak": float(tr["eye_in_head"].max()), "eye_in_head_deg_end": float(tr["eye_in_head"][-1]),
+                       "eye_in_head_deg_peak": float(tr["eye_in_head"].max()),
+                       "eye_in_head_deg_end": float(tr["eye_in_head"][-1]),
                        "head_turn_deg_end": float(np.degrees(np.linalg.norm(tr["neck"][-1][:2])))})
     times = [tt["time_both_within_1deg_s"] for tt in trials]
-    out = {"saccade_20deg": {"trials": trials,
-                             "all_within_1deg_by_0.3s": all(tt is not None and tt <= SACCADE_BY_S for tt in times),
-                             "time_both_within_1deg_s_max": max(tt if tt is not None else np.inf for tt in times),
-                             "error_at_0.3s_deg_max": max(tt["error_at_0.3s_deg"] for tt in trials),
-                             "max_error_after_0.3s_deg_median": float(np.median([tt["max_error_after_0.3s_deg"] for tt in trials]))},
-           "vergence_1m": {"gaze_line_distance_cm_max": max(tt["gaze_line_distance_cm"] for tt in trials),
-                           "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials]))}}
+    out = {
+        "saccade_20deg": {
+            "trials": trials,
+            "all_within_1deg_by_0.3s": all(tt is not None and tt <= SACCADE_BY_S for tt in times),
+            "time_both_within_1deg_s_max": max(tt if tt is not None else np.inf for tt in times),
+            "error_at_0.3s_deg_max": max(tt["error_at_0.3s_deg"] for tt in trials),
+            "max_error_after_0.3s_deg_median": float(np.median([tt["max_error_after_0.3s_deg"] for tt in trials])),
+        },
+        "vergence_1m": {
+            "gaze_line_distance_cm_max": max(tt["gaze_line_distance_cm"] for tt in trials),
+            "gaze_line_distance_cm_median": float(np.median([tt["gaze_line_distance_cm"] for tt in trials])),
+        },
+    }
     for omega in TRACKING_SPEEDS:
         trs = [st["traces"][f"tracking_{omega:g}_{way}"] for way in TRACKING_WAYS]
         # after the first saccade onto it, both ways round pooled
@@ -188,8 +199,9 @@ def _summary(loop, st: dict, control_dt: float) -> dict:
     share["other"] = max(0.0, 1.0 - sum(share.values()))  # traces, progress bars, Python between the stages
     out["ball"] = loop.ball
     out["gaze_perception"] = loop.perception
-    out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall, "frame_every": loop.frame_every,
-                     "frames_per_s": 1.0 / (loop.frame_every * control_dt), "share": share}
+    out["timing"] = {"sim_s": st["sim"], "wall_s": wall, "sim_to_wall": st["sim"] / wall,
+                     "frame_every": loop.frame_every, "frames_per_s": 1.0 / (loop.frame_every * control_dt),
+                     "share": share}
     return out
 
 
@@ -218,7 +230,8 @@ def plot_experiments(traces: dict, path: str, title: str | None = None) -> str:
              title=f"saccades to {SACCADE_DEG:g} deg (goal: within {SACCADE_WITHIN_DEG:g} deg by {SACCADE_BY_S:g} s)")
     ax_s.legend(title="direction", fontsize=7, ncol=2)
     ax_v.axhline(VERGENCE_WITHIN_CM, color="k", ls=":", lw=1)
-    ax_v.set(yscale="log", xlabel="time after the ball appears (s)", ylabel="larger gaze line's distance from the ball (cm)",
+    ax_v.set(yscale="log", xlabel="time after the ball appears (s)",
+             ylabel="larger gaze line's distance from the ball (cm)",
              title=f"vergence at 1 m, the same runs (goal: < {VERGENCE_WITHIN_CM:g} cm at the end)")
     for j, (w, way) in enumerate(itertools.product(TRACKING_SPEEDS, TRACKING_WAYS)):
         tr = traces[f"tracking_{w:g}_{way}"]
@@ -316,7 +329,8 @@ FOCUS_PHASES = ((1.5, 2.0), (2.0, 1.0 / 3.0), (2.0, 2.0))
 FOCUS_TOLERANCE_D = 0.25
 #: The cards' texture seed: none of the lens datasets' (their seeds are 0 and 1000).
 FOCUS_CARD_SEED = 2024
-#: The goal a focus step is measured against (docs/RESULTS.md): in focus (FOCUS_TOLERANCE_D) within this many simulated seconds.
+#: The goal a focus step is held to (docs/RESULTS.md): in focus (FOCUS_TOLERANCE_D) within this
+#: many simulated seconds.
 FOCUS_GOAL_S = 1.2
 
 
@@ -339,36 +353,23 @@ class FixationOracle:
         return np.asarray(gaze_angles(d / np.linalg.norm(d)))[None]
 
 
-def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True, card_vertices: int | None = None,
-                card_seed: int = FOCUS_CARD_SEED) -> dict:
+def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: bool = True,
+                card_vertices: int | None = None, card_seed: int = FOCUS_CARD_SEED) -> dict:
     """The eyes fixate a textured card straight ahead while it steps through the distances of
-    ``phases`` (a card per distance, sized as the lens data size theirs: :func:`warp_vision.data.intraocular.card_size_for`); per period each eye's accommodation, its command, the card's vergence from the eye (D)
-    and the defocus (accommodation minus that vergence). Per step and eye: the latency (until the
-    accommodation has moved 5% of the way), the time until it is within ``FOCUS_TOLERANCE_D`` of the
-    card's vergence for good, and the defocus at the phase's end. With ``snapshots``, the left eye's ONV
-    just after each step and at the phase's end (blurred, then sharp). ``card_vertices``: the cards' grid
-    (default the lens data's); ``card_seed``: their textures' seed."""
+    ``phases`` (a card per distance, sized as the lens data size theirs:
+    :func:`warp_vision.data.intraocular.card_size_for`); per period each eye's accommodation, its command, the card's
+    vergence from the eye (D) and the defocus (accommodation minus that vergence). Per step and eye: the latency (until
+    the accommodation has moved 5% of the way), the time until it is within ``FOCUS_TOLERANCE_D`` of the card's vergence
+    for good, and the defocus at the phase's end. With ``snapshots``, the left eye's ONV just after each step and at the
+    phase's end (blurred, then sharp). ``card_vertices``: the cards' grid (default the lens data's); ``card_seed``:
+    their textures' seed."""
     from tqdm import tqdm
 
-    from warp_vision.scene import Material
-    from warp_vision.scene.textures import textured_card
     from warp_vision.sim.loop import CONTROL_DT, point_at
-
-    from warp_vision.data.intraocular import CARD_VERTICES, card_size_for
 
     body = loop.body
     body.model.opt.gravity[:] = 0
-    # a card per distance, of the kind the lens nets learnt on (the size their data show at that distance,
-    # so the pattern's angular scale is theirs) but with a texture of its own
-    cards = {}
-    for _dur, dist in phases:
-        name = f"focus_card_{card_seed}_{dist:.3f}"
-        cards[dist] = name
-        if name not in [o.name for o in loop.scene.objects]:
-            loop.scene.add(name, textured_card(card_size_for(dist), card_vertices or CARD_VERTICES,
-                                               [card_seed, int(dist * 1000)]),
-                           Material(vertex_colors=True), np.eye(4))
-            loop.scene.set_visible(name, False)
+    cards = _focus_cards(loop, phases, card_vertices, card_seed)
     loop.reset(SETTLE_S)
     starts = np.cumsum([0.0] + [d for d, _ in phases])
     state = {"centre": None}
@@ -377,7 +378,8 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
     H = body.head_pose()
     parked = H[:3, 3] - 1.5 * H[:3, 2]  # the ball is not in this scenario: 1.5 m behind the head, out of sight
     body.set_ball(parked)
-    tr = {"t": [], "distance": [], **{f"{k}_{s}": [] for k in ("accommodation", "command", "vergence", "defocus") for s in SIDES}}
+    tr = {"t": [], "distance": [],
+          **{f"{k}_{s}": [] for k in ("accommodation", "command", "vergence", "defocus") for s in SIDES}}
     shots = []
     n = int(round(starts[-1] / CONTROL_DT))
     t0 = body.time
@@ -388,28 +390,13 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
             dist = phases[phase][1]
             if k == 0 or dist != tr["distance"][-1]:  # the card moves at a step, then stays put in the world
                 state["centre"] = point_at(body, 0.0, 0.0, dist)
-            T = np.eye(4)
-            T[:3, :3] = body.head_pose()[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # its face (+z) toward the eyes (head -z)
-            T[:3, 3] = state["centre"]
-            for dd, name in cards.items():
-                loop.scene.set_visible(name, dd == dist)
-            loop.scene.set_transform(cards[dist], T)
+            _show_card(loop, cards, dist, state["centre"])
             body.set_ball(parked)
             loop.step()
-            tr["t"].append(body.time - t0)
-            tr["distance"].append(dist)
-            for s in SIDES:
-                acc = body.intraocular(s)[1]
-                verg = 1.0 / np.linalg.norm(state["centre"] - body.eye_pose(s)[:3, 3])
-                tr[f"accommodation_{s}"].append(acc)
-                tr[f"command_{s}"].append(loop._lens_command.get(s, loop.lens_teacher.get(s, np.nan)))
-                tr[f"vergence_{s}"].append(verg)
-                tr[f"defocus_{s}"].append(acc - verg)
-            if snapshots and loop.period % loop.frame_every == 1 and phase > 0:
-                since = t - starts[phase]
-                if since < loop.frame_every * CONTROL_DT or abs(t - (starts[phase + 1] - 0.1)) < loop.frame_every * CONTROL_DT / 2:
-                    shots.append({"t": float(tr["t"][-1]), "defocus_D": float(tr["defocus_left"][-1]),
-                                  "onv": loop.onv["left"][0].numpy().copy()})
+            _record_focus(loop, tr, body.time - t0, dist, state["centre"])
+            if snapshots and _snapshot_due(loop, t, starts, phase):
+                shots.append({"t": float(tr["t"][-1]), "defocus_D": float(tr["defocus_left"][-1]),
+                              "onv": loop.onv["left"][0].numpy().copy()})
     finally:
         loop.fov = fov
         for name in cards.values():
@@ -422,6 +409,63 @@ def focus_steps(loop, phases=FOCUS_PHASES, progress: bool = True, snapshots: boo
             steps.append({"eye": s, "at_s": float(a), "from_m": phases[i - 1][1], "to_m": phases[i][1],
                           **focus_step_metrics(tr["t"], tr[f"accommodation_{s}"], tr[f"vergence_{s}"], a, b)})
     return {"traces": tr, "steps": steps, "snapshots": shots}
+
+
+def _focus_cards(loop, phases, card_vertices: int | None, card_seed: int) -> dict:
+    """{distance: its card's name in ``loop.scene``}: a card per distance of ``phases``, of the kind the lens nets
+    learnt on (the size their data show at that distance, so the pattern's angular scale is theirs) but with a
+    texture of its own; each added hidden, once."""
+    from warp_vision.data.intraocular import CARD_VERTICES, card_size_for
+    from warp_vision.scene import Material
+    from warp_vision.scene.textures import textured_card
+
+    cards = {}
+    for _dur, dist in phases:
+        name = f"focus_card_{card_seed}_{dist:.3f}"
+        cards[dist] = name
+        if name not in [o.name for o in loop.scene.objects]:
+            loop.scene.add(name, textured_card(card_size_for(dist), card_vertices or CARD_VERTICES,
+                                               [card_seed, int(dist * 1000)]),
+                           Material(vertex_colors=True), np.eye(4))
+            loop.scene.set_visible(name, False)
+    return cards
+
+
+def _show_card(loop, cards: dict, dist: float, centre) -> None:
+    """The card of ``dist`` alone visible, at ``centre``, its face (+z) toward the eyes (the head's -z)."""
+    T = np.eye(4)
+    T[:3, :3] = loop.body.head_pose()[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = centre
+    for dd, name in cards.items():
+        loop.scene.set_visible(name, dd == dist)
+    loop.scene.set_transform(cards[dist], T)
+
+
+def _record_focus(loop, tr: dict, t: float, dist: float, centre) -> None:
+    """A period's row of the focus traces ``tr``: the time, the card's distance, and per eye the
+    accommodation, the lens command, the card's vergence from the eye (D) and the defocus."""
+    body = loop.body
+    tr["t"].append(t)
+    tr["distance"].append(dist)
+    for s in SIDES:
+        acc = body.intraocular(s)[1]
+        verg = 1.0 / np.linalg.norm(centre - body.eye_pose(s)[:3, 3])
+        tr[f"accommodation_{s}"].append(acc)
+        tr[f"command_{s}"].append(loop._lens_command.get(s, loop.lens_teacher.get(s, np.nan)))
+        tr[f"vergence_{s}"].append(verg)
+        tr[f"defocus_{s}"].append(acc - verg)
+
+
+def _snapshot_due(loop, t: float, starts, phase: int) -> bool:
+    """Whether the period at ``t`` rendered a frame just after the step into ``phase`` (not the first) or
+    0.1 s before its end."""
+    from warp_vision.sim.loop import CONTROL_DT
+
+    if not (loop.period % loop.frame_every == 1 and phase > 0):
+        return False
+    since = t - starts[phase]
+    return (since < loop.frame_every * CONTROL_DT
+            or abs(t - (starts[phase + 1] - 0.1)) < loop.frame_every * CONTROL_DT / 2)
 
 
 def focus_summary(runs: list[list[dict]], goal_s: float = FOCUS_GOAL_S) -> dict:
@@ -451,5 +495,6 @@ def focus_step_metrics(t: np.ndarray, acc: np.ndarray, vergence: np.ndarray, sta
     frac = (a - before) / (goal - before)
     off = np.abs(a - v) > FOCUS_TOLERANCE_D
     in_focus = float(tt[np.nonzero(off)[0][-1] + 1]) if off.any() and not off[-1] else (0.0 if not off.any() else None)
-    return {"from_D": float(before), "to_D": float(goal), "latency_s": float(tt[np.argmax(frac >= 0.05)]) if (frac >= 0.05).any() else None,
-            "in_focus_s": in_focus, "end_defocus_D": float(a[-1] - v[-1])}
+    return {"from_D": float(before), "to_D": float(goal),
+            "latency_s": float(tt[np.argmax(frac >= 0.05)]) if (frac >= 0.05).any() else None, "in_focus_s": in_focus,
+            "end_defocus_D": float(a[-1] - v[-1])}

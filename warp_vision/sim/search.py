@@ -78,7 +78,8 @@ class SearchState:
     last_verified: float = 0.0
     misses: int = 0
     inhibited: list = field(default_factory=list)  # [(world point, until time)]
-    last_pairs: list = field(default_factory=list)  # the previous frame's pair directions (world, from the eyes' midpoint)
+    last_pairs: list = field(default_factory=list)  # the previous frame's pair directions (world, from the eyes'
+                                                    # midpoint)
 
 
 class Verifier:
@@ -226,7 +227,8 @@ class ActiveSearch:
         return {s: true_direction(body, s, st.target) for s in SIDES}
 
     def _landed(self, body) -> bool:
-        return all(_angle_deg(body.eye_pose(s)[:3, 2], self.s.target - body.eye_pose(s)[:3, 3]) < LANDED_DEG for s in SIDES)
+        return all(_angle_deg(body.eye_pose(s)[:3, 2],
+                              self.s.target - body.eye_pose(s)[:3, 3]) < LANDED_DEG for s in SIDES)
 
     def _verdicts(self, loop, onv: dict) -> dict:
         """Each eye's (accepted, probability, offset) of its central field; all accepted without verifiers."""
@@ -262,7 +264,8 @@ class ActiveSearch:
         st, body = self.s, loop.body
         dt = loop.frame_every * 0.01
         predicted = st.target + st.velocity * dt
-        gated = [q for q in found if all(_angle_deg(q.point - body.eye_pose(s)[:3, 3], predicted - body.eye_pose(s)[:3, 3])
+        gated = [q for q in found if all(_angle_deg(q.point - body.eye_pose(s)[:3, 3],
+                                                    predicted - body.eye_pose(s)[:3, 3])
                                          < GATE_DEG for s in SIDES)]
         new = gated[0].point if gated else None
         if now - st.last_verified >= REVERIFY_S:

@@ -214,7 +214,8 @@ def summary_figure(report: dict, file: str) -> str:
         t = (np.arange(err.shape[1]) + 1) * 0.01
         ax[0].plot(t, (err.max(2) <= 1.0).mean(0), label=f"{m} ({100 * d['summary']['found_share']:.0f}% found)")
         kinds = list(d["summary"]["by_look_alike"])
-        ax[1].bar(np.arange(len(kinds)) + (0.2 if m == "nets" else -0.2), [d["summary"]["by_look_alike"][k]["found_share"]
+        ax[1].bar(np.arange(len(kinds)) + (0.2 if m == "nets" else -0.2),
+                  [d["summary"]["by_look_alike"][k]["found_share"]
                                                                           for k in kinds], width=0.4, label=m)
         ax[1].set_xticks(np.arange(len(kinds)), kinds)
     ax[0].axvline(1.0, color="k", lw=0.7, ls="--")
@@ -238,17 +239,18 @@ def report_lines(report: dict) -> list[str]:
                      f"{c['frame_ms']:.0f} ms a frame (4 control periods)")
     for m, c in report.get("cannon", {}).items():
         what = "active search" if m == "search" else "single answer"
-        lines.append(f"cannon, {what}: both eyes within {CANNON_WITHIN_DEG:g} deg of the ball for 90% of the flight after "
-                     f"{CANNON_FROM_S:g} s in {100 * c['tracked_share']:.0f}% of {c['shots']} shots (median share of the "
-                     f"flight {100 * c['median_share_within']:.0f}%)")
+        lines.append(f"cannon, {what}: both eyes within {CANNON_WITHIN_DEG:g} deg of the ball for 90% of the flight "
+                     f"after {CANNON_FROM_S:g} s in {100 * c['tracked_share']:.0f}% of {c['shots']} shots (median "
+                     f"share of the flight {100 * c['median_share_within']:.0f}%)")
     for m, d in report["modes"].items():
         s = d["summary"]
         what = "active search" if m == "search" else "single answer (today's foveation nets)"
         t = f"{s['median_time_to_hold_s']:.2f} s" if s["median_time_to_hold_s"] is not None else "-"
         by = ", ".join(f"{k} {100 * v['found_share']:.0f}% of {v['trials']}" for k, v in s["by_look_alike"].items())
-        lines.append(f"{what}: both eyes within 1 deg of the ball by 1.0 s and holding it in {s['found']}/{s['trials']} trials "
-                     f"({100 * s['found_share']:.1f}%); median time to the hold {t}, median saccades {s['median_saccades']:.0f}; "
-                     f"by look-alike: {by}; real-time factor {d['real_time_factor']:.2f}")
+        lines.append(f"{what}: both eyes within 1 deg of the ball by 1.0 s and holding it in "
+                     f"{s['found']}/{s['trials']} trials ({100 * s['found_share']:.1f}%); median time to the hold {t}, "
+                     f"median saccades {s['median_saccades']:.0f}; by look-alike: {by}; real-time factor "
+                     f"{d['real_time_factor']:.2f}")
     return lines
 
 
@@ -272,8 +274,8 @@ def search_command(args) -> dict:
         shots = sample_shots(args.cannon, seed=args.seed, split=args.split, side="left")
         report["cannon"] = run_cannon(loop, shots, sorted({t.room_seed for t in trials}), verifiers,
                                       not args.no_baseline, not args.no_progress)
-    report["settings"] = {"trials": args.trials, "cannon_shots": args.cannon, "seed": args.seed, "split": args.split, "verify": loop.verify_runs,
-                          "foveation": {s: loop.fov[s].run_dir for s in SIDES}}
+    report["settings"] = {"trials": args.trials, "cannon_shots": args.cannon, "seed": args.seed, "split": args.split,
+                          "verify": loop.verify_runs, "foveation": {s: loop.fov[s].run_dir for s in SIDES}}
     write_json(os.path.join(args.out, "search.json"), {**report, "software": software()})
     summary_figure(report, os.path.join(args.out, "figures", "search.png"))
     return report

@@ -55,7 +55,8 @@ def trial_seeds(n: int, seed: int = 0, split: str = "heldout") -> list[int]:
         raise ValueError(f"split: expected one of {sorted(SPLITS)}, got {split!r}")
     r = SPLITS[split]
     if not (1 <= n and 0 <= seed and seed + n <= len(r)):
-        raise ValueError(f"trials: expected 1..{len(r) - seed:,} trials from seed {seed:,} of the {split} split, got {n:,}")
+        raise ValueError(f"trials: expected 1..{len(r) - seed:,} trials from seed {seed:,} of the {split} split, got "
+                         f"{n:,}")
     return [r[seed + k] for k in range(n)]
 
 
@@ -64,7 +65,8 @@ def _direction(ecc_deg: float, polar_deg: float) -> tuple[float, float]:
     from warp_vision.frames import gaze_angles
 
     e, p = np.radians(ecc_deg), np.radians(polar_deg)
-    return tuple(float(np.degrees(a)) for a in gaze_angles(np.array([np.sin(e) * np.cos(p), np.sin(e) * np.sin(p), np.cos(e)])))
+    return tuple(float(np.degrees(a)) for a in gaze_angles(np.array([np.sin(e) * np.cos(p), np.sin(e) * np.sin(p),
+                                                                     np.cos(e)])))
 
 
 def sample_trial(seed: int, split: str | None = None) -> Trial:

@@ -61,20 +61,24 @@ class ArmTask(harness.Task):
             from warp_vision.body import Body
 
             self.body = Body()
-            synthesize_arm(self.ddir, self.cfg.data_config(), shard=shard, progress=progress, log=self.log, body=self.body)
+            synthesize_arm(self.ddir, self.cfg.data_config(), shard=shard, progress=progress, log=self.log,
+                           body=self.body)
         self.data = ChunkedStore.open(self.ddir).load(FIELDS)
         self.kept = np.nonzero(self.data["residual"] <= self.cfg.max_residual)[0]
         if len(self.kept) < 8:
             raise ValueError(f"only {len(self.kept)} of {len(self.data['residual'])} postures are held within "
                              f"{self.cfg.max_residual} N m: raise postures or max_residual")
-        self.t = {k: torch.as_tensor(self.data[k], dtype=torch.float32) for k in ("angles", "act", "hand", "torque_A", "torque_b")}
+        self.t = {k: torch.as_tensor(self.data[k],
+                                     dtype=torch.float32) for k in ("angles", "act", "hand", "torque_A", "torque_b")}
 
     def splits(self):
-        """Kept postures split into train / validation / test; the samples are transitions among each split's postures."""
+        """Kept postures split into train / validation / test; the samples are transitions among each split's
+        postures."""
         from warp_vision.sim.arm import reach_pairs
 
         c = self.cfg
-        ptr, pva, pte = (self.kept[s] for s in harness.splits(len(self.kept), c.seed, c.val_fraction, c.test_fraction, min_test=2))
+        ptr, pva, pte = (self.kept[s] for s in harness.splits(len(self.kept), c.seed, c.val_fraction, c.test_fraction,
+                                                              min_test=2))
         rng = np.random.default_rng([c.seed, 1])
         hand, angles = self.data["hand"], self.data["angles"]
         pairs = [reach_pairs(ptr, c.transitions, rng, hand, angles)]
@@ -121,7 +125,8 @@ class ArmTask(harness.Task):
         dq = t["angles"][j].to(device) - angles
         return {"vol": vol, "pos": pos, "a_i": a_i,
                 "vtorque": residual(vol, demanded_torque(dq, v, c.stiffness, c.damping, c.saturation, xp=torch)),
-                "ptorque": residual(pos, demanded_torque(torch.zeros_like(v), v, c.stiffness, c.posture_damping, c.saturation, xp=torch))}
+                "ptorque": residual(pos, demanded_torque(torch.zeros_like(v), v, c.stiffness, c.posture_damping,
+                                                         c.saturation, xp=torch))}
 
     def _losses(self, p):
         tw = self.cfg.torque_weight
@@ -152,7 +157,8 @@ class ArmTask(harness.Task):
     def epoch_line(self, row):
         return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.3e}  val loss {row['val_loss']:.3e} "
                 f"torque short (median): voluntary {row['val_voluntary_torque_Nm_median']:.3f} N m, posture "
-                f"{row['val_posture_torque_Nm_median']:.3f} N m; posture RMSE at rest {row['val_posture_rmse_at_rest']:.4f}")
+                f"{row['val_posture_torque_Nm_median']:.3f} N m; posture RMSE at rest "
+                f"{row['val_posture_rmse_at_rest']:.4f}")
 
     def summary(self, test, history, model):
         from warp_vision.body import Body
@@ -166,9 +172,9 @@ class ArmTask(harness.Task):
                                            "saturation": self.cfg.saturation})
         r = self.data["residual"]
         return {"side": self.cfg.side, "hand_point": f"{HAND_SITE}_{self.cfg.side[0]} (world = torso frame)",
-                "reach_mode": "closed loop: the voluntary net every 10 ms on the remaining displacement from the true hand, "
-                              "the true joint angles and velocities and the posture net's holding activations at the "
-                              "current angles; open loop: its first output (from the start's holding activations) "
+                "reach_mode": "closed loop: the voluntary net every 10 ms on the remaining displacement from the true "
+                              "hand, the true joint angles and velocities and the posture net's holding activations at "
+                              "the current angles; open loop: its first output (from the start's holding activations) "
                               "applied throughout",
                 "test_loss": test["loss"], "test_posture_rmse_at_rest": test["posture_rmse_at_rest"],
                 "test_voluntary_torque_Nm_median": test["voluntary_torque_Nm_median"],

@@ -1,18 +1,18 @@
-"""Command line of ``python -m warp_vision.train``.
+"""Command line of ``python -m warp_vision.train``, each line below after ``python -m warp_vision.train``:
 
-    python -m warp_vision.train [--preset smoke|quick|default|paper] [--flag value ...]   train (the default)
-    python -m warp_vision.train --resume RUN_DIR [--epochs N]                          continue a stopped run
-    python -m warp_vision.train faces [--preset smoke|default|paper] [--flag value ...]  active face recognition
-    python -m warp_vision.train faces --resume RUN_DIR [--epochs N]                    continue a stopped AFR run
-    python -m warp_vision.train oculomotor --eye left|right [--preset smoke|quick|default]   an eye's oculomotor net
-    python -m warp_vision.train arm --side left|right [--preset smoke|quick|default]         an arm's motor nets
-    python -m warp_vision.train limb|pupil|lens --eye left|right [--preset ...]            an eye's limb vision, pupil or lens net
-    python -m warp_vision.train evaluate RUN_DIR [--split test|val|train]              re-evaluate a run (any task)
-    python -m warp_vision.train evaluate RUN_DIR --misses                              where a foveation net's misses lie
-    python -m warp_vision.train evaluate RUN_DIR --misses --signal                     ... and how much of each ball the ONV holds
-    python -m warp_vision.train evaluate RUN_DIR [RUN_DIR ...] --conditions            foveation nets on held-out conditions
-    python -m warp_vision.train evaluate RUN_DIR RUN_DIR [...] --agreement             do foveation nets miss the same balls?
-    python -m warp_vision.train compare RUN_DIR [RUN_DIR ...] --out FIG.png            loss curves together
+    [--preset smoke|quick|default|paper] [--flag value ...]           train (the default task, foveation)
+    --resume RUN_DIR [--epochs N]                                     continue a stopped run
+    faces [--preset smoke|default|paper] [--flag value ...]           active face recognition
+    faces --resume RUN_DIR [--epochs N]                               continue a stopped AFR run
+    oculomotor --eye left|right [--preset smoke|quick|default]        an eye's oculomotor net
+    arm --side left|right [--preset smoke|quick|default]              an arm's motor nets
+    limb|pupil|lens --eye left|right [--preset ...]                   an eye's limb vision, pupil or lens net
+    evaluate RUN_DIR [--split test|val|train]                         re-evaluate a run (any task)
+    evaluate RUN_DIR --misses                                         where a foveation net's misses lie
+    evaluate RUN_DIR --misses --signal                                ... and how much of each ball the ONV holds
+    evaluate RUN_DIR [RUN_DIR ...] --conditions                       foveation nets on held-out conditions
+    evaluate RUN_DIR RUN_DIR [...] --agreement                        do foveation nets miss the same balls?
+    compare RUN_DIR [RUN_DIR ...] --out FIG.png                       loss curves together
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
-from warp_vision.errors import add_debug_flag as _debug_flag
 from warp_vision.errors import ArgumentParser, guarded, long_options, not_a_command
+from warp_vision.errors import add_debug_flag as _debug_flag
 from warp_vision.train import config as C
 from warp_vision.train import config_body as body
 from warp_vision.train import config_intraocular as intraocular
@@ -38,14 +38,14 @@ def _run_flags(p: argparse.ArgumentParser, groups: dict) -> argparse.ArgumentPar
                      help="continue the stopped run in RUN_DIR exactly, with the settings of its config.json (other "
                           "settings are refused; one stopped before its first epoch ended starts "
                           "again); with --epochs N, under a new epoch cap (N = the epochs done ends it now: the best "
-                          "checkpoint is evaluated, figures written; fewer is refused). A run that early stopping ended "
-                          "trains further only under a higher cap, its patience counted afresh")
+                          "checkpoint is evaluated, figures written; fewer is refused). A run that early stopping "
+                          "ended trains further only under a higher cap, its patience counted afresh")
     run.add_argument("--overwrite", action="store_true", help="replace the run already in --out (default: refuse)")
     run.add_argument("--no-progress", action="store_true", help="no progress bars")
     run.add_argument("--workers", type=_workers, default="auto", metavar="N",
-                     help="processes that synthesise a missing dataset (foveation and limb runs; the dataset is the same "
-                          "for any N); default auto: one per CPU core, at most 8, for a dataset of 1,000 samples or more (else 1; "
-                          "1 on a GPU; under torchrun each rank renders its own shard)")
+                     help="processes that synthesise a missing dataset (foveation and limb runs; the dataset is the "
+                          "same for any N); default auto: one per CPU core, at most 8, for a dataset of 1,000 samples "
+                          "or more (else 1; 1 on a GPU; under torchrun each rank renders its own shard)")
     _debug_flag(run)
     return p
 
@@ -68,13 +68,13 @@ def _train_parser() -> argparse.ArgumentParser:
         prog="python -m warp_vision.train",
         description=(
             "Train a foveation net: synthesise (or reuse) a dataset of ONVs of a ball in a room (the default "
-            "preset: generator v9's ordinary balls among distractors and decoys, and the retina CNN; --generator 7 --model linet: v7's glowing "
-            "ball and the paper's liNet), train the net to predict the eye rotation (yaw, pitch) that foveates "
-            "the ball, evaluate, and "
+            "preset: generator v9's ordinary balls among distractors and decoys, and the retina CNN; --generator 7 "
+            "--model linet: v7's glowing ball and the paper's liNet), train the net to predict the eye rotation (yaw, "
+            "pitch) that foveates the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
-            "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'oculomotor --eye left|right' (an eye's "
-            "oculomotor net), 'arm --side left|right' (an arm's motor nets), 'limb|pupil|lens --eye left|right' (an "
-            "eye's limb vision, pupil or lens net), 'evaluate RUN_DIR' and "
+            "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'oculomotor --eye left|right' "
+            "(an eye's oculomotor net), 'arm --side left|right' (an arm's motor nets), 'limb|pupil|lens --eye "
+            "left|right' (an eye's limb vision, pupil or lens net), 'evaluate RUN_DIR' and "
             "'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )
@@ -94,7 +94,8 @@ def _siblings(name: str) -> dict:
     return {FOVEATION if other == "foveation" else other: make() for other, make in makers.items() if other != name}
 
 
-#: the commands that train a task besides the default (foveation): name -> (module, config class, its presets, description)
+#: the commands that train a task besides the default (foveation):
+#: name -> (module, config class, its presets, description)
 TASKS = {
     "faces": ("faces", C.FaceTrainConfig, C.FACE_PRESETS,
               "Active face recognition (the paper's Section VI.B): build identities with anny, synthesise (or reuse) "
@@ -114,8 +115,8 @@ TASKS = {
     "limb": ("limb", body.LimbTrainConfig, body.LIMB_PRESETS,
              "An eye's limb vision net (the paper's nets 3-10): synthesise (or reuse) ONVs of the closed loop's world "
              "with the body's arms at random postures and the cannon's ball near a hand or on a shot's path, the eye "
-             "tracking it; train the ranging net (default: the ball's distance from its apparent size, for balls near the "
-             "line of sight; the loop adds the foveation net's direction and the hand's proprioception) or, with "
+             "tracking it; train the ranging net (default: the ball's distance from its apparent size, for balls near "
+             "the line of sight; the loop adds the foveation net's direction and the hand's proprioception) or, with "
              "--model linet|fc|cnn, a net from the ONV to each arm's hand-to-ball discrepancy (eye frame, m); "
              "measure it on rooms and shots training never saw, and write config, checkpoints, metrics, summary and "
              "figures to --out (default runs/limb/<eye>)."),
@@ -150,17 +151,18 @@ def _task_parser(name: str) -> argparse.ArgumentParser:
 
 def _eval_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.train evaluate",
-                       description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular error "
-                                   "(median, 90th percentile, degrees), for a faces run the identity accuracy and "
-                                   "the pose error.")
-    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="training run directories (with best.pt; latest.pt for --checkpoint latest)")
+                       description="Re-evaluate a run's best (or last) checkpoint: for a foveation run the angular "
+                                   "error (median, 90th percentile, degrees), for a faces run the identity accuracy "
+                                   "and the pose error.")
+    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR",
+                   help="training run directories (with best.pt; latest.pt for --checkpoint latest)")
     p.add_argument("--split", choices=["test", "val", "train"], default="test", help="which split (default test)")
     p.add_argument("--conditions", action="store_true",
                    help="foveation runs: render (or reuse) one held-out set per test condition (v8 scenes in rooms "
-                        "training never saw: glowing ball in a dim room, lit white ball, coloured matte ball, a lamp or "
-                        "brighter object in view, the body's arm in view; v9's: a round decoy in view) and print one "
-                        "table with every run side by side (median / 90th percentile, degrees, and the share more than "
-                        "5 degrees off); writes RUN_DIR/conditions.json and "
+                        "training never saw: glowing ball in a dim room, lit white ball, coloured matte ball, a lamp "
+                        "or brighter object in view, the body's arm in view; v9's: a round decoy in view) and print "
+                        "one table with every run side by side (median / 90th percentile, degrees, and the share more "
+                        "than 5 degrees off); writes RUN_DIR/conditions.json and "
                         "RUN_DIR/figures/conditions.png")
     p.add_argument("--misses", action="store_true",
                    help="foveation runs: also print where the balls more than 5 degrees off lie (the share off per "
@@ -168,11 +170,11 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "decoy), drawn in RUN_DIR/figures/misses_<split>.png")
     p.add_argument("--signal", action="store_true",
                    help="with --misses, v8 and v9 runs: render the split again with and without its balls (about 0.1 s "
-                        "an ONV on a 2-core CPU) and add the share off per band of photoreceptors that see the ball and "
-                        "of its contrast with its surround, and what the estimates land on (the ball, a decoy by kind, "
-                        "a bright object, the arm, the panel, a box or cylinder of the furniture, a wall, the floor or "
-                        "the ceiling), beside what each class would get by chance (each scene probed along another "
-                        "ball's direction)")
+                        "an ONV on a 2-core CPU) and add the share off per band of photoreceptors that see the ball "
+                        "and of its contrast with its surround, and what the estimates land on (the ball, a decoy by "
+                        "kind, a bright object, the arm, the panel, a box or cylinder of the furniture, a wall, the "
+                        "floor or the ceiling), beside what each class would get by chance (each scene probed along "
+                        "another ball's direction)")
     p.add_argument("--agreement", action="store_true",
                    help="two or more foveation runs on one dataset: whether they miss the same balls of the split (per "
                         "pair: both more than 5 degrees off, against what independent nets would give; the share of "
@@ -183,7 +185,8 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=int, default=None, metavar="N",
                    help="foveation CNN runs: read the net out by the consensus of N turned and mirrored views instead "
                         "of its own (default: its spec's, 8; 1: the plain image alone)")
-    p.add_argument("--checkpoint", choices=["best", "latest"], default="best",  # = nn.trained.CHECKPOINTS (a test checks)
+    # = nn.trained.CHECKPOINTS (a test checks)
+    p.add_argument("--checkpoint", choices=["best", "latest"], default="best",
                    help="the weights read (on the run's split or, with --conditions, the held-out sets): the best "
                         "validation epoch's (best.pt) or the last epoch's (latest.pt: what a run that memorises its "
                         "training set has learnt by its end; --conditions then writes conditions_latest.json) "
@@ -201,7 +204,8 @@ def _module(task: str):
 
 def _compare_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m warp_vision.train compare",
-                       description="Plot several foveation (or face) runs' training and validation MSE curves in one figure.")
+                       description="Plot several foveation (or face) runs' training and validation MSE curves in one "
+                                   "figure.")
     p.add_argument("runs", nargs="+", help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="figure path; its suffix picks the format (.png, .pdf, .svg, ...; "
                                                  "none: PNG)")
@@ -232,9 +236,11 @@ def _compare(argv: list[str]) -> int:
             task = saved_task(r, cfg)
             if task not in ("foveation", "faces"):
                 raise ValueError(f"runs: {r} is {a_run(task)}; compare plots foveation and face runs' MSE curves")
-            name = names[i] if names.count(names[i]) == 1 else str(r)  # the directory's name, its path where names repeat
+            # the directory's name, its path where names repeat
+            name = names[i] if names.count(names[i]) == 1 else str(r)
             p = cfg.get("photoreceptors")
-            label = f"{name} ({cfg.get('model', 'linet')}{f', P={p:,}' if isinstance(p, int) else ''})"  # (linet: before the choice)
+            # (linet: before the choice)
+            label = f"{name} ({cfg.get('model', 'linet')}{f', P={p:,}' if isinstance(p, int) else ''})"
             if label in hists:
                 raise ValueError(f"runs: {r} is given twice")
             hists[label] = read_metrics(m, need=("epoch", "train_mse", "val_mse"))
@@ -292,7 +298,7 @@ def _evaluate(argv: list[str]) -> int:
         p.error("--signal: a part of --misses")
     if a.agreement and (a.misses or a.conditions or len(a.run_dirs) < 2):
         p.error("--agreement: of two or more runs' own split, not with --misses or --conditions")
-    if a.samples is not None and not a.conditions:  # (it was ignored without a word)
+    if a.samples is not None and not a.conditions:  # refused, not ignored: it sizes --conditions' sets only
         p.error("--samples: the ONVs of each held-out set of --conditions; a run's own split has its own")
     if a.split != "test" and a.conditions:
         p.error(f"--split {a.split}: of a run's own split; --conditions measures held-out sets of its own")
@@ -366,9 +372,9 @@ def parse_training(argv: list[str]):
 
 
 def _refuse_settings_on_resume(a: argparse.Namespace, cls, argv: list[str]) -> None:
-    """A ValueError for settings given with ``--resume`` (it used to drop them without a word: ``--resume
-    RUN --lr 0.1`` carried on at the run's own rate): a resumed run continues as its config.json says,
-    under a new epoch cap at most."""
+    """A ValueError for settings given with ``--resume``: a resumed run continues as its config.json says,
+    under a new epoch cap at most, so a setting given with it (``--resume RUN --lr 0.1``) is refused rather than
+    left unread."""
     given = [f"--{f.name.replace('_', '-')}" for f in fields(cls)
              if f.name not in ("preset", "task", "epochs") and getattr(a, f.name, None) is not None]
     given += [flag for flag in ("--preset", "--overwrite") if any(x == flag or x.startswith(flag + "=") for x in argv)]

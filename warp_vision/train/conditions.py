@@ -8,7 +8,7 @@ beside the run's own test split. Each run gets ``conditions.json`` and ``figures
 example retina image per condition with the true and the predicted target).
 
 The held-out sets depend only on the eye's data config (retina, rays per photoreceptor, optics, field),
-so a v7 and a v8 net of the same eye are measured on the very same ONVs.
+so a v7 and a v8 net of the same eye are evaluated on the very same ONVs.
 """
 
 from __future__ import annotations
@@ -27,10 +27,12 @@ from warp_vision.train.foveation import OFF_DEG  # the table's third figure: the
 HELD_OUT_SEED = 1000
 #: The test conditions and their goals (median deg), from issue 17; "decoy" (generator v9) is not one of
 #: its conditions and is held to the distractors' goal.
-GOALS = {"own test split": None, "glow_dim": 0.6, "white": 1.0, "matte": 1.0, "distractor": 1.5, "arm": 1.5, "decoy": 1.5}
+GOALS = {"own test split": None, "glow_dim": 0.6, "white": 1.0, "matte": 1.0, "distractor": 1.5, "arm": 1.5,
+         "decoy": 1.5}
 LABELS = {"own test split": "its own test split (in-sample generator)", "glow_dim": "glowing ball, dim room (v7's)",
-          "white": "lit white ball, no glow", "matte": "coloured matte ball", "distractor": "a lamp or brighter object in view",
-          "arm": "the body's arm in view", "decoy": "a round decoy in view (a cylinder end-on)"}
+          "white": "lit white ball, no glow", "matte": "coloured matte ball",
+          "distractor": "a lamp or brighter object in view", "arm": "the body's arm in view",
+          "decoy": "a round decoy in view (a cylinder end-on)"}
 
 
 def condition_config(data, condition: str, samples: int):
@@ -48,18 +50,10 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
     plain image alone; nn/retina_cnn.py); the table's column names it. ``checkpoint`` "latest": the
     weights of each run's last epoch instead (the column names it; written to ``conditions_latest.json``
     and ``figures/conditions_latest.png``)."""
-    from warp_vision.data.foveation import synthesize
     from warp_vision.data.foveation_scenes import CONDITIONS
-    from warp_vision.data.store import ChunkedStore
-    from warp_vision.fileio import atomic_write
     from warp_vision.nn.retina_cnn import consensus_transforms
-    from warp_vision.nn.trained import (CHECKPOINTS, checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets,
-                                        read_checkpoint, saved_task)
-    from warp_vision.train.foveation import FoveationTask, angular_error_deg
-    from warp_vision.train.evaluation import load_for_evaluation, read_label
-    from warp_vision.train.harness import pick_device
-    from warp_vision.train.rundir import a_run, dataset_dir, require_own_checkpoint, run_config, saved_config
-    from warp_vision.train.workers import dataset_lock
+    from warp_vision.nn.trained import CHECKPOINTS, saved_task
+    from warp_vision.train.rundir import a_run
 
     conditions = list(conditions or CONDITIONS[1:])
     bad = [c for c in conditions if c not in CONDITIONS[1:]]
@@ -71,48 +65,66 @@ def evaluate_conditions(run_dirs, samples: int = CONDITION_SAMPLES, conditions=N
         consensus_transforms(views)  # (validates)
     if checkpoint not in CHECKPOINTS:  # (before any run is read)
         raise ValueError(f"checkpoint: expected one of {list(CHECKPOINTS)}, got {checkpoint!r}")
-    suffix = "" if checkpoint == "best" else f"_{checkpoint}"
-    results, examples = {}, {}
-    for run in run_dirs:  # every run checked before the first is measured
+    results = {}
+    for run in run_dirs:  # every run checked before the first is evaluated
         if (task := saved_task(run)) != "foveation":
             raise ValueError(f"{run}: {a_run(task)}; --conditions measures foveation runs")
     for run in run_dirs:
-        out = Path(run)
-        path = checkpoint_path(out, checkpoint)
-        ck = read_checkpoint(path)
-        require_own_checkpoint(FoveationTask, ck, path, out, saved_config(FoveationTask, out))
-        cfg = run_config(FoveationTask, out, ck, path)
-        device = pick_device(cfg.device)
-        model = net_from_checkpoint(ck, device, views, source=path)
-        dtype = onv_dtype(ck["net"])
-        task = FoveationTask(cfg, lambda *a, **k: None)
-        load_for_evaluation(task, print, progress, ck)
-        _, va, te = task.splits()
-        te = te if len(te) else va
-        row = {}
-        pred = predict_targets(model, task.onv16[torch.as_tensor(te)], ck["norm"], device, dtype)
-        err = angular_error_deg(pred, task.target[torch.as_tensor(te)])
-        row["own test split"] = _stats(err)
-        examples[run] = {}
-        for c in conditions:
-            dcfg = condition_config(cfg.data_config(), c, samples)
-            ddir = dataset_dir(dataclasses.replace(cfg, data_dir=""), "foveation", dcfg)
-            with dataset_lock(ddir, log):  # (another evaluation rendering this set: wait for it)
-                synthesize(ddir, dcfg, progress=progress, log=log)
-            data = ChunkedStore.open(ddir).load(["onv", "target"])
-            onv, target = torch.from_numpy(data["onv"]), torch.from_numpy(data["target"])
-            pred = predict_targets(model, onv, ck["norm"], device, dtype)
-            err = angular_error_deg(pred, target)
-            row[c] = {**_stats(err), "dataset": str(ddir)}
-            k = int(torch.argsort(err)[len(err) // 2])  # the median sample
-            examples[run][c] = (ddir, onv[k].float(), target[k].numpy(), pred[k].numpy(), float(err[k]))
-        results[read_label(run, checkpoint, ck["epoch"], views)] = row
-        atomic_write(out / f"conditions{suffix}.json", json.dumps({"samples_per_condition": samples, "checkpoint": checkpoint,
-                                                                   "epoch": ck["epoch"] + 1, "views": getattr(model, "views", None),
-                                                                   "results": row}, indent=2))
-        _figure(out, cfg, examples[run], suffix)
+        label, row = _evaluate_run(run, conditions, samples, progress, log, views, checkpoint)
+        results[label] = row
     log(table(results))
     return results
+
+
+def _evaluate_run(run, conditions: list, samples: int, progress: bool, log, views: int | None,
+                  checkpoint: str) -> tuple[str, dict]:
+    """(its column's label, {condition: statistics}) of one run's net on its own test split and on each
+    held-out condition (each set rendered where it is missing); writes the run's conditions JSON and figure."""
+    from warp_vision.data.foveation import synthesize
+    from warp_vision.data.store import ChunkedStore
+    from warp_vision.fileio import atomic_write
+    from warp_vision.nn.trained import checkpoint_path, net_from_checkpoint, onv_dtype, predict_targets, read_checkpoint
+    from warp_vision.train.evaluation import load_for_evaluation, read_label
+    from warp_vision.train.foveation import FoveationTask, angular_error_deg
+    from warp_vision.train.harness import pick_device
+    from warp_vision.train.rundir import dataset_dir, require_own_checkpoint, run_config, saved_config
+    from warp_vision.train.workers import dataset_lock
+
+    suffix = "" if checkpoint == "best" else f"_{checkpoint}"
+    out = Path(run)
+    path = checkpoint_path(out, checkpoint)
+    ck = read_checkpoint(path)
+    require_own_checkpoint(FoveationTask, ck, path, out, saved_config(FoveationTask, out))
+    cfg = run_config(FoveationTask, out, ck, path)
+    device = pick_device(cfg.device)
+    model = net_from_checkpoint(ck, device, views, source=path)
+    dtype = onv_dtype(ck["net"])
+    task = FoveationTask(cfg, lambda *a, **k: None)
+    load_for_evaluation(task, print, progress, ck)
+    _, va, te = task.splits()
+    te = te if len(te) else va
+    row = {}
+    pred = predict_targets(model, task.onv16[torch.as_tensor(te)], ck["norm"], device, dtype)
+    err = angular_error_deg(pred, task.target[torch.as_tensor(te)])
+    row["own test split"] = _stats(err)
+    examples = {}
+    for c in conditions:
+        dcfg = condition_config(cfg.data_config(), c, samples)
+        ddir = dataset_dir(dataclasses.replace(cfg, data_dir=""), "foveation", dcfg)
+        with dataset_lock(ddir, log):  # (another evaluation rendering this set: wait for it)
+            synthesize(ddir, dcfg, progress=progress, log=log)
+        data = ChunkedStore.open(ddir).load(["onv", "target"])
+        onv, target = torch.from_numpy(data["onv"]), torch.from_numpy(data["target"])
+        pred = predict_targets(model, onv, ck["norm"], device, dtype)
+        err = angular_error_deg(pred, target)
+        row[c] = {**_stats(err), "dataset": str(ddir)}
+        k = int(torch.argsort(err)[len(err) // 2])  # the median sample
+        examples[c] = (ddir, onv[k].float(), target[k].numpy(), pred[k].numpy(), float(err[k]))
+    atomic_write(out / f"conditions{suffix}.json",
+                 json.dumps({"samples_per_condition": samples, "checkpoint": checkpoint, "epoch": ck["epoch"] + 1,
+                             "views": getattr(model, "views", None), "results": row}, indent=2))
+    _figure(out, cfg, examples, suffix)
+    return read_label(run, checkpoint, ck["epoch"], views), row
 
 
 def _stats(err: torch.Tensor) -> dict:
@@ -124,7 +136,11 @@ def table(results: dict) -> str:
     """The results as a Markdown table: a row per condition, a column per run (median / p90, degrees, and
     the share of the samples more than :data:`OFF_DEG` off: another object found)."""
     runs = list(results)
-    head = "| condition | goal (median) | " + " | ".join(f"{r}: median / p90 (deg), > {OFF_DEG:g} deg" for r in runs) + " |"
+    head = (
+        "| condition | goal (median) | "
+        + " | ".join(f"{r}: median / p90 (deg), > {OFF_DEG:g} deg" for r in runs)
+        + " |"
+    )
     lines = [head, "|" + "---|" * (2 + len(runs))]
     for c in GOALS:
         if not any(c in results[r] for r in runs):

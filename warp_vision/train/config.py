@@ -16,7 +16,6 @@ from warp_vision.data.foveation import PRESET_DATA as FOVEATION_DATA
 from warp_vision.data.foveation import FoveationDataConfig, generator_flag
 from warp_vision.errors import field_help, field_sections, preset_defaults, require_positive, require_seeds
 
-
 #: The allowed values of the fields that have a fixed set (argparse choices and validation).
 CHOICES = {"loss": ["huber", "mse"], "model": ["linet", "fc", "conv", "cnn"], "eye": ["left", "right"],
            "onv_dtype": ["auto", "float16", "bfloat16", "float32"], "precision": ["auto", "float32", "bfloat16"],
@@ -37,7 +36,8 @@ def check_net_sizes(cfg) -> None:
         layer_sizes(3 * cfg.photoreceptors, cfg.layers, cfg.receptive_field, cfg.reduction)
     elif cfg.model == "conv":
         if not cfg.reduction > 1:
-            raise ValueError(f"reduction: the conv net's stride between its layers' sites, expected > 1, got {cfg.reduction}")
+            raise ValueError("reduction: the conv net's stride between its layers' sites, expected > 1, got "
+                             f"{cfg.reduction}")
         site_counts(cfg.photoreceptors, cfg.layers, cfg.reduction)
 
 
@@ -55,8 +55,9 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
     for name, allowed in getattr(cfg, "CHOICES", CHOICES).items():
         if hasattr(cfg, name) and getattr(cfg, name) not in allowed:
             raise ValueError(f"{name}: expected one of {allowed}, got {getattr(cfg, name)!r}")
-    require_positive(cfg, [n for n in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience")
-                           if hasattr(cfg, n)], flags=False)
+    require_positive(cfg,
+                     [n for n in positive + ("layers", "receptive_field", "reduction", "batch", "epochs", "patience")
+                      if hasattr(cfg, n)], flags=False)
     require_seeds(cfg)
     if not cfg.lr > 0:
         raise ValueError(f"lr: expected > 0, got {cfg.lr}")
@@ -78,8 +79,8 @@ def _check_common(cfg, presets: dict, positive: tuple = (), test_may_be_empty: b
     if hasattr(cfg, "onv_dtype") and cfg.model == "fc" and cfg.onv_dtype not in ("auto", "float32"):
         raise ValueError(f"onv_dtype: the fc baseline reads float32 ONVs, got {cfg.onv_dtype!r}")
     if hasattr(cfg, "precision") and cfg.precision == "bfloat16" and cfg.model not in ("cnn", "range"):
-        raise ValueError(f"precision: bfloat16 training is the cnn and range nets'; the {cfg.model} net trains in float32 "
-                         "(use --precision auto or float32)")
+        raise ValueError(f"precision: bfloat16 training is the cnn and range nets'; the {cfg.model} net trains in "
+                         "float32 (use --precision auto or float32)")
 
 
 def check_splits(n: int, val_fraction: float, test_fraction: float, min_test: int = 0, name: str = "samples",
@@ -132,26 +133,50 @@ class TrainConfig:
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel
     max_field_deg: float = 45.0  # the ball lies within this angle of the optical axis
     data_seed: int = 0  # seed of the dataset (scenes) and of the train/val/test split
-    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room), 8 (ordinary balls in a family of everyday rooms, distractors, the body's arms) or 9 (v8 plus decoys, round things that are not the ball, such as a cannon's muzzle; the quick, default and paper presets' choice)
+    generator: int = 7  # the scene generator: 7 (a glowing ball in one dim room), 8 (ordinary balls in a family of
+                        # everyday rooms, distractors, the body's arms) or 9 (v8 plus decoys, round things that are not
+                        # the ball, such as a cannon's muzzle; the quick, default and paper presets' choice)
     # the model
-    input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own mean irradiance (sample: a brighter room reads the same) or the training set's (dataset); auto: sample for generators 8 and 9, dataset for 7
-    model: str = "linet"  # linet (the smoke and paper presets'); fc: the fully-connected baseline with the same hidden sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the ball-finder for generators 8 and 9, the quick and default presets')
-    head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig. 5), or auto (softargmax for a liNet, linear for fc)
+    input_norm: str = "auto"  # the photoreceptors' adaptation: log(1 + irradiance / scale) with scale each ONV's own
+                              # mean irradiance (sample: a brighter room reads the same) or the training set's
+                              # (dataset); auto: sample for generators 8 and 9, dataset for 7
+    model: str = "linet"  # linet (the smoke and paper presets'); fc: the fully-connected baseline with the same hidden
+                          # sizes; conv: weights shared across the retina (nn/retina_conv.py: stencil layers, reduction
+                          # = the sites' stride, a soft-argmax of a saliency channel); cnn: a CNN on the ONV resampled
+                          # to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py; the
+                          # ball-finder for generators 8 and 9, the quick and default presets')
+    head: str = "auto"  # read-out: softargmax (layers vote for a gaze direction; liNet only), linear (the paper's Fig.
+                        # 5), or auto (softargmax for a liNet, linear for fc)
     layers: int = 4  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units (conv: of its sites)
-    channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
-    no_augment: bool = False  # cnn only: train on the plain image alone, without the turned and mirrored copies (an ablation: the net then memorises its training set, docs/RESULTS.md "Where the paper's MSE goal stands")
-    plain_epochs: int = 0  # cnn only: the last N epochs (of the epoch cap) train on the plain image alone, after the turned and mirrored copies (an ablation between the copies throughout and no_augment: docs/RESULTS.md "Copies first, the plain image last"); 0: copies throughout
-    views: int = 8  # cnn only: its read-out at inference (the test, evaluate, the simulation; the epochs' validation reads one view) is the consensus of this many turned and mirrored views (nn/retina_cnn.py: CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
+    channels: int = 16  # conv and cnn only: channels of the first layer (conv: doubling
+                        # per layer up to 64; cnn: x1, 2, 4, 6 over its four stages)
+    no_augment: bool = False  # cnn only: train on the plain image alone, without the turned and
+                              # mirrored copies (an ablation: the net then memorises its training
+                              # set, docs/RESULTS.md "Where the paper's MSE goal stands")
+    plain_epochs: int = 0  # cnn only: the last N epochs (of the epoch cap) train on the plain image alone, after the
+                           # turned and mirrored copies (an ablation between the copies throughout and no_augment:
+                           # docs/RESULTS.md "Copies first, the plain image last"); 0: copies throughout
+    views: int = 8  # cnn only: its read-out at inference (the test, evaluate, the simulation; the epochs' validation
+                    # reads one view) is the consensus of this many turned and mirrored views (nn/retina_cnn.py:
+                    # CONSENSUS_VIEWS); 1: the plain image alone (8x less inference)
     # optimisation
-    init: str = ""  # a foveation run directory (or its best.pt) whose best weights start this run (the same model and sizes, e.g. the other eye's cnn); empty: the seed's initialisation
-    loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls too small or hidden to localise) or mse (the paper's)
+    init: str = ""  # a foveation run directory (or its best.pt) whose best weights start this run (the same model and
+                    # sizes, e.g. the other eye's cnn); empty: the seed's initialisation
+    loss: str = "huber"  # huber (quadratic within 0.1 std of the target, ~2 deg, linear beyond: robust to the few balls
+                         # too small or hidden to localise) or mse (the paper's)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
-    lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs), plateau (x0.3 after every 3 epochs without a better validation loss) or constant
-    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored; standardised in the first layer), bfloat16, float32 (a standardised float32 copy of each batch), or auto (float16 for a liNet, float32 for the fc, conv, cnn and range nets)
-    precision: str = "auto"  # cnn only: the CNN's layers in training run in bfloat16 (autocast; the image, loss and read-out stay float32) or float32; auto: bfloat16 where the device computes it natively (a CPU with AVX512-BF16 or AMX, a GPU of compute capability 8 on), else float32. Evaluation is float32
+    lr_schedule: str = "cosine"  # cosine (the epoch's rate falls from lr to lr/20 over the epochs), plateau (x0.3 after
+                                 # every 3 epochs without a better validation loss) or constant
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored; standardised in the first layer),
+                             # bfloat16, float32 (a standardised float32 copy of each batch), or auto (float16 for a
+                             # liNet, float32 for the fc, conv, cnn and range nets)
+    precision: str = "auto"  # cnn only: the CNN's layers in training run in bfloat16 (autocast; the
+                             # image, loss and read-out stay float32) or float32; auto: bfloat16
+                             # where the device computes it natively (a CPU with AVX512-BF16 or AMX,
+                             # a GPU of compute capability 8 on), else float32. Evaluation is float32
     epochs: int = 40  # at most
     patience: int = 8  # early stopping: epochs without a better validation loss
     val_fraction: float = 0.1
@@ -167,7 +192,8 @@ class TrainConfig:
                        "channels": 16, "init": "", "views": 8, "no_augment": False, "plain_epochs": 0}
     #: the net settings only some models read: {field: those models} (a flag given for another is refused)
     MODEL_FIELDS: ClassVar[dict] = {"layers": ("linet", "fc", "conv"), "receptive_field": ("linet", "fc"),
-                                    "reduction": ("linet", "fc", "conv"), "channels": ("conv", "cnn"), "views": ("cnn",)}
+                                    "reduction": ("linet", "fc", "conv"), "channels": ("conv", "cnn"),
+                                    "views": ("cnn",)}
 
     def per_sample_input(self) -> bool:
         """Whether the net's input is scaled by each ONV's own mean irradiance (``input_norm``, "auto" resolved)."""
@@ -200,18 +226,21 @@ class TrainConfig:
         if self.model == "fc" and self.head == "softargmax":
             raise ValueError("head: the fc baseline has no unit positions to vote with; use --head linear")
         if self.model in ("conv", "cnn") and self.head == "linear":
-            raise ValueError(f"head: the {self.model} net reads out by a soft-argmax of its heat map; use --head auto or softargmax")
+            raise ValueError(f"head: the {self.model} net reads out by a soft-argmax of its heat map; use --head auto "
+                             "or softargmax")
         if self.model in ("conv", "cnn") and self.onv_dtype not in ("auto", "float32"):
             raise ValueError(f"onv_dtype: the {self.model} net reads float32 ONVs, got {self.onv_dtype!r}")
         if self.channels < 1:
             raise ValueError(f"channels: expected a positive integer, got {self.channels}")
         if self.no_augment and self.model != "cnn":
-            raise ValueError(f"no_augment: the turned and mirrored copies are the cnn's; the {self.model} net trains without them")
+            raise ValueError(f"no_augment: the turned and mirrored copies are the cnn's; the {self.model} net trains "
+                             "without them")
         if self.no_augment and self.views != 1:
-            raise ValueError(f"views: a net trained without the turned and mirrored copies reads the plain image alone; "
-                             f"use --views 1 with --no-augment (got {self.views})")
+            raise ValueError("views: a net trained without the turned and mirrored copies reads the plain image "
+                             f"alone; use --views 1 with --no-augment (got {self.views})")
         if self.plain_epochs and self.model != "cnn":
-            raise ValueError(f"plain_epochs: the turned and mirrored copies are the cnn's; the {self.model} net trains without them")
+            raise ValueError(f"plain_epochs: the turned and mirrored copies are the cnn's; the {self.model} net trains "
+                             "without them")
         if not 0 <= self.plain_epochs <= self.epochs:
             raise ValueError(f"plain_epochs: expected 0 to the {self.epochs} epochs, got {self.plain_epochs}")
         if self.plain_epochs == self.epochs and not self.no_augment:
@@ -231,14 +260,13 @@ CONDITION_SAMPLES = 400
 PRESETS: dict[str, dict] = {
     # end to end in well under a minute (tests)
     "smoke": dict(**FOVEATION_DATA["smoke"], layers=3, receptive_field=8, batch=16, epochs=3, patience=3),
-    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU
-    # (1.7 measured, synthesis included)
+    # a first look (``python -m warp_vision.sim demo --quick`` trains these): about 2 minutes on a 2-core CPU,
+    # synthesis included
     "quick": dict(**FOVEATION_DATA["quick"], epochs=12, patience=12, model="cnn", lr=2e-3),
     # the default run: the retina CNN on generator v9, about 12-14 minutes on a 2-core CPU that trains it in
-    # bfloat16 (11.7 and 13.6 measured on two days), 14.6 in float32 (12,000 ONVs of P=14,400, S=4 rendered
-    # in 4.5-5.2 by two processes; 20 epochs of 19-27 s, 29 in float32: docs/RESULTS.md "20 epochs", fewer
-    # balls missed than with 12, and "bfloat16 training"). v7's liNet: --generator 7 --model linet --lr 0.001
-    # --epochs 40 --samples 8000
+    # bfloat16, about 15 in float32 (12,000 ONVs of P=14,400, S=4 rendered by two processes, then 20 epochs,
+    # which miss fewer balls than 12: docs/RESULTS.md "20 epochs" and "bfloat16 training"). v7's liNet:
+    # --generator 7 --model linet --lr 0.001 --epochs 40 --samples 8000
     "default": dict(**FOVEATION_DATA["default"], model="cnn", lr=2e-3, epochs=20),
     # the paper's set-up on v9: 20K training ONVs of P=14,400, liNet H=4, R=20, f=5, batch 64
     "paper": dict(**FOVEATION_DATA["paper"], epochs=60, patience=10),
@@ -274,7 +302,8 @@ class FaceTrainConfig:
     reduction: int = 2  # f, each layer has 1/f of the previous layer's units
     # optimisation
     loss_lambda: float = 6.0  # loss = cross-entropy + loss_lambda * MSE(standardised pose)
-    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for fc)
+    onv_dtype: str = "auto"  # the dtype the net reads ONVs in: float16 (as stored), bfloat16,
+                             # float32, or auto (float16 for a liNet, float32 for fc)
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (betas 0.9, 0.999)
     epochs: int = 60  # at most
@@ -292,9 +321,10 @@ class FaceTrainConfig:
     def data_config(self):
         from warp_vision.data.faces import FaceDataConfig
 
-        return FaceDataConfig(identities=self.identities, pose_step_deg=self.pose_step_deg, max_pose_deg=self.max_pose_deg,
-                              photoreceptors=self.photoreceptors, eye=self.eye, samples_per_receptor=self.samples_per_receptor,
-                              distance_m=self.distance_m, identity_seed=self.identity_seed, seed=self.data_seed)
+        return FaceDataConfig(identities=self.identities, pose_step_deg=self.pose_step_deg,
+                              max_pose_deg=self.max_pose_deg, photoreceptors=self.photoreceptors, eye=self.eye,
+                              samples_per_receptor=self.samples_per_receptor, distance_m=self.distance_m,
+                              identity_seed=self.identity_seed, seed=self.data_seed)
 
     def validate(self) -> None:
         _check_common(self, FACE_PRESETS)
@@ -355,7 +385,8 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
         if f.name == "task":  # fixed per config class, not a choice
             continue
         if f.name == "preset":
-            group(f.name).add_argument("--preset", choices=sorted(presets), default="default", help=field_help(cls, f.name))
+            group(f.name).add_argument("--preset", choices=sorted(presets), default="default",
+                                       help=field_help(cls, f.name))
             continue
         value = getattr(defaults, f.name)
         choices = getattr(cls, "CHOICES", CHOICES)
@@ -376,15 +407,19 @@ def add_arguments(p: argparse.ArgumentParser, cls=None, presets: dict | None = N
 
 def from_args(args: argparse.Namespace, cls=None, presets: dict | None = None):
     """The config of a command line: its preset with the flags given over it. A flag of a net setting the
-    chosen model does not read (``cls.MODEL_FIELDS``: ``--model cnn --receptive-field 30``) is a ValueError:
-    it was dropped without a word."""
+    chosen model does not read (``cls.MODEL_FIELDS``: ``--model cnn --receptive-field 30``) is a ValueError
+    rather than a setting left unread."""
     cls = cls or TrainConfig
     cfg = resolve(args.preset, {f.name: getattr(args, f.name, None) for f in fields(cls)}, cls, presets)
     for name, models in getattr(cls, "MODEL_FIELDS", {}).items():
         if getattr(args, name, None) is not None and cfg.model not in models:
-            which = f"the {models[0]} net does" if len(models) == 1 else f"the {', '.join(models[:-1])} and {models[-1]} nets do"
-            raise ValueError(f"--{name.replace('_', '-')}: the {cfg.model} net does not read it ({which}); leave it out, "
-                             f"or choose {'that' if len(models) == 1 else 'one of those'} with --model")
+            which = (
+                f"the {models[0]} net does"
+                if len(models) == 1
+                else f"the {', '.join(models[:-1])} and {models[-1]} nets do"
+            )
+            raise ValueError(f"--{name.replace('_', '-')}: the {cfg.model} net does not read it ({which}); leave it "
+                             f"out, or choose {'that' if len(models) == 1 else 'one of those'} with --model")
     return cfg
 
 

@@ -34,7 +34,8 @@ class OculomotorTrainConfig:
     val_fraction: float = 0.1  # of the gazes: transitions among them choose the best epoch
     test_fraction: float = 0.15  # of the gazes: transitions among them, and the body check, measure the net
     seed: int = 0  # gaze sampling, initialisation and shuffling
-    body_checks: int = 100  # held-out saccades settled on the body to measure the net (and a quarter as many pursuit chains)
+    body_checks: int = 100  # held-out saccades settled on the body to measure
+                            # the net (and a quarter as many pursuit chains)
     # the run
     device: str = "cpu"  # cpu, cuda, or auto (a small MLP: the CPU is as fast)
 
@@ -71,13 +72,16 @@ class ArmTrainConfig:
     side: str = "left"  # which arm: left or right
     # the dataset: postures with the hand 0.2-0.6 m in front of the shoulder and the activations that hold them
     postures: int = 4000  # postures whose holding activations are solved on the body
-    max_residual: float = 0.05  # N m: postures whose holding residual exceeds this are dropped (the muscles cannot hold them)
+    max_residual: float = 0.05  # N m: postures whose holding residual exceeds
+                                # this are dropped (the muscles cannot hold them)
     transitions: int = 100_000  # (current, next) posture pairs drawn among the training postures per run
-    torque_weight: float = 1.0  # 1/(N m): weight of the torque the nets' activations fall short by (a soft norm) in the loss
+    torque_weight: float = 1.0  # 1/(N m): weight of the torque the nets' activations
+                                # fall short by (a soft norm) in the loss
     stiffness: float = 300.0  # N m/rad: the spring toward the goal posture the voluntary net learns
     saturation: float = 0.5  # rad: where that spring saturates (its torque at most stiffness x saturation)
     damping: float = 25.0  # N m s/rad: the damping the voluntary net learns (with the spring)
-    posture_damping: float = 8.0  # N m s/rad: the damping the posture net learns (more asks the muscles for more than they give when holding, and it drifts)
+    posture_damping: float = 8.0  # N m s/rad: the damping the posture net learns (more asks the muscles for more than
+                                  # they give when holding, and it drifts)
     velocity_std: float = 1.0  # rad/s: the joint velocities drawn for half the samples
     # the model
     hidden: int = 256  # units per hidden layer of both MLPs
@@ -91,7 +95,8 @@ class ArmTrainConfig:
     test_fraction: float = 0.15  # of the postures: transitions among them, and the body checks, measure the nets
     seed: int = 0  # posture sampling, initialisation and shuffling
     body_checks: int = 60  # held-out reaches (and posture holds) simulated on the body to measure the nets
-    skip_teacher_feedback: bool = False  # do not measure the exact static optimisation in closed loop (the nets' teacher; the slowest check)
+    skip_teacher_feedback: bool = False  # do not measure the exact static optimisation in
+                                         # closed loop (the nets' teacher; the slowest check)
     # the run
     device: str = "cpu"  # cpu, cuda, or auto (small MLPs: the CPU is as fast)
 
@@ -146,22 +151,31 @@ class LimbTrainConfig:
     eye: str = "left"  # left or right
     samples_per_receptor: int = 4  # S rays per photoreceptor and channel (the loop's)
     data_seed: int = 0  # seed of the dataset and of the train/val/test split
-    ball: str = "ordinary"  # the cannon's ball as the loop shows it (sim --ball): ordinary (lit by the room's lamps) or glowing (v7's, the room dimmed)
+    ball: str = "ordinary"  # the cannon's ball as the loop shows it (sim --ball): ordinary (lit by the room's lamps) or
+                            # glowing (v7's, the room dimmed)
     # the model
-    model: str = "linet"  # linet, fc: the fully-connected twin with the same hidden sizes, cnn: a CNN on the ONV binned to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py), or range: a CNN on the central 8 deg to the ball's distance (the loop adds the foveation net's direction and the hand's proprioception)
+    model: str = "linet"  # linet, fc: the fully-connected twin with the same hidden sizes, cnn: a CNN on the ONV binned
+                          # to a foveated image, trained with turned and mirrored copies (nn/retina_cnn.py), or range: a
+                          # CNN on the central 8 deg to the ball's distance (the loop adds the foveation net's direction
+                          # and the hand's proprioception)
     channels: int = 16  # cnn and range only: channels of its first stage (x1, 2, 4, 6 over its four stages)
     layers: int = 3  # liNet hidden layers H
     receptive_field: int = 20  # R, connections per unit
     reduction: int = 5  # f, each layer has 1/f of the previous layer's units
-    onv_dtype: str = "auto"  # float16 (as stored), bfloat16, float32, or auto (float16 for a liNet, float32 for the fc, cnn and range nets)
-    precision: str = "auto"  # cnn and range only: their layers in training run in bfloat16 (autocast) or float32; auto: bfloat16 where the device computes it natively (a CPU with AVX512-BF16 or AMX, a GPU of compute capability 8 on), else float32. Evaluation is float32
+    onv_dtype: str = "auto"  # float16 (as stored), bfloat16, float32, or auto (float16
+                             # for a liNet, float32 for the fc, cnn and range nets)
+    precision: str = "auto"  # cnn and range only: their layers in training run in bfloat16 (autocast) or float32; auto:
+                             # bfloat16 where the device computes it natively (a CPU with AVX512-BF16 or AMX, a GPU of
+                             # compute capability 8 on), else float32. Evaluation is float32
     # optimisation
-    near_weight_m: float = 0.25  # m: each arm's error is weighted by 1 / (this + its true hand-ball distance): near balls count most
+    near_weight_m: float = 0.25  # m: each arm's error is weighted by 1 / (this + its
+                                 # true hand-ball distance): near balls count most
     batch: int = 64
     lr: float = 1e-3  # Adam learning rate (of the first epoch)
     lr_schedule: str = "cosine"  # cosine (from lr to lr/20 over the epochs), plateau or constant
     epochs: int = 30  # at most
-    patience: int = 8  # early stopping: epochs without a better validation median error (near balls; ranging: of the distance)
+    patience: int = 8  # early stopping: epochs without a better validation
+                       # median error (near balls; ranging: of the distance)
     val_fraction: float = 0.1
     test_fraction: float = 0.1
     seed: int = 0  # initialisation and shuffling
@@ -206,10 +220,10 @@ LIMB_PRESETS: dict[str, dict] = {
     # seconds, for tests
     "smoke": dict(samples=64, heldout_samples=16, photoreceptors=400, samples_per_receptor=1, layers=2,
                   receptive_field=8, batch=16, epochs=2, patience=2),
-    # a first look: about 2 minutes on a 2-core CPU (1.7-1.8 measured, rendering included)
+    # a first look: about 2 minutes on a 2-core CPU, rendering included
     "quick": dict(samples=2000, heldout_samples=300, model="range", lr=2e-3, epochs=12, patience=12),
-    # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training, 3.2
-    # with bfloat16; 9-11 measured):
+    # one eye in about 11 minutes on a 2-core CPU (rendering 11,000 ONVs, then about 4 minutes of training, less
+    # with bfloat16; the runs: docs/RESULTS.md, "Figures behind the code's constants"):
     # the ranging net (the ONV-only nets find the ball but not the hands: docs/RESULTS.md)
     "default": dict(model="range", lr=2e-3, epochs=24, patience=24),
 }

@@ -60,7 +60,7 @@ PUPIL_PRESETS: dict[str, dict] = {
                   patience=2),
     # a first look (``python -m warp_vision.sim demo --quick``): a minute per eye on a 2-core CPU
     "quick": dict(samples=800, heldout_samples=200, epochs=100, patience=100),
-    # 2-5 minutes per eye on a 2-core CPU (2.0-2.1 on 2026-12-06)
+    # 2-5 minutes per eye on a 2-core CPU (docs/RESULTS.md, "Figures behind the code's constants")
     "default": {},
 }
 
@@ -104,18 +104,19 @@ class LensTrainConfig:
                               defocus_range_D=self.defocus_range_D, card_vertices=self.card_vertices, seed=self.seed)
 
     def validate(self) -> None:
-        _check_common(self, LENS_PRESETS, ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor", "hidden"))
+        _check_common(self, LENS_PRESETS,
+                      ("samples", "heldout_samples", "photoreceptors", "samples_per_receptor", "hidden"))
         check_splits(self.samples, self.val_fraction, self.test_fraction, min_test=2)
         self.data_config().validate()
 
 
 LENS_PRESETS: dict[str, dict] = {
     # seconds, for tests
-    "smoke": dict(samples=48, heldout_samples=16, photoreceptors=1000, samples_per_receptor=1, card_vertices=48, hidden=8,
-                  epochs=2, patience=2),
+    "smoke": dict(samples=48, heldout_samples=16, photoreceptors=1000, samples_per_receptor=1, card_vertices=48,
+                  hidden=8, epochs=2, patience=2),
     # a first look (``python -m warp_vision.sim demo --quick``)
     "quick": dict(samples=2000, heldout_samples=400, epochs=80, patience=80),
-    # 9-13 minutes per eye on a 2-core CPU (9.3 on 2026-12-06, the cards' BVHs included; docs/RESULTS.md:
-    # why 16,000 ONVs rather than 6,000)
+    # 9-13 minutes per eye on a 2-core CPU, the cards' BVHs included (docs/RESULTS.md: the run, and why 16,000
+    # ONVs rather than 6,000)
     "default": {},
 }

@@ -17,7 +17,8 @@ from warp_vision.train.workers import rendering_lock
 def read_label(run_dir, checkpoint: str, epoch: int, views: int | None) -> str:
     """How ``evaluate`` names a run read other than as it stands: "RUN (latest.pt, epoch 9; views 1)";
     the run's best checkpoint with its own views is just "RUN". ``epoch``: the checkpoint's, 0-based."""
-    how = ([f"{checkpoint}.pt, epoch {epoch + 1}"] if checkpoint != "best" else []) + ([f"views {views}"] if views is not None else [])
+    how = [f"{checkpoint}.pt, epoch {epoch + 1}"] if checkpoint != "best" else []
+    how += [f"views {views}"] if views is not None else []
     return f"{run_dir} ({'; '.join(how)})" if how else str(run_dir)
 
 
@@ -48,8 +49,9 @@ def load_for_evaluation(task: Task, log=print, progress: bool = True, ck: dict |
     if dataset_mismatch(ck, digest):
         trained = binding(ck)["dataset"][:12]
         if not again:
-            raise ValueError(f"{task.training_store()} holds other samples (dataset {digest[:12]}) than {task.cfg.out}'s "
-                             f"net was trained on (dataset {trained}): its config.json's data_dir names another dataset")
+            raise ValueError(f"{task.training_store()} holds other samples (dataset {digest[:12]}) than "
+                             f"{task.cfg.out}'s net was trained on (dataset {trained}): its config.json's data_dir "
+                             "names another dataset")
         log(f"the dataset rendered again differs from the one the net was trained on (dataset {digest[:12]}, "
             f"trained on {trained}; rendered by another machine or version): evaluating on it all the same")
 
@@ -71,7 +73,7 @@ def evaluate_run(task_cls, run_dir: str, split: str = "test", log=print, detail=
     ids = task.splits()
     if split == "test":
         split, idx = held_out(ids)
-        if split != "test":  # (it was named "test")
+        if split != "test":  # the validation split stands in: say so, rather than call it "test"
             log(f"{run_dir}: no test split (--test-fraction 0, or too few samples); the validation split's, as the "
                 f"run's summary")
     else:

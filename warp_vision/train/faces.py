@@ -74,7 +74,8 @@ class FaceTask(harness.OnvTask):
     def splits(self):
         c = self.cfg
         tr, va, te = harness.splits(len(self.ident), c.data_seed, c.val_fraction, c.test_fraction, min_test=1)
-        self.labels = shuffled_labels(self.ident, self.pose, tr, c.seed) if c.shuffle_labels else (self.ident, self.pose)
+        self.labels = shuffled_labels(self.ident, self.pose, tr,
+                                      c.seed) if c.shuffle_labels else (self.ident, self.pose)
         return tr, va, te
 
     def fit_norm(self, train):
@@ -85,7 +86,8 @@ class FaceTask(harness.OnvTask):
     def net_spec(self):
         c = self.cfg
         return {"kind": "afr", "model": c.model, "identities": c.identities, "layers": c.layers,
-                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
+                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed,
+                "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
 
     def prepare(self, model, norm):
@@ -137,8 +139,8 @@ class FaceTask(harness.OnvTask):
 
         c = self.cfg
         nn_mm = FaceIdentities.load(self.ddir / "identities.npz").nearest_neighbour_mm()
-        return {"model": c.model, "shuffle_labels": c.shuffle_labels, "identities": c.identities, "onvs": len(self.ident),
-                "test_accuracy": test["accuracy"], "chance_accuracy": 1.0 / c.identities,
+        return {"model": c.model, "shuffle_labels": c.shuffle_labels, "identities": c.identities,
+                "onvs": len(self.ident), "test_accuracy": test["accuracy"], "chance_accuracy": 1.0 / c.identities,
                 "test_pose_mae_deg": test["pose_mae_deg"], "test_yaw_mae_deg": test["yaw_mae_deg"],
                 "test_pitch_mae_deg": test["pitch_mae_deg"], "test_ce": test["ce"], "test_mse": test["mse"],
                 "identity_nearest_neighbour_mm": {"min": float(nn_mm.min()), "median": float(np.median(nn_mm))},

@@ -1,4 +1,5 @@
-"""Figures of training runs: foveation (Fig. 6 curves, predicted vs true angles, retina images) and face recognition (Figs. 11 and 12)."""
+"""Figures of training runs: foveation (Fig. 6 curves, predicted vs true angles, retina images) and face recognition
+(Figs. 11 and 12)."""
 
 from __future__ import annotations
 
@@ -180,7 +181,8 @@ def write_face_figures(out: Path, history, retina, onv16, ident, pose, idx, test
         for c, k in enumerate(cols):
             s = who * data.poses + k * len(values) + mid
             ax = fig.add_subplot(len(rows), len(cols), r * len(cols) + c + 1)
-            viz.plot_onv(retina, onv16[s].float(), ax=ax, title=f"id {who}, yaw {values[k]:+.0f}, pitch {values[mid]:+.0f}")
+            viz.plot_onv(retina, onv16[s].float(), ax=ax,
+                         title=f"id {who}, yaw {values[k]:+.0f}, pitch {values[mid]:+.0f}")
             lim = 1.5 * np.degrees(np.arctan(0.12 / data.distance_m)) + 5
             ax.set_xlim(-lim, lim)
             ax.set_ylim(-lim, lim)
@@ -201,8 +203,8 @@ def write_face_figures(out: Path, history, retina, onv16, ident, pose, idx, test
     fig = Figure(figsize=(6, 5.2))
     ax = fig.add_subplot(1, 1, 1)
     half = (values[1] - values[0]) / 2 if len(values) > 1 else 1
-    im = ax.imshow(grid, origin="lower", extent=(values[0] - half, values[-1] + half, values[0] - half, values[-1] + half),
-                   cmap="magma")
+    im = ax.imshow(grid, origin="lower",
+                   extent=(values[0] - half, values[-1] + half, values[0] - half, values[-1] + half), cmap="magma")
     fig.colorbar(im, ax=ax, label="mean absolute pose error (deg)")
     ax.set_xlabel("yaw (deg)")
     ax.set_ylabel("pitch (deg)")

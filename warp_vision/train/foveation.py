@@ -94,7 +94,8 @@ def barely_seen(err_deg, signal: dict) -> dict:
     off = err > OFF_DEG
     n = max(len(err), 1)
     return {"share": float(weak.sum()) / n, "off": float(off[weak].mean()) if weak.any() else float("nan"),
-            "of_misses": float((off & weak).sum()) / max(int(off.sum()), 1), "others_off": float((off & ~weak).sum()) / n}
+            "of_misses": float((off & weak).sum()) / max(int(off.sum()), 1),
+            "others_off": float((off & ~weak).sum()) / n}
 
 
 def miss_breakdown(err_deg, target, meta, columns, signal: dict | None = None) -> list[dict]:
@@ -121,7 +122,8 @@ def miss_breakdown(err_deg, target, meta, columns, signal: dict | None = None) -
                 "of_misses": float(off[m].sum()) / misses}
 
     rows = []
-    for group, v, edges in (("eccentricity (deg)", ecc, ECC_BANDS_DEG), ("apparent radius (deg)", radius, RADIUS_BANDS_DEG)):
+    for group, v, edges in (("eccentricity (deg)", ecc, ECC_BANDS_DEG),
+                            ("apparent radius (deg)", radius, RADIUS_BANDS_DEG)):
         for lo, hi in zip(edges, edges[1:] + (np.inf,)):
             rows.append(row(group, f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}", (v >= lo) & (v < hi)))
     for flag in SCENE_FLAGS:
@@ -132,7 +134,8 @@ def miss_breakdown(err_deg, target, meta, columns, signal: dict | None = None) -
         from warp_vision.data.foveation import LANDED_ON
 
         bands = (("photoreceptors on the ball", np.asarray(signal["receptors"], np.float64), RECEPTOR_BANDS),
-                 ("ball's contrast", np.nan_to_num(np.asarray(signal["contrast"], np.float64), nan=0.0), CONTRAST_BANDS))
+                 ("ball's contrast", np.nan_to_num(np.asarray(signal["contrast"], np.float64), nan=0.0),
+                  CONTRAST_BANDS))
         for group, v, edges in bands:
             for lo, hi in zip(edges, edges[1:] + (np.inf,)):
                 rows.append(row(group, f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}", (v >= lo) & (v < hi)))
@@ -163,7 +166,8 @@ def miss_agreement(names, preds, target) -> dict:
     other: the same wrong thing) and ``best_of`` (the share off when, for every ball, the best of the nets
     is taken: what no way of choosing among them can beat)."""
     if len(names) != len(preds) or len(names) < 2:
-        raise ValueError(f"miss_agreement: two or more nets, one name each; got {len(names)} names, {len(preds)} estimates")
+        raise ValueError(f"miss_agreement: two or more nets, one name each; got {len(names)} names, {len(preds)} "
+                         "estimates")
     true = torch.as_tensor(np.asarray(target), dtype=torch.float64)
     pred = [torch.as_tensor(np.asarray(p), dtype=torch.float64) for p in preds]
     if any(p.shape != true.shape for p in pred):
@@ -185,12 +189,14 @@ def miss_agreement(names, preds, target) -> dict:
 
 def agreement_table(r: dict) -> str:
     """:func:`miss_agreement`'s pairs as a markdown table, its best-of line below."""
-    lines = ["| net A | net B | A off | B off | both off | if independent | A's misses B shares | the same wrong thing |",
+    lines = ["| net A | net B | A off | B off | both off | if independent | A's misses B shares | the same wrong thing "
+             "|",
              "|---|---|---|---|---|---|---|---|"]
     off = dict(zip(r["names"], r["off"]))
     for q in r["pairs"]:
-        lines.append(f"| {q['a']} | {q['b']} | {100 * off[q['a']]:.1f}% | {100 * off[q['b']]:.1f}% | {100 * q['both']:.1f}% | "
-                     f"{100 * q['independent']:.1f}% | {100 * q['shared']:.0f}% | {100 * q['same_wrong']:.1f}% |")
+        lines.append(f"| {q['a']} | {q['b']} | {100 * off[q['a']]:.1f}% | {100 * off[q['b']]:.1f}% | "
+                     f"{100 * q['both']:.1f}% | {100 * q['independent']:.1f}% | {100 * q['shared']:.0f}% | "
+                     f"{100 * q['same_wrong']:.1f}% |")
     lines.append(f"the best of the {len(r['names'])} nets for every ball (an oracle): {100 * r['best_of']:.1f}% of the "
                  f"{r['n']:,} balls more than {OFF_DEG:g} deg off")
     return "\n".join(lines)
@@ -220,19 +226,27 @@ class FoveationTask(harness.OnvTask):
             return
         import errno
 
-        from warp_vision.nn.trained import (binding, describe_binding, read_checkpoint, read_run_config, run_identity,
-                                            saved_task)
+        from warp_vision.nn.trained import (
+            binding,
+            describe_binding,
+            read_checkpoint,
+            read_run_config,
+            run_identity,
+            saved_task,
+        )
         from warp_vision.train.rundir import a_run, init_checkpoint
 
         best = init_checkpoint(cfg.init)
         if not best.is_file():
-            raise FileNotFoundError(errno.ENOENT, "no such checkpoint (--init takes a foveation run directory or its best.pt)",
+            raise FileNotFoundError(errno.ENOENT,
+                                    "no such checkpoint (--init takes a foveation run directory or its best.pt)",
                                     str(best))
         run = best.parent
         saved = read_run_config(run)
         if saved is not None:
             if (task := saved_task(run, saved)) != cls.name:
-                raise ValueError(f"init: {run} is {a_run(task)}; --init takes a foveation run of the net this run trains")
+                raise ValueError(f"init: {run} is {a_run(task)}; --init takes a foveation run of the net this run "
+                                 "trains")
             there = run_identity(cls.name, saved)
         else:  # a checkpoint on its own: what it belongs to is in it
             there = binding(read_checkpoint(best))
@@ -243,17 +257,20 @@ class FoveationTask(harness.OnvTask):
             if cfg.model not in INIT_ACROSS_EYES:
                 raise ValueError(f"init: {best} belongs to {describe_binding(there)}; a {cfg.model} net's weights "
                                  f"belong to its own eye's photoreceptors, so --init across eyes is refused (it is "
-                                 f"meaningful for --model {' or '.join(INIT_ACROSS_EYES)}, whose weights are shared across the retina)")
-            print(f"init: starting the {cfg.eye} eye's net from {describe_binding(there)} ({best}): --model {cfg.model} "
-                  f"shares its weights across the retina, so they carry over to this eye's")
+                                 f"meaningful for --model {' or '.join(INIT_ACROSS_EYES)}, whose weights are shared "
+                                 "across the retina)")
+            print(f"init: starting the {cfg.eye} eye's net from {describe_binding(there)} ({best}): --model "
+                  f"{cfg.model} shares its weights across the retina, so they carry over to this eye's")
         if saved is None:
             return  # a checkpoint on its own: its weights are checked as they load
         there = {"model": "linet", **saved}  # (a config older than its model)
         keys = ("model",) if there["model"] != cfg.model else SHAPE_SETTINGS[cfg.model]
         differ = [k for k in keys if k in there and there[k] != getattr(cfg, k)]
         if differ:
-            raise ValueError(f"init: {run} trained another net than this run's: "
-                             + ", ".join(f"--{k.replace('_', '-')} {there[k]} there, {getattr(cfg, k)} here" for k in differ))
+            raise ValueError(
+                f"init: {run} trained another net than this run's: "
+                + ", ".join(f"--{k.replace('_', '-')} {there[k]} there, {getattr(cfg, k)} here" for k in differ)
+            )
 
     def dataset_dirs(self):
         return [harness.dataset_dir(self.cfg, "foveation", self.cfg.data_config())]
@@ -280,15 +297,17 @@ class FoveationTask(harness.OnvTask):
 
     def fit_norm(self, train):
         t = self.target[torch.as_tensor(train)]
-        return {**fit_input_norm(self.onv16, train, per_sample=self.cfg.per_sample_input()), "target_mean": t.mean(0), "target_std": t.std(0).clamp_min(1e-6)}
+        return {**fit_input_norm(self.onv16, train, per_sample=self.cfg.per_sample_input()), "target_mean": t.mean(0),
+                "target_std": t.std(0).clamp_min(1e-6)}
 
     def net_spec(self):
         from warp_vision.data.foveation import make_eye
 
         c = self.cfg
         angles = self.retina.visual_angles(make_eye(c.data_config())) if c.head_kind() == "softargmax" else None
-        return {"kind": "foveation", "model": c.model, "head": c.head_kind(), "layers": c.layers, "channels": c.channels,
-                "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
+        return {"kind": "foveation", "model": c.model, "head": c.head_kind(), "layers": c.layers,
+                "channels": c.channels, "receptive_field": c.receptive_field, "reduction": c.reduction, "seed": c.seed,
+                "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64)),
                 "photoreceptor_angles": None if angles is None else torch.from_numpy(np.asarray(angles, np.float64)),
                 **({"image_size": IMAGE_SIZE, "views": c.views} if c.model == "cnn" else {})}
@@ -299,10 +318,13 @@ class FoveationTask(harness.OnvTask):
 
     def describe(self, model):
         if self.cfg.model == "cnn":
-            return f"cnn ({model.warp.size} x {model.warp.size} foveated image, heat map read-out): {sum(p.numel() for p in model.parameters()):,} parameters"
+            return (f"cnn ({model.warp.size} x {model.warp.size} foveated image, heat map read-out): "
+                    f"{sum(p.numel() for p in model.parameters()):,} parameters")
         b = model.backbone
-        layers = getattr(b, "layer_sizes", None) or [f"{n}x{c}" for n, c in zip(getattr(b, "layer_sites", [])[1:], getattr(b, "channels", []))]
-        return f"{self.cfg.model} ({self.cfg.head_kind()} head): {sum(p.numel() for p in model.parameters()):,} parameters, layers {layers}"
+        layers = getattr(b, "layer_sizes", None) or [
+            f"{n}x{c}" for n, c in zip(getattr(b, "layer_sites", [])[1:], getattr(b, "channels", []))]
+        return (f"{self.cfg.model} ({self.cfg.head_kind()} head): {sum(p.numel() for p in model.parameters()):,} "
+                f"parameters, layers {layers}")
 
     def batch_loss(self, net, idx, norm, device):
         if self.cfg.model == "cnn":  # turned and mirrored copies, four groups a batch
@@ -312,7 +334,8 @@ class FoveationTask(harness.OnvTask):
         if self.cfg.model == "conv":  # the saliency maps also learn where the ball is, site by site
             pred, logits = net(x, with_logits=True)
             inner = getattr(net, "module", net)  # under DDP
-            loss = train_loss(self.cfg.loss, pred, y) + HEATMAP_WEIGHT * inner.heatmap_loss(logits, self.target[idx].to(device))
+            loss = train_loss(self.cfg.loss, pred,
+                              y) + HEATMAP_WEIGHT * inner.heatmap_loss(logits, self.target[idx].to(device))
         else:
             pred = net(x)
             loss = train_loss(self.cfg.loss, pred, y)
@@ -341,7 +364,8 @@ class FoveationTask(harness.OnvTask):
         preds = []
         with torch.no_grad():
             for s in range(0, len(idx), batch):
-                preds.append(model(net_input(self.onv16[torch.as_tensor(idx[s : s + batch])], norm, device, self.onv_dtype)).cpu())
+                preds.append(model(net_input(self.onv16[torch.as_tensor(idx[s : s + batch])], norm, device,
+                                             self.onv_dtype)).cpu())
         model.train()
         z = torch.cat(preds) if preds else torch.zeros(0, 2)
         true = self.target[torch.as_tensor(idx)]
@@ -359,8 +383,8 @@ class FoveationTask(harness.OnvTask):
 
     def validate(self, model, idx, norm, device):
         """One view per epoch (the plain image, as the net trains), not the consensus of ``views`` that the
-        test, ``evaluate`` and the simulation read (8 views cost 8 times the inference: measured, 19 s of
-        an epoch's 45 at the default preset's 1,200 validation ONVs)."""
+        test, ``evaluate`` and the simulation read: 8 views cost 8 times the inference, a large share of a
+        default epoch (docs/RESULTS.md, "The consensus read-out, and 32,000 ONVs")."""
         if not hasattr(model, "views"):
             return self.evaluate(model, idx, norm, device)
         views, model.views = model.views, 1
@@ -389,9 +413,9 @@ class FoveationTask(harness.OnvTask):
         write_figures(out, history, self.retina, self.onv16, self.target, idx, test["pred"], self.cfg)
 
     def eval_line(self, run_dir, split, n, ev):
-        return (f"{run_dir} ({split}, {n:,} ONVs): MSE {ev['mse']:.4f}; angular error median {ev['median_deg']:.3f} deg, "
-                f"90th percentile {ev['p90_deg']:.3f} deg; {100 * ev['over_5deg']:.1f}% more than {OFF_DEG:g} deg off "
-                f"(another object found) hold {100 * ev['mse_share_off']:.1f}% of the MSE; the rest's MSE "
+        return (f"{run_dir} ({split}, {n:,} ONVs): MSE {ev['mse']:.4f}; angular error median {ev['median_deg']:.3f} "
+                f"deg, 90th percentile {ev['p90_deg']:.3f} deg; {100 * ev['over_5deg']:.1f}% more than {OFF_DEG:g} deg "
+                f"off (another object found) hold {100 * ev['mse_share_off']:.1f}% of the MSE; the rest's MSE "
                 + (f"{ev['mse_within_5deg']:.4f}" if ev["over_5deg"] != 1 else "none: every one is off"))
 
 
@@ -411,8 +435,10 @@ def evaluate_run(run_dir: str, split: str = "test", log=print, misses: bool = Fa
     ball's signal, what the estimates land on and the :func:`barely_seen` summary (``"barely_seen"``)."""
     if signal and not misses:
         raise ValueError("signal: a part of the misses' breakdown; pass misses=True too")
-    detail = (lambda task, idx, ev, log: _misses(task, idx, ev, log, run_dir, split, signal, progress)) if misses else None
-    return evaluation.evaluate_run(FoveationTask, run_dir, split, log, detail=detail, checkpoint=checkpoint, views=views,
+    detail = (lambda task, idx, ev,
+              log: _misses(task, idx, ev, log, run_dir, split, signal, progress)) if misses else None
+    return evaluation.evaluate_run(FoveationTask, run_dir, split, log, detail=detail, checkpoint=checkpoint,
+                                   views=views,
                                 progress=progress)
 
 
@@ -437,7 +463,8 @@ def evaluate_agreement(run_dirs, split: str = "test", log=print) -> dict:
     short = [Path(r).name for r in run_dirs]
     names = short if len(set(short)) == len(short) else [str(r) for r in run_dirs]
     r = miss_agreement(names, [g[2] for g in got], got[0][3])
-    log(f"whether the nets miss the same balls ({split}, {r['n']:,} ONVs; more than {OFF_DEG:g} deg off):\n{agreement_table(r)}")
+    log(f"whether the nets miss the same balls ({split}, {r['n']:,} ONVs; more than {OFF_DEG:g} deg "
+        f"off):\n{agreement_table(r)}")
     return r
 
 
@@ -448,12 +475,14 @@ def write_miss_figure(run_dir, split: str, rows: list[dict], n: int) -> Path:
 
     path = Path(run_dir) / "figures" / f"misses_{split}.png"
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig = plot_misses(rows, f"{Path(run_dir).name}: where the balls more than {OFF_DEG:g} deg off lie ({split}, {n:,} ONVs)")
+    fig = plot_misses(rows,
+                      f"{Path(run_dir).name}: where the balls more than {OFF_DEG:g} deg off lie ({split}, {n:,} ONVs)")
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110, bbox_inches="tight"))
     return path
 
 
-def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool = False, progress: bool = True) -> dict:
+def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool = False,
+            progress: bool = True) -> dict:
     from warp_vision.data.foveation import ball_signal, make_eye, meta_columns
     from warp_vision.data.store import ChunkedStore
 
@@ -463,7 +492,9 @@ def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool
     if signal:
         cfg = task.cfg.data_config()
         if cfg.generator < 8:
-            raise ValueError(f"signal: generator {cfg.generator}: v8 and v9 runs only (v7's ball glows in a fixed room)")
+            raise ValueError(
+                f"signal: generator {cfg.generator}: v8 and v9 runs only (v7's ball glows in a fixed room)"
+            )
         # chance: each scene probed along the next sample's ball direction, drawn as the targets are
         chance = task.target[torch.as_tensor(np.roll(idx, -1))].numpy()
         sig = ball_signal(cfg, idx, task.retina, make_eye(cfg), directions=ev["pred"].numpy(), progress=progress,
@@ -476,7 +507,8 @@ def _misses(task: FoveationTask, idx, ev, log, run_dir, split: str, signal: bool
     if sig is None:
         return {"misses": rows}
     b = barely_seen(ev["err_deg"].numpy(), sig)
-    log(f"barely seen (fewer than {BARELY_RECEPTORS} photoreceptors on the ball, or contrast under {BARELY_CONTRAST:g}): "
-        f"{100 * b['share']:.1f}% of the balls, {100 * b['off']:.0f}% of them off, {100 * b['of_misses']:.1f}% of the misses; "
-        f"the balls seen better are missed in {100 * b['others_off']:.1f}% of all samples")
+    log(f"barely seen (fewer than {BARELY_RECEPTORS} photoreceptors on the ball, or contrast under "
+        f"{BARELY_CONTRAST:g}): {100 * b['share']:.1f}% of the balls, {100 * b['off']:.0f}% of them off, "
+        f"{100 * b['of_misses']:.1f}% of the misses; the balls seen better are missed in {100 * b['others_off']:.1f}% "
+        "of all samples")
     return {"misses": rows, "barely_seen": b}

@@ -40,11 +40,23 @@ import torch.distributed as dist
 from warp_vision.data.store import IncompleteStoreError, waiting_for_writers
 from warp_vision.errors import told
 from warp_vision.fileio import resolved, write_json
-from warp_vision.provenance import software
 from warp_vision.nn.trained import ONV_DTYPES, build_net, dataset_mismatch, new_binding, read_checkpoint, task_command
+from warp_vision.provenance import software
 from warp_vision.train.config import check_splits, epoch_lr, onv_dtype_name
-from warp_vision.train.rundir import (TIMING_FIELDS, a_run, check_checkpoint_space, reproducible_config, dataset_dir, open_run,
-                                      preflight, record_epoch, release_run_dir, save_checkpoint, sync_metrics, warm_start)
+from warp_vision.train.rundir import (
+    TIMING_FIELDS,
+    a_run,
+    check_checkpoint_space,
+    dataset_dir,
+    open_run,
+    preflight,
+    record_epoch,
+    release_run_dir,
+    reproducible_config,
+    save_checkpoint,
+    sync_metrics,
+    warm_start,
+)
 from warp_vision.train.workers import auto_workers, render_in_processes, rendering_lock
 
 #: lr_schedule "plateau": the rate is multiplied by PLATEAU_FACTOR after every PLATEAU_EPOCHS epochs
@@ -290,7 +302,7 @@ def splits(n: int, data_seed: int, val_fraction: float, test_fraction: float, mi
 
 
 def held_out(ids) -> tuple[str, np.ndarray]:
-    """The split a finished run is measured on, by name, and its samples, of ``ids`` = (train, val, test): the
+    """The split a finished run is evaluated on, by name, and its samples, of ``ids`` = (train, val, test): the
     test split, or the validation split where there is none (``--test-fraction 0``, or too few samples)."""
     return ("test", ids[2]) if len(ids[2]) else ("val", ids[1])
 
@@ -331,8 +343,8 @@ def _train_epoch(task: Task, net, model, opt, train_ids, epoch: int, norm: dict,
     """One pass over the training samples in the epoch's seeded order; the mean of each train metric. Under
     torchrun each batch is dealt out over the ranks, and a last batch of fewer samples than ranks is left out
     on every rank alike (its samples, a different few each epoch, train in the other epochs): a rank given
-    none had a loss of NaN (the mean of nothing), and the others waited on its gradients (:func:`run` refuses
-    a batch smaller than the ranks)."""
+    none would have a loss of NaN (the mean of nothing), and the others would wait on its gradients
+    (:func:`run` refuses a batch smaller than the ranks)."""
     from tqdm import tqdm
 
     cfg = task.cfg
@@ -404,7 +416,8 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
     task.dataset = task.dataset_digest()
     if ck is not None and dataset_mismatch(ck, task.dataset):
         raise ValueError(f"--resume {out}: its dataset {task.training_store()} holds other samples (dataset "
-                         f"{task.dataset[:12]}) than its checkpoints were trained on (dataset {ck['binding']['dataset'][:12]})")
+                         f"{task.dataset[:12]}) than its checkpoints were trained on (dataset "
+                         f"{ck['binding']['dataset'][:12]})")
     tr, va, te = task.splits()
     norm = task.fit_norm(tr)
     model = build_net(task.net_spec(), device)
@@ -428,11 +441,11 @@ def _setup(task: Task, cfg, out: Path, ck: dict | None, dd: Dist, device: str, p
             state.bad = 0  # (kept, the first epoch without a better score would end it again)
             task.log(f"early stopping ended it; training on to epoch {cfg.epochs}, its patience "
                      f"({cfg.patience} epochs) counted afresh")
-        elif state.bad >= cfg.patience:  # (it trained on, up to its cap, without a word)
+        elif state.bad >= cfg.patience:  # early stopping ended it: evaluated again, not trained on
             state.ended = f"early stop: {_patience_spent(task)}"
             task.log(f"early stopping ended it after epoch {state.start_epoch} ({_patience_spent(task)}): its best "
                      f"checkpoint is evaluated again; {further}, its patience counted afresh")
-        elif state.start_epoch >= cfg.epochs:  # (it said "max epochs" and evaluated again, without a word why)
+        elif state.start_epoch >= cfg.epochs:  # the log says why no epoch is trained
             task.log(f"no epochs left to train (its cap is {cfg.epochs}): its best checkpoint is evaluated again; "
                      f"{further}")
     return (tr, va, te), norm, model, opt, state
@@ -446,8 +459,8 @@ def _epochs(task: Task, net, model, opt, ids, norm, state: _State, device, dd: D
     def checkpoint(epoch):
         history = [{k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in state.history]
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "history": history,
-                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": reproducible_config(cfg), "task": task.name,
-                "net": spec, "data": task.data_config(), "binding": task.binding()}
+                "best": state.best, "bad_epochs": state.bad, "norm": norm, "config": reproducible_config(cfg),
+                "task": task.name, "net": spec, "data": task.data_config(), "binding": task.binding()}
 
     if state.ended:
         return state.ended
@@ -529,7 +542,8 @@ def run(task_cls, cfg=None, resume: str | None = None, progress: bool = True, lo
     (:func:`warp_vision.train.workers.render_in_processes`; "auto": :func:`~warp_vision.train.workers.auto_workers`)."""
     if workers != "auto" and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
         raise ValueError(f"workers: expected a positive integer or 'auto', got {workers!r}")
-    if workers != "auto" and workers > 1 and task_cls.dataset_dirs is Task.dataset_dirs:  # (it was dropped without a word)
+    # a task that renders in one process refuses --workers rather than leave it unread
+    if workers != "auto" and workers > 1 and task_cls.dataset_dirs is Task.dataset_dirs:
         raise ValueError(f"workers: {a_run(task_cls.name)} renders its dataset in one process (foveation and limb "
                          f"runs render in several); leave --workers out")
     rank0 = int(os.environ.get("RANK", "0")) == 0  # (torchrun's; Dist reads it again below)
@@ -545,7 +559,7 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
            stop_after_epoch: int | None, workers: int | str, new_cap: bool = False) -> dict:
     """:func:`run`'s work once the run directory is open (and locked): data, training, evaluation."""
     world = world_size()  # (before Dist below joins the process group: a refusal costs no rendezvous)
-    if cfg.batch < world:  # (each rank was dealt an empty batch, and its loss was NaN)
+    if cfg.batch < world:  # (a rank dealt an empty batch would have a NaN loss)
         raise ValueError(f"batch: expected at least one sample for each of the {world} ranks under torchrun, "
                          f"got {cfg.batch}")
     device = pick_device(cfg.device)
@@ -561,19 +575,20 @@ def _train(task_cls, cfg, out: Path, ck: dict | None, progress: bool, say, rank0
         ids, norm, model, opt, state = _setup(task, cfg, out, ck, dd, device, progress, workers, new_cap)
     except KeyboardInterrupt as e:
         say(_interrupted(out))
-        raise told(e)
+        raise told(e)  # noqa: B904 (told returns e: the caught exception, raised again)
     t_data = time.perf_counter() - t_start
     spec = task.net_spec()
     if dd.rank == 0:
         check_checkpoint_space(model, out, say)
     net = torch.nn.parallel.DistributedDataParallel(model) if dd.on else model
-    say(f"{task.describe(model)}; {len(ids[0]):,} train / {len(ids[1]):,} val / {len(ids[2]):,} test samples; device {device}")
+    say(f"{task.describe(model)}; {len(ids[0]):,} train / {len(ids[1]):,} val / {len(ids[2]):,} test samples; device "
+        f"{device}")
     try:
         stopped = _epochs(task, net, model, opt, ids, norm, state, device, dd, progress, out, spec, stop_after_epoch)
     except (KeyboardInterrupt, _Interrupt) as e:
         say(_interrupted(out))
         if stop_after_epoch is None:
-            raise told(e)
+            raise told(e)  # noqa: B904 (told returns e: the caught exception, raised again)
         return {"interrupted": True}
     say(stopped)
     summary = _finish(task, model, ids, norm, state, device, dd, out, stopped, t_start, t_data)

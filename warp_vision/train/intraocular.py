@@ -4,7 +4,7 @@ Their nets have a fixed first layer (``raw_features``: region log-means, contras
 learned head. The first layer is computed once per dataset, in batches, and training runs the head on it
 (``net(raw=...)``); the standardisation of the raw features (and any other norm entry named like one of
 the net's buffers) is fitted on the training split and copied into the net. Each task has a training set
-(split into train / validation / test) and a held-out set that training never sees, measured at the end.
+(split into train / validation / test) and a held-out set that training never sees, evaluated at the end.
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ class ShallowNetTask(harness.Task):
         d = self._render_set(dcfg, ddir, shard, progress, synthesize)
         net = self._net()
         with torch.no_grad():
-            d["raw"] = torch.cat([net.raw_features(d["onv"][s:s + 256].float(), d["pupil"][s:s + 256], **self.raw_kwargs)
+            d["raw"] = torch.cat([net.raw_features(d["onv"][s:s + 256].float(), d["pupil"][s:s + 256],
+                                                   **self.raw_kwargs)
                                   for s in range(0, len(d["onv"]), 256)])
         del d["onv"]
         return d

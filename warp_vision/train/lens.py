@@ -20,11 +20,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
 from warp_vision.train import evaluation, harness
 from warp_vision.train.config_intraocular import LensTrainConfig
-from warp_vision.nn.intraocular import LENS_BIAS_KNOTS_D
 from warp_vision.train.intraocular import ShallowNetTask
-
 
 #: The sign of the defocus is scored on samples whose defocus exceeds this (D).
 SIGN_ABOVE_D = 0.5
@@ -58,10 +57,15 @@ def fit_bias(pred: np.ndarray, defocus: np.ndarray, accommodation: np.ndarray) -
 def _errors(pred: torch.Tensor, true: torch.Tensor) -> dict:
     e = (pred - true).abs()
     big = true.abs() > SIGN_ABOVE_D
-    return {"loss": float(torch.nn.functional.huber_loss(pred, true)), "median_error_D": float(e.median()),
-            "p90_error_D": float(torch.quantile(e, 0.9)),
-            "sign_correct_above_0.5D": float((torch.sign(pred[big]) == torch.sign(true[big])).float().mean()) if big.any() else float("nan"),
-            "median_error_D_within_0.5D": float(e[~big].median()) if (~big).any() else float("nan")}
+    return {
+        "loss": float(torch.nn.functional.huber_loss(pred, true)),
+        "median_error_D": float(e.median()),
+        "p90_error_D": float(torch.quantile(e, 0.9)),
+        "sign_correct_above_0.5D": float((torch.sign(pred[big]) == torch.sign(true[big])).float().mean())
+        if big.any()
+        else float("nan"),
+        "median_error_D_within_0.5D": float(e[~big].median()) if (~big).any() else float("nan"),
+    }
 
 
 class LensTask(ShallowNetTask):
@@ -124,12 +128,13 @@ class LensTask(ShallowNetTask):
         return _errors(pred, true)
 
     def describe(self, model):
-        return (f"lens net ({self.cfg.eye} eye, {len(self.central):,} central photoreceptors, hidden {self.cfg.hidden}): "
-                f"{sum(p.numel() for p in model.parameters()):,} parameters")
+        return (f"lens net ({self.cfg.eye} eye, {len(self.central):,} central photoreceptors, hidden "
+                f"{self.cfg.hidden}): {sum(p.numel() for p in model.parameters()):,} parameters")
 
     def epoch_line(self, row):
-        return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.3e}  val median error {row['val_median_error_D']:.3f} D, "
-                f"sign right beyond 0.5 D: {100 * row['val_sign_correct_above_0.5D']:.1f}%")
+        return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.3e}  val median error "
+                f"{row['val_median_error_D']:.3f} D, sign right beyond 0.5 D: "
+                f"{100 * row['val_sign_correct_above_0.5D']:.1f}%")
 
     def figures(self, out, history, test, idx):
         import matplotlib
@@ -144,14 +149,15 @@ class LensTask(ShallowNetTask):
         fig.colorbar(sc, ax=ax[0], label="log10 card distance (m)")
         lim = [float(min(true.min(), pred.min())), float(max(true.max(), pred.max()))]
         ax[0].plot(lim, lim, "k-", lw=0.8)
-        ax[0].set(xlabel="true defocus (D)", ylabel="lens net's estimate (D)", title=f"{self.cfg.eye} eye, held-out cards")
+        ax[0].set(xlabel="true defocus (D)", ylabel="lens net's estimate (D)",
+                  title=f"{self.cfg.eye} eye, held-out cards")
         ax[1].hist(pred - true, bins=60, color="C1")
         ax[1].set(xlabel="error (D)", ylabel="held-out ONVs")
         self.save_figure(fig, out, "lens.png")
 
     def eval_line(self, run_dir, split, n, ev):
-        return (f"{run_dir} ({split}, {n:,} ONVs): median error {ev['median_error_D']:.3f} D, p90 {ev['p90_error_D']:.3f} D, "
-                f"sign right beyond 0.5 D: {100 * ev['sign_correct_above_0.5D']:.1f}%")
+        return (f"{run_dir} ({split}, {n:,} ONVs): median error {ev['median_error_D']:.3f} D, p90 "
+                f"{ev['p90_error_D']:.3f} D, sign right beyond 0.5 D: {100 * ev['sign_correct_above_0.5D']:.1f}%")
 
 
 def run(cfg: LensTrainConfig | None = None, **kw) -> dict:

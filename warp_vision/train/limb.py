@@ -6,10 +6,10 @@ range``, the default preset's) to the ball's distance.
 The dataset is :mod:`warp_vision.sim.limb` (the closed loop's world: the body's arms at random postures,
 the cannon's ball near a hand or on a shot's path, the eye tracking it). The net
 (:func:`warp_vision.nn.heads.limb_vision_net`, or with ``--model cnn``
-:class:`warp_vision.nn.retina_cnn.RetinaCNNLimbNet`, trained on turned and mirrored copies) reads the ONV as the foveation net does and outputs six
-values: ``ball - hand`` of the left and of the right arm, in the eye frame (m; the loop turns them into
-the head and world frames with the eye's orientation, which the oculomotor system knows). The loss is a
-Huber loss on the standardised targets, each arm's weighted by ``1 / (near_weight_m + distance)`` so the
+:class:`warp_vision.nn.retina_cnn.RetinaCNNLimbNet`, trained on turned and mirrored copies) reads the ONV as the
+foveation net does and outputs six values: ``ball - hand`` of the left and of the right arm, in the eye frame (m; the
+loop turns them into the head and world frames with the eye's orientation, which the oculomotor system knows). The loss
+is a Huber loss on the standardised targets, each arm's weighted by ``1 / (near_weight_m + distance)`` so the
 balls near a hand, the ones that matter for striking, count most. The best epoch has the smallest
 validation median error on balls within 0.6 m of the hand; the summary gives that error (median and 90th
 percentile, cm, and relative to the true distance) on the test split and on the held-out set (rooms and
@@ -102,7 +102,8 @@ class LimbTask(harness.OnvTask):
 
     def fit_norm(self, train):
         t = self.target[torch.as_tensor(train)]
-        return {**fit_input_norm(self.onv16, train, per_sample=True), "target_mean": t.mean(0), "target_std": t.std(0).clamp_min(1e-6)}
+        return {**fit_input_norm(self.onv16, train, per_sample=True), "target_mean": t.mean(0),
+                "target_std": t.std(0).clamp_min(1e-6)}
 
     def net_spec(self):
         from warp_vision.eye.optics import NavarroEye
@@ -113,8 +114,8 @@ class LimbTask(harness.OnvTask):
                 "reduction": c.reduction, "seed": c.seed, "onv_dtype": onv_dtype_name(c),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
         if c.model in ("cnn", "range"):  # its image's warp: the directions the photoreceptors see at the default optics
-            spec.update(channels=c.channels, image_size=IMAGE_SIZE,
-                        photoreceptor_angles=torch.from_numpy(np.asarray(self.retina.visual_angles(NavarroEye()), np.float64)))
+            angles = np.asarray(self.retina.visual_angles(NavarroEye()), np.float64)
+            spec.update(channels=c.channels, image_size=IMAGE_SIZE, photoreceptor_angles=torch.from_numpy(angles))
         if c.model == "range":
             from warp_vision.nn.retina_cnn import RANGE_ECC_DEG, RANGE_IMAGE_SIZE, RANGE_POWER
 
@@ -128,9 +129,11 @@ class LimbTask(harness.OnvTask):
     def describe(self, model):
         if self.ranging:
             return (f"limb vision ranging cnn ({model.warp.size} x {model.warp.size} image of the central "
-                    f"{math.degrees(model.warp.max_ecc):g} deg): {sum(p.numel() for p in model.parameters()):,} parameters")
+                    f"{math.degrees(model.warp.max_ecc):g} deg): {sum(p.numel() for p in model.parameters()):,} "
+                    "parameters")
         if self.cfg.model == "cnn":
-            return f"limb vision cnn ({model.warp.size} x {model.warp.size} foveated image): {sum(p.numel() for p in model.parameters()):,} parameters"
+            return (f"limb vision cnn ({model.warp.size} x {model.warp.size} foveated image): "
+                    f"{sum(p.numel() for p in model.parameters()):,} parameters")
         b = model.backbone
         return (f"limb vision {self.cfg.model}: {sum(p.numel() for p in model.parameters()):,} parameters, "
                 f"layers {getattr(b, 'layer_sizes', '?')}")
@@ -187,14 +190,16 @@ class LimbTask(harness.OnvTask):
         if self.ranging:
             ev = range_errors(pred.numpy(), true.numpy(), self._hand_m(self.meta[torch.as_tensor(idx)]))
             z, zp = ((t - norm["target_mean"]) / norm["target_std"] for t in (true, pred))
-            ev["loss"] = float(torch.nn.functional.huber_loss(zp, z, delta=RANGE_HUBER_DELTA)) if len(idx) else float("nan")
+            ev["loss"] = float(torch.nn.functional.huber_loss(zp, z,
+                                                              delta=RANGE_HUBER_DELTA)) if len(idx) else float("nan")
             return {**ev, "pred": pred}
         ev = discrepancy_errors(pred.numpy(), true.numpy())
         y = true
         w = self._weights(y)
         z = (y - norm["target_mean"]) / norm["target_std"]
         zp = (pred - norm["target_mean"]) / norm["target_std"]
-        ev["loss"] = float((torch.nn.functional.huber_loss(zp, z, delta=HUBER_DELTA, reduction="none") * w).mean()) if len(idx) else float("nan")
+        ev["loss"] = float((torch.nn.functional.huber_loss(zp, z, delta=HUBER_DELTA,
+                                                           reduction="none") * w).mean()) if len(idx) else float("nan")
         return {**ev, "pred": pred}
 
     def epoch_line(self, row):
@@ -243,7 +248,8 @@ class LimbTask(harness.OnvTask):
         fig, axs = plt.subplots(1, 2, figsize=(10, 4))
         axs[0].scatter(true, pred, s=3, alpha=0.4)
         axs[0].plot([0, true.max()], [0, true.max()], "k", lw=0.8)
-        axs[0].set(xlabel="true distance (m)", ylabel="estimated (m)", title=f"held-out ({self.cfg.eye} eye): the ball's distance")
+        axs[0].set(xlabel="true distance (m)", ylabel="estimated (m)",
+                   title=f"held-out ({self.cfg.eye} eye): the ball's distance")
         axs[1].scatter(true, 100 * np.abs(pred / true - 1), s=3, alpha=0.4)
         axs[1].axhline(5.0, color="r", lw=0.8, ls="--")
         axs[1].set(xlabel="true distance (m)", ylabel="|relative error| (%)", yscale="log", title="relative error")
@@ -286,10 +292,12 @@ class LimbTask(harness.OnvTask):
 
     def eval_line(self, run_dir, split, n, ev):
         if self.ranging:
-            return (f"{run_dir} ({split}, {n:,} ONVs): ball distance error median {100 * ev['depth_median_relative']:.2f}%, "
-                    f"90th percentile {100 * ev['depth_p90_relative']:.2f}%, median {ev['depth_median_cm']:.2f} cm")
-        return (f"{run_dir} ({split}, {n:,} ONVs): hand-ball error within {NEAR_M} m: median {ev['near_median_cm']:.2f} cm, "
-                f"90th percentile {ev['near_p90_cm']:.2f} cm, relative {ev['near_median_relative']:.3f}")
+            return (f"{run_dir} ({split}, {n:,} ONVs): ball distance error median "
+                    f"{100 * ev['depth_median_relative']:.2f}%, 90th percentile {100 * ev['depth_p90_relative']:.2f}%, "
+                    f"median {ev['depth_median_cm']:.2f} cm")
+        return (f"{run_dir} ({split}, {n:,} ONVs): hand-ball error within {NEAR_M} m: median "
+                f"{ev['near_median_cm']:.2f} cm, 90th percentile {ev['near_p90_cm']:.2f} cm, relative "
+                f"{ev['near_median_relative']:.3f}")
 
 
 def run(cfg: LimbTrainConfig | None = None, **kw) -> dict:

@@ -105,7 +105,8 @@ class OculomotorTask(harness.Task):
                 **on_body, "holding_residual_Nm_max": float(self.residual.max()), "dataset": str(self.ddir)}
 
     def eval_line(self, run_dir, split, n, ev):
-        return f"{run_dir} ({split}, {n:,} transitions): loss {ev['loss']:.3e}, activation RMSE {ev['activation_rmse']:.4f}"
+        return (f"{run_dir} ({split}, {n:,} transitions): loss {ev['loss']:.3e}, activation RMSE "
+                f"{ev['activation_rmse']:.4f}")
 
 
 def run(cfg: OculomotorTrainConfig | None = None, **kw) -> dict:

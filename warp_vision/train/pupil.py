@@ -56,8 +56,8 @@ class PupilTask(ShallowNetTask):
         return _errors(pred, true)
 
     def describe(self, model):
-        return (f"pupil net ({self.cfg.eye} eye, {self.cfg.rings}x{self.cfg.sectors} regions, hidden {self.cfg.hidden}): "
-                f"{sum(p.numel() for p in model.parameters()):,} parameters")
+        return (f"pupil net ({self.cfg.eye} eye, {self.cfg.rings}x{self.cfg.sectors} regions, hidden "
+                f"{self.cfg.hidden}): {sum(p.numel() for p in model.parameters()):,} parameters")
 
     def epoch_line(self, row):
         return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.3e} mm^2  val median error "

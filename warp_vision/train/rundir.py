@@ -24,8 +24,16 @@ import torch
 
 from warp_vision.data.store import ChunkedStore
 from warp_vision.fileio import FileLock, atomic_copy, atomic_write, probe_writable, require_output, resolved
-from warp_vision.nn.trained import (TRAINING_LOCK, read_checkpoint, read_run_config, require_binding, run_identity,
-                                    saved_task, seal, task_command)
+from warp_vision.nn.trained import (
+    TRAINING_LOCK,
+    read_checkpoint,
+    read_run_config,
+    require_binding,
+    run_identity,
+    saved_task,
+    seal,
+    task_command,
+)
 
 #: the files a run directory's run consists of (a new run refuses a directory holding any of them)
 RUN_FILES = ("metrics.jsonl", "latest.pt", "previous.pt", "best.pt", "summary.json")
@@ -90,7 +98,8 @@ def warm_start(model: torch.nn.Module, run_dir, task: str | None = None) -> None
         require_binding(ck, {"task": task}, best, f"this {task} run's --init")
     config = read_run_config(best.parent)
     if config is not None:  # (what check_new_run read of the run is what the checkpoint is)
-        require_binding(ck, run_identity(saved_task(best.parent, config), config), best, f"the run in {best.parent}", config)
+        require_binding(ck, run_identity(saved_task(best.parent, config), config), best, f"the run in {best.parent}",
+                        config)
     state = ck["model"]
     try:
         model.load_state_dict(state)
@@ -139,7 +148,8 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
     if resume:
         out = resolved(resume, "--resume")
         if not (out / "config.json").exists():
-            raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(out / "config.json"))
+            raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory",
+                                    str(out / "config.json"))
         task = saved_task(out)
         if task != task_cls.name:
             raise ValueError(f"--resume {resume}: {a_run(task)}, not {a_run(task_cls.name)}; resume it with "
@@ -175,7 +185,7 @@ def open_run(task_cls, cfg, resume: str | None, overwrite: bool, epochs: int | N
         out = Path(cfg.out)
         require_output(out, "--out")
         # a complete dataset may sit in a read-only directory; one still to be rendered needs a directory that
-        # can be made and written (/proc/x was refused only after the run directory was claimed)
+        # can be made and written, checked before the run directory is claimed
         data_dir = getattr(cfg, "data_dir", "") or "."
         require_output(data_dir, "--data-dir", writable=not ChunkedStore.whole_at(data_dir))
         hold_run_dir(out)  # (before --overwrite deletes a run another process may be training)
@@ -231,7 +241,8 @@ def preflight(task, out: Path, data_dir: Path, log) -> None:
     """Before any expensive work: ``out`` is a writable directory; the dataset (when it is not all
     there) fits in the free space of its directory; the dataset fits in memory. Prints the estimates;
     raises OSError (no space, read-only, permissions) or ValueError (memory) otherwise."""
-    from warp_vision.resources import available_memory_bytes, free_disk_bytes, human_bytes as _mib, require_disk, require_memory
+    from warp_vision.resources import available_memory_bytes, free_disk_bytes, require_disk, require_memory
+    from warp_vision.resources import human_bytes as _mib
 
     probe_writable(out)
     need = task.dataset_bytes()
@@ -258,7 +269,8 @@ def check_checkpoint_space(model, out: Path, log) -> None:
 
 def dataset_dir(cfg, kind: str, data_config) -> Path:
     """``cfg.data_dir``, or the cache directory ``runs/datasets/<kind>-<data config hash>`` (relative to the
-    working directory: a new run records it as an absolute path, see :meth:`warp_vision.train.harness.Task.resolve_paths`)."""
+    working directory: a new run records it as an absolute path, see
+    :meth:`warp_vision.train.harness.Task.resolve_paths`)."""
     return Path(cfg.data_dir) if cfg.data_dir else Path("runs/datasets") / f"{kind}-{data_config.key()}"
 
 
@@ -318,7 +330,7 @@ def sync_metrics(out: Path, history: list) -> None:
 
 def read_metrics(path, need: tuple[str, ...] = ("epoch",)) -> list[dict]:
     """The rows of a run's ``metrics.jsonl``; a line that is not a JSON object holding the keys ``need`` is a
-    ValueError naming the file and the line (it was a bare JSON error or a KeyError's traceback)."""
+    ValueError naming the file and the line, not a bare JSON error or a KeyError's traceback."""
     rows = []
     for n, line in enumerate(Path(path).read_text().splitlines(), 1):
         if not line.strip():
@@ -350,7 +362,8 @@ def saved_config(task_cls, run_dir):
     """The config of the run in ``run_dir`` as its config.json holds it, read as ``task_cls.config_cls``."""
     saved = read_run_config(run_dir)
     if saved is None:
-        raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory", str(Path(run_dir) / "config.json"))
+        raise FileNotFoundError(errno.ENOENT, "no config.json: not a training run directory",
+                                str(Path(run_dir) / "config.json"))
     return config_from_saved(task_cls.config_cls, saved, Path(run_dir) / "config.json")
 
 
@@ -385,8 +398,9 @@ def config_from_saved(cls, saved: dict, source, optional=()):
     kinds = {f.name: f.type for f in fields(cls)}
     unknown = [k for k in saved if k not in kinds]
     if unknown:
-        raise ValueError(f"{source}: {', '.join(map(repr, unknown))}: not {'a setting' if len(unknown) == 1 else 'settings'} "
-                         f"of this run's task (edited by hand, or written by another version?)")
+        raise ValueError(f"{source}: {', '.join(map(repr, unknown))}: not "
+                         f"{'a setting' if len(unknown) == 1 else 'settings'} of this run's task (edited by hand, or "
+                         "written by another version?)")
     missing = missing_settings(cls, saved, optional)
     if missing:
         raise ValueError(f"{source}: the setting{'s' if len(missing) > 1 else ''} {', '.join(map(repr, missing))} "

@@ -61,7 +61,8 @@ def verdicts(score: np.ndarray, label: np.ndarray, cls: np.ndarray, threshold: f
     from warp_vision.data.verification import CLASSES
 
     acc = score >= threshold
-    out = {"false_rejects": float(np.mean(~acc[label > 0.5])) if (label > 0.5).any() else float("nan"), "false_accepts": {}}
+    out = {"false_rejects": float(np.mean(~acc[label > 0.5])) if (label > 0.5).any() else float("nan"),
+           "false_accepts": {}}
     for k, name in enumerate(CLASSES):
         m = (cls == k) & (label <= 0.5)
         if k and m.any():
@@ -131,9 +132,9 @@ class VerifyTask(harness.Task):
         c = self.cfg
         central = central_photoreceptors(self.retina, c.central_deg)
         angles = np.asarray(self.retina.visual_angles(make_eye(c.data_config().scene_config())), np.float64)
-        return {"kind": "verify", "model": c.model, "central_deg": c.central_deg, "seed": c.seed, "channels": c.channels,
-                "layers": c.layers, "receptive_field": c.receptive_field, "reduction": c.reduction,
-                "central": torch.from_numpy(central.astype(np.int64)),
+        return {"kind": "verify", "model": c.model, "central_deg": c.central_deg, "seed": c.seed,
+                "channels": c.channels, "layers": c.layers, "receptive_field": c.receptive_field,
+                "reduction": c.reduction, "central": torch.from_numpy(central.astype(np.int64)),
                 "photoreceptor_angles": torch.from_numpy(np.nan_to_num(angles)),
                 "photoreceptor_xy": torch.from_numpy(np.asarray(self.retina.domain_xy, np.float64))}
 
@@ -147,7 +148,8 @@ class VerifyTask(harness.Task):
             from warp_vision.nn.retina_cnn import ROTATIONS
 
             ks = [int(k) for k in torch.randint(2 * ROTATIONS, (AUGMENT_GROUPS,))]
-            offset = torch.cat([transform_offsets(o, k) for o, k in zip(torch.tensor_split(offset, AUGMENT_GROUPS), ks)])
+            offset = torch.cat([transform_offsets(o, k) for o,
+                                k in zip(torch.tensor_split(offset, AUGMENT_GROUPS), ks)])
         out = net(net_input(data["onv"][i], norm, device), transform=ks)
         label = data["label"][i].to(device)
         weight = ((label > 0.5) | (data["ecc"][i].to(device) > IGNORE_DEG)).float()
@@ -155,7 +157,8 @@ class VerifyTask(harness.Task):
 
     def _loss(self, out, label_weight, offset_deg):
         label, weight = label_weight[:, 0], label_weight[:, 1]
-        bce = (torch.nn.functional.binary_cross_entropy_with_logits(out[:, 0], label, reduction="none") * weight).sum() \
+        bce = (torch.nn.functional.binary_cross_entropy_with_logits(out[:, 0], label,
+                                                                    reduction="none") * weight).sum() \
             / weight.sum().clamp_min(1)
         pos = label > 0.5
         off = (torch.nn.functional.huber_loss(out[pos, 1:], offset_deg[pos], delta=HUBER_DEG) if pos.any()
@@ -225,7 +228,8 @@ class VerifyTask(harness.Task):
 
     def epoch_line(self, row):
         return (f"epoch {row['epoch']:3d}: train loss {row['train_loss']:.4f}  val loss {row['val_loss']:.4f}  "
-                f"AUC {row['val_auc']:.4f}  false accepts at 1% false rejects {100 * row['val_false_accepts_all']:.1f}%")
+                f"AUC {row['val_auc']:.4f}  false accepts at 1% false rejects "
+                f"{100 * row['val_false_accepts_all']:.1f}%")
 
     def figures(self, out, history, test, idx):
         import matplotlib
@@ -259,8 +263,9 @@ class VerifyTask(harness.Task):
 
     def eval_line(self, run_dir, split, n, ev):
         fa = ", ".join(f"{k} {100 * v['rate']:.1f}%" for k, v in ev["false_accepts"].items())
-        return (f"{run_dir} ({split}, {n:,} ONVs): AUC {ev['auc']:.4f}, false rejects {100 * ev['false_rejects']:.1f}%, "
-                f"false accepts {100 * ev['false_accepts_all']:.1f}% ({fa}); offset median {ev['median_offset_error_deg']:.2f} deg")
+        return (f"{run_dir} ({split}, {n:,} ONVs): AUC {ev['auc']:.4f}, false rejects "
+                f"{100 * ev['false_rejects']:.1f}%, false accepts {100 * ev['false_accepts_all']:.1f}% ({fa}); offset "
+                f"median {ev['median_offset_error_deg']:.2f} deg")
 
 
 def run(cfg: VerifyTrainConfig | None = None, **kw) -> dict:

@@ -114,9 +114,9 @@ def _render_shard(task_cls, cfg, shard: tuple[int, int], threads: int) -> None:
 
 
 def render_in_processes(task, workers: int, progress: bool) -> bool:
-    """Synthesise ``task``'s (a :class:`warp_vision.train.harness.Task`) missing dataset in ``workers`` processes: this one renders shard 0 of
-    ``workers`` (with the progress bar), ``workers - 1`` spawned helpers the others, all at once (the
-    samples do not depend on the shard that renders them: the dataset is the same as one process's).
+    """Synthesise ``task``'s (a :class:`warp_vision.train.harness.Task`) missing dataset in ``workers`` processes: this
+    one renders shard 0 of ``workers`` (with the progress bar), ``workers - 1`` spawned helpers the others, all at once
+    (the samples do not depend on the shard that renders them: the dataset is the same as one process's).
     Returns False, doing nothing, when there is nothing to render, one worker, or a task that renders
     in one process only. A helper that fails is a RuntimeError after the others finish (the chunks
     written stay: run again to resume)."""
@@ -148,5 +148,6 @@ def render_in_processes(task, workers: int, progress: bool) -> bool:
     failed = [h.exitcode for h in helpers if h.exitcode != 0]
     if failed:
         raise RuntimeError(f"{len(failed)} of {workers - 1} synthesis helper(s) failed (exit code {failed[0]}); the "
-                           "chunks written are kept: run the same command again to resume, or with --workers 1 to see the error")
+                           "chunks written are kept: run the same command again to resume, or with --workers 1 to see "
+                           "the error")
     return True

@@ -11,9 +11,10 @@ arrays of :class:`warp_vision.kernels.linet.op.LinetPlan`). No ``[B, N, R]`` int
 Two families share that maths: the batch-major kernels (``linet_forward``, ``linet_grad_x``,
 ``linet_grad_weight``, ``linet_grad_bias``), which take 2D arrays of any strides and 8 batch rows per
 thread, and the feature-major ``*_fm`` kernels, which read each input's 64 batch rows as one vector
-(:mod:`warp_vision.kernels.linet.layout`). The backward kernels are written by hand: Warp's automatic
-adjoints are not trusted for loops whose trip count is not a compile-time constant
-(docs/ARCHITECTURE.md). :mod:`warp_vision.kernels.linet.op` chooses and launches them.
+(:mod:`warp_vision.kernels.linet.layout`). The backward kernels are written by hand and Warp's automatic
+adjoints are off (``enable_backward``): the adjoint of a loop whose trip count is a runtime value is not
+reliable, and that of a gather is a scatter a split launch cannot run (docs/ARCHITECTURE.md, Conventions,
+"Warp's adjoints are off"). :mod:`warp_vision.kernels.linet.op` chooses and launches them.
 """
 
 from __future__ import annotations
@@ -209,8 +210,8 @@ def linet_forward_fm(
     Every array is flat (1D): ``xT`` and ``yT_out`` hold ``chunks`` = B / 64 vectors per feature,
     ``weight`` and ``index`` are [N, R] flattened. Flat arrays cost one address computation per
     access (2D arrays add a stride multiply and a negative-index wrap per dimension), and the while
-    loops are leaner than range()'s runtime-step iterator. Thread t = n loops over the row's vectors (no integer division per
-    thread: on the CPU a division costs more than a unit's 20 vector FMAs).
+    loops are leaner than range()'s runtime-step iterator. Thread t = n loops over the row's vectors (no integer
+    division per thread: on the CPU a division costs more than a unit's 20 vector FMAs).
     """
     n = offset + wp.tid()
     e0 = n * receptive_field

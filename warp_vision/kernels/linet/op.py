@@ -235,12 +235,13 @@ def forward(x: Tensor, weight: Tensor, bias: Tensor, plan: LinetPlan, relu: bool
         yT = torch.empty(N, B, dtype=weight.dtype, device=x.device)
         if N and feature_major(x):
             launch_kernel(linet_forward_fm, N,
-                   [flat_vectors(x.t()), warp_array(weight.reshape(-1)), warp_array(bias), warp_array(plan.index.reshape(-1)),
-                    plan.receptive_field, B // LANES, int(relu)],
-                   [flat_vectors(yT)], dev)
+                          [flat_vectors(x.t()), warp_array(weight.reshape(-1)), warp_array(bias),
+                           warp_array(plan.index.reshape(-1)), plan.receptive_field, B // LANES, int(relu)],
+                          [flat_vectors(yT)], dev)
         elif N:
             launch_kernel(linet_forward, _blocks(B, BATCH_BLOCK) * N,
-                   [warp_array(x), warp_array(weight), warp_array(bias), warp_array(plan.index), int(relu)], [warp_array(yT.t())], dev)
+                          [warp_array(x), warp_array(weight), warp_array(bias), warp_array(plan.index), int(relu)],
+                          [warp_array(yT.t())], dev)
         return yT.t()
     y = torch.empty(B, N, dtype=weight.dtype, device=x.device)
     if B and N:
@@ -303,7 +304,8 @@ def backward(
         grad_w = torch.zeros(N, R, dtype=grad_y.dtype, device=grad_y.device)
         if B and N and R:
             groups = _blocks(R, CONN_BLOCK)
-            launch_kernel(linet_grad_weight, N * groups, [warp_array(x), g, yy, warp_array(plan.index), relu], [warp_array(grad_w)], dev)
+            launch_kernel(linet_grad_weight, N * groups, [warp_array(x), g, yy, warp_array(plan.index), relu],
+                          [warp_array(grad_w)], dev)
     if need[2]:
         grad_b = torch.empty(N, dtype=grad_y.dtype, device=grad_y.device)
         launch_kernel(linet_grad_bias, N, [g, yy, relu], [warp_array(grad_b)], dev)
@@ -332,8 +334,9 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev, x_dtype):
         if N and plan.in_features:
             t_offsets, t_entries, t_units = plan.transposed()
             launch_kernel(linet_grad_x_fm, plan.in_features,
-                   [g, warp_array(weight.reshape(-1)), warp_array(t_offsets), warp_array(t_entries), warp_array(t_units), chunks],
-                   [flat_vectors(gxT)], dev)
+                          [g, warp_array(weight.reshape(-1)), warp_array(t_offsets), warp_array(t_entries),
+                           warp_array(t_units), chunks],
+                          [flat_vectors(gxT)], dev)
         else:
             gxT.zero_()
         grad_x = gxT.t()
@@ -348,13 +351,15 @@ def _backward_fm(x, weight, plan, grad_y, y, need, dev, x_dtype):
         # the bias gradient comes with the weight gradient (into scratch when it is not wanted)
         gb = grad_b if grad_b is not None else torch.empty(N, dtype=grad_y.dtype, device=grad_y.device)
         launch_kernel(linet_grad_weight_fm, N,
-               [flat_vectors(x.t()), g, warp_array(plan.index.reshape(-1)), R, chunks], [warp_array(grad_w.reshape(-1)), warp_array(gb)], dev)
+                      [flat_vectors(x.t()), g, warp_array(plan.index.reshape(-1)), R, chunks],
+                      [warp_array(grad_w.reshape(-1)), warp_array(gb)], dev)
         return grad_x, grad_w, grad_b
     g_bm = warp_array(gT.t())  # the same memory, seen [B, N] by the batch-major kernels
     y_bm = warp_array(y) if relu else g_bm  # unread when relu == 0
     if need[1] and R:
-        launch_kernel(linet_grad_weight, N * _blocks(R, CONN_BLOCK), [warp_array(x), g_bm, y_bm, warp_array(plan.index), relu],
-               [warp_array(grad_w)], dev)
+        launch_kernel(linet_grad_weight, N * _blocks(R, CONN_BLOCK),
+                      [warp_array(x), g_bm, y_bm, warp_array(plan.index), relu],
+                      [warp_array(grad_w)], dev)
     if need[2]:
         if relu:
             launch_kernel(linet_grad_bias, N, [g_bm, y_bm, relu], [warp_array(grad_b)], dev)
@@ -440,7 +445,8 @@ def locally_connected(
     elif not serves(plan, index, x.shape[1]):
         raise ValueError(
             f"plan: expected a plan for this index ({tuple(index.shape)}, {index.dtype}, its current values) over "
-            f"{x.shape[1]} inputs, got one for {tuple(plan.index.shape)} over {plan.in_features} built from other values"
+            f"{x.shape[1]} inputs, got one for {tuple(plan.index.shape)} over {plan.in_features} built from other "
+            "values"
         )
     if plan.index.device != x.device:
         raise ValueError(f"plan: expected device {x.device} (the device of x), got {plan.index.device}")

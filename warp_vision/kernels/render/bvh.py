@@ -175,7 +175,8 @@ def _build_nodes(tlo: np.ndarray, thi: np.ndarray, cen: np.ndarray):
         axis_arr[ni] = split_axis
         stack.append((li + 1, mid, e))
         stack.append((li, s, mid))
-    return (lo[:used], hi[:used], left[:used].copy(), start[:used].copy(), count[:used].copy(), axis_arr[:used].copy()), order
+    return (lo[:used], hi[:used], left[:used].copy(), start[:used].copy(), count[:used].copy(),
+            axis_arr[:used].copy()), order
 
 
 def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> BVH:
@@ -208,7 +209,8 @@ def bvh_cache_dir() -> Path | None:
     if root is not None and root.strip().lower() == "off":
         return None
     if not root:
-        root = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "warp_vision")
+        root = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+                            "warp_vision")
     return Path(root) / "bvh"
 
 

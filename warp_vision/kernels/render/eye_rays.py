@@ -283,13 +283,15 @@ def _retina_positions(retina) -> np.ndarray:
 def surface_table(eye: NavarroEye) -> np.ndarray:
     """[3, 4, 6] float32: per RGB channel and surface, (z0, R, Q, n_front, n_back, semi_diameter)."""
     return np.array(
-        [[[s.z0, s.R, s.Q, s.n_front, s.n_back, s.semi_diameter] for s in eye.surfaces(wl)] for wl in CHANNEL_WAVELENGTHS_NM],
+        [[[s.z0, s.R, s.Q, s.n_front, s.n_back,
+           s.semi_diameter] for s in eye.surfaces(wl)] for wl in CHANNEL_WAVELENGTHS_NM],
         dtype=np.float32,
     )
 
 
 #: memory per ray bundle (photoreceptor x pupil sample) while the eye's rays are built: 3 channels of
-#: origin, direction and weight (84 B) and the pupil samples with their temporaries (measured ~147 B in all)
+#: origin, direction and weight (84 B) and the pupil samples with their temporaries, an upper bound of the
+#: peak (docs/RESULTS.md, "Figures behind the code's constants")
 EYE_RAYS_BYTES_PER_SAMPLE = 160
 
 

@@ -58,7 +58,8 @@ class BvhData:
 
 def concat_bvhs(bvhs: list[BVH]) -> dict:
     """Concatenate per-instance BVHs into the global arrays of :class:`BvhData` (numpy)."""
-    out = {k: [] for k in ("node_lo", "node_hi", "node_left", "node_start", "node_count", "node_axis", "tri_v0", "tri_e1", "tri_e2", "tri_face", "tri_inst")}
+    out = {k: [] for k in ("node_lo", "node_hi", "node_left", "node_start", "node_count", "node_axis", "tri_v0",
+                           "tri_e1", "tri_e2", "tri_face", "tri_inst")}
     roots = []
     n_off = t_off = 0
     for i, b in enumerate(bvhs):
@@ -129,7 +130,8 @@ def box_hit(ix: vec8, iy: vec8, iz: vec8, oix: vec8, oiy: vec8, oiz: vec8, lo: w
     return r;
     """
 )
-def tri_hit(ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, v0: wp.vec3, e1: wp.vec3, e2: wp.vec3, tb: vec8) -> vec8:
+def tri_hit(ox: vec8, oy: vec8, oz: vec8, dx: vec8, dy: vec8, dz: vec8, v0: wp.vec3, e1: wp.vec3, e2: wp.vec3,
+            tb: vec8) -> vec8:
     """Per lane: t of a hit with triangle (v0, v0 + e1, v0 + e2) closer than tb, else tb (NaN-safe)."""
     ...
 
@@ -254,6 +256,13 @@ def _packet_traverse(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8
     closer, and the global triangle index, or -1. Any hit (True, shadow rays): children in stored order,
     a lane that hits anything is set to DEAD, and the traversal stops once every lane is dead; tri is
     left at -1.
+
+    Length: one function over the docs' ~80 lines. It is the renderer's innermost loop, and its steps share
+    and mutate the packet's limits ``tb``, its triangles ``tri``, the 64-entry ``stack`` and its pointer.
+    Split into Warp functions, those would travel by value (a copy of the stack per call) or as ``wp.ref``
+    parameters; either changes the code Warp generates for the loop that ``bench raytrace`` times, so it
+    stays whole until a split is timed there. The steps that need none of that state are helpers already
+    (``_slab_terms``, ``_packet_in_instance``, ``_children_hit``, ``tri_hit``).
     """
     tb = t_in
     tri = ivec8()
@@ -271,7 +280,8 @@ def _packet_traverse(bv: BvhData, b: int, ox: vec8, oy: vec8, oz: vec8, dx: vec8
         # where moving the packet into the instance's frame costs 8 transforms and 24 divisions
         if not box_hit(wix, wiy, wiz, woix, woiy, woiz, bv.inst_world_lo[bt, inst], bv.inst_world_hi[bt, inst], tb):
             continue
-        lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz = _packet_in_instance(bv.inst_from_world[bt, inst], ox, oy, oz, dx, dy, dz)
+        lx, ly, lz, mx, my, mz, ix, iy, iz, oix, oiy, oiz = _packet_in_instance(bv.inst_from_world[bt, inst], ox, oy,
+                                                                                oz, dx, dy, dz)
         node = bv.inst_root[inst]
         if not box_hit(ix, iy, iz, oix, oiy, oiz, bv.node_lo[node], bv.node_hi[node], tb):
             continue

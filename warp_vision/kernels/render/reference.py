@@ -61,7 +61,14 @@ def intersect_triangles(o, d, v0, v1, v2, t_max=np.inf):
             qvec = np.cross(tvec, e1[None])
             b2 = np.sum(dd * qvec, axis=-1) * inv
             t = np.sum(e2[None] * qvec, axis=-1) * inv
-            ok = (np.abs(det) > 1e-20) & (b1 >= 0) & (b2 >= 0) & (b1 + b2 <= 1) & (t >= 0) & (t < t_max[s : s + chunk, None])
+            ok = (
+                (np.abs(det) > 1e-20)
+                & (b1 >= 0)
+                & (b2 >= 0)
+                & (b1 + b2 <= 1)
+                & (t >= 0)
+                & (t < t_max[s : s + chunk, None])
+            )
         t = np.where(ok, t, np.inf)
         f = np.argmin(t, axis=1)
         rows = np.arange(len(f))
@@ -199,7 +206,8 @@ def radiance_ref(scene, origins, directions, batch: int = 0, max_depth: int = 2)
     return result
 
 
-def render_onv_ref(scene, retina_mm, eye: NavarroEye, eye_poses, samples_per_receptor: int = 1, seed: int = 0, max_depth: int = 2):
+def render_onv_ref(scene, retina_mm, eye: NavarroEye, eye_poses, samples_per_receptor: int = 1, seed: int = 0,
+                   max_depth: int = 2):
     """The ONV [B, 3P] by the references above (float64)."""
     O, D, W = eye_rays_ref(retina_mm, eye, samples_per_receptor, seed)
     T = np.asarray(eye_poses, dtype=np.float64).reshape(-1, 4, 4)

@@ -27,7 +27,6 @@ from warp_vision.kernels.render.bvh import build_bvh_cached
 from warp_vision.kernels.render.packet import BvhData, concat_bvhs
 from warp_vision.kernels.render.shade import FLAG_SMOOTH, FLAG_VERTEX_COLORS, SceneData
 
-
 #: The shading values of a Material that may vary per batch element (the kernels' material arrays).
 MATERIAL_FIELDS = ("diffuse", "specular", "shininess", "reflectivity", "emission")
 
@@ -162,8 +161,10 @@ class _SceneGeometry:
         self.normals = arr(np.concatenate(normals).astype(np.float32), wp.vec3)
         self.colors = arr(np.concatenate(colors).astype(np.float32), wp.vec3)
         self.vert_offset = arr(np.array(v_off, np.int32), wp.int32)
-        flags = [(FLAG_VERTEX_COLORS if _vertex_colors(o) is not None else 0) | (FLAG_SMOOTH if o.material.smooth else 0)
-                 for o in scene.objects]
+        flags = [
+            (FLAG_VERTEX_COLORS if _vertex_colors(o) is not None else 0) | (FLAG_SMOOTH if o.material.smooth else 0)
+            for o in scene.objects
+        ]
         self.flags = arr(np.array(flags, np.int32), wp.int32)
         self.device = device
         self.materials_version = None  # the scene._materials_version of the shared materials below
@@ -243,13 +244,15 @@ def _light_arrays(scene) -> tuple[np.ndarray, np.ndarray]:
     """The point lights' positions and radiant intensities (colour * intensity), [B or 1, n_lights, 3]."""
     if scene.lights:
         Bl = max(
-            max(np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0], np.atleast_1d(li.intensity).shape[0])
+            max(np.atleast_2d(li.position).shape[0], np.atleast_2d(li.color).shape[0],
+                np.atleast_1d(li.intensity).shape[0])
             for li in scene.lights
         )
         pos = np.stack([np.broadcast_to(np.atleast_2d(li.position), (Bl, 3)) for li in scene.lights], axis=1)
         rad = np.stack(
             [
-                np.broadcast_to(np.atleast_2d(li.color), (Bl, 3)) * np.broadcast_to(np.atleast_1d(li.intensity), (Bl,))[:, None]
+                np.broadcast_to(np.atleast_2d(li.color),
+                                (Bl, 3)) * np.broadcast_to(np.atleast_1d(li.intensity), (Bl,))[:, None]
                 for li in scene.lights
             ],
             axis=1,

@@ -12,8 +12,8 @@ lights (``bl``), materials (``bm``: diffuse, specular, shininess, reflectivity, 
 n_obj]``; the smooth / vertex-colour flags are per object) and ambient light (``ba``, ``[1 or B]``).
 
 The kernels launch one thread per group of G photoreceptors (``render_onv_kernel``: their rays, 8 at a
-time in full packets, summed by their weights into the ONV; G = 2 at S = 4), per 4 x 2 pixel tile (``camera_kernel``) or per 8 rays
-(``radiance_kernel``, ``closest_hit_kernel``). Every thread writes only its own outputs, so there are
+time in full packets, summed by their weights into the ONV; G = 2 at S = 4), per 4 x 2 pixel tile (``camera_kernel``) or
+per 8 rays (``radiance_kernel``, ``closest_hit_kernel``). Every thread writes only its own outputs, so there are
 no atomics and CPU launches split over threads give bit-identical results. The host side (scene
 upload, argument checks, launches) is :mod:`warp_vision.kernels.render.scene_data` and
 :mod:`warp_vision.kernels.render.trace`.
@@ -151,7 +151,8 @@ def _hit_surfaces(sc: SceneData, bt: int, bm: int, ox: vec8, oy: vec8, oz: vec8,
         obj[l] = -1
         if lim[l] < 0.0 or tri[l] < 0:
             continue
-        p, n, base, ob = _lane_surface(sc, bt, bm, tri[l], wp.vec3(ox[l], oy[l], oz[l]), wp.vec3(dx[l], dy[l], dz[l]), t[l])
+        p, n, base, ob = _lane_surface(sc, bt, bm, tri[l], wp.vec3(ox[l], oy[l], oz[l]), wp.vec3(dx[l], dy[l], dz[l]),
+                                       t[l])
         px[l] = p[0]
         py[l] = p[1]
         pz[l] = p[2]
@@ -226,8 +227,8 @@ def _direct_light(sc: SceneData, b: int, bl: int, bm: int, ba: int, px: vec8, py
         for l in range(8):
             if slim[l] < 0.0 or vis[l] < 0.0:
                 continue
-            c = _phong(wp.vec3(nx[l], ny[l], nz[l]), wp.vec3(sx[l], sy[l], sz[l]), wp.vec3(dx[l], dy[l], dz[l]), slim[l],
-                       E0, wp.vec3(cr[l], cg[l], cb[l]), sc.specular[bm, obj[l]], sc.shininess[bm, obj[l]])
+            c = _phong(wp.vec3(nx[l], ny[l], nz[l]), wp.vec3(sx[l], sy[l], sz[l]), wp.vec3(dx[l], dy[l], dz[l]),
+                       slim[l], E0, wp.vec3(cr[l], cg[l], cb[l]), sc.specular[bm, obj[l]], sc.shininess[bm, obj[l]])
             lr[l] = lr[l] + c[0]
             lg[l] = lg[l] + c[1]
             lb[l] = lb[l] + c[2]
@@ -298,14 +299,14 @@ def packet_radiance(
     thg = vec8(1.0)
     thb = vec8(1.0)
     lim = live
-    for depth in range(sc.max_depth + 1):
+    for _depth in range(sc.max_depth + 1):
         t, tri = packet_closest(sc.bv, b, ox, oy, oz, dx, dy, dz, lim)
         R, G, Bc = _add_background(sc, lim, tri, thr, thg, thb, R, G, Bc)
         px, py, pz, nx, ny, nz, cr, cg, cb, obj = _hit_surfaces(sc, bt, bm, ox, oy, oz, dx, dy, dz, lim, t, tri)
         lr, lg, lb = _direct_light(sc, b, bl, bm, ba, px, py, pz, nx, ny, nz, cr, cg, cb, obj, dx, dy, dz)
         R, G, Bc = _add_surface_light(sc, bm, obj, lr, lg, lb, thr, thg, thb, R, G, Bc)
-        ox, oy, oz, dx, dy, dz, thr, thg, thb, nxt = _mirror(sc, bm, obj, px, py, pz, nx, ny, nz, ox, oy, oz, dx, dy, dz,
-                                                             thr, thg, thb)
+        ox, oy, oz, dx, dy, dz, thr, thg, thb, nxt = _mirror(sc, bm, obj, px, py, pz, nx, ny, nz, ox, oy, oz, dx, dy,
+                                                             dz, thr, thg, thb)
         if all_negative(nxt):
             break
         lim = nxt

@@ -26,7 +26,14 @@ from warp_vision.eye.optics import NavarroEye
 from warp_vision.kernels import launch as _launch
 from warp_vision.kernels.render.eye_rays import _check_samples, _retina_positions, eye_rays, eye_rays_bytes
 from warp_vision.kernels.render.scene_data import scene_data, to_warp_transforms
-from warp_vision.kernels.render.shade import SceneData, camera_kernel, closest_hit_kernel, photoreceptors_per_thread, radiance_kernel, render_onv_kernel
+from warp_vision.kernels.render.shade import (
+    SceneData,
+    camera_kernel,
+    closest_hit_kernel,
+    photoreceptors_per_thread,
+    radiance_kernel,
+    render_onv_kernel,
+)
 from warp_vision.resources import require_memory
 
 #: CPU launch splitting for tracing kernels (``launch_split`` keywords): threads are heavy and unequal
@@ -101,7 +108,8 @@ def render_onv(
     B = T.shape[0]
     Bs = scene.batch_size()
     if Bs not in (1, B):
-        raise ValueError(f"scene: its per-batch transforms/lights/materials/ambient have batch {Bs}, but eye_poses has {B}")
+        raise ValueError(f"scene: its per-batch transforms/lights/materials/ambient have batch {Bs}, but eye_poses has "
+                         f"{B}")
     P, S = len(_retina_positions(retina)), _check_samples(samples_per_receptor)
     require_memory(eye_rays_bytes(P, S) + B * 3 * P * 4,
                    f"render_onv (B={B}, P={P:,}, S={S:,})", "samples_per_receptor, the batch or P")
@@ -113,7 +121,8 @@ def render_onv(
     if getattr(sc, "_cls", None) is not SceneData:
         raise ValueError(f"packed: expected scene_data(scene, device, max_depth={max_depth}), got {type(sc).__name__}")
     if sc.max_depth != max_depth:
-        raise ValueError(f"packed: expected scene_data(scene, device, max_depth={max_depth}), got max_depth={sc.max_depth}")
+        raise ValueError(f"packed: expected scene_data(scene, device, max_depth={max_depth}), got "
+                         f"max_depth={sc.max_depth}")
     G = photoreceptors_per_thread(rays.S)
     _launch.launch_split(
         render_onv_kernel,

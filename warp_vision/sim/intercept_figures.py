@@ -120,7 +120,7 @@ def compose_strike_frame(third_person: np.ndarray, retina: np.ndarray, caption: 
     width (as an .mp4 needs): uint8 [H + H % 2, W + H/2 (+1), 3]."""
     from PIL import Image, ImageDraw
 
-    from warp_vision.sim.video import check_rgb_u8, resize_square, label
+    from warp_vision.sim.video import check_rgb_u8, label, resize_square
 
     third_person = check_rgb_u8("third_person", third_person)
     H, W = third_person.shape[:2]
@@ -162,7 +162,8 @@ def plot_hand_ball_distance(trace: dict, path: str, contact_t: float | None = No
         ax.plot(trace["frame_t"], trace["estimate_m"], "o-", color="C0", ms=4, lw=0.8,
                 label=f"{seen_by} estimate (each visual frame)")
     if contact_t is not None:
-        ax.axvline(contact_t, color="C3", lw=1.2, label=f"{'deflected' if deflected else 'touched'} at {contact_t:.3f} s")
+        ax.axvline(contact_t, color="C3", lw=1.2,
+                   label=f"{'deflected' if deflected else 'touched'} at {contact_t:.3f} s")
     if closest_t is not None and np.isfinite(closest_t):
         ax.axvline(closest_t, color="C1", lw=1, ls=":", label=f"closest approach at {closest_t:.3f} s")
     ax.set(xlabel="time since the launch (s)", ylabel="hand point to ball centre (m)", ylim=(0, None))
@@ -237,7 +238,8 @@ def plot_success_by_direction(results: dict, path: str) -> str:
             ax.scatter(off[~hit, 0], off[~hit, 2], s=np.asarray(size)[~hit], c="C3", marker="x", label="missed")
         ax.plot([o0, o1, o1, o0, o0], [u0, u0, u1, u1, u0], "k--", lw=0.7)
         frac = results[m].get("deflected_fraction")
-        ax.set_title(f"{mode_label(m)}: {int(hit.sum())}/{len(rows)} deflected" if frac is not None else mode_label(m), fontsize=9)
+        ax.set_title(f"{mode_label(m)}: {int(hit.sum())}/{len(rows)} deflected" if frac is not None else mode_label(m),
+                     fontsize=9)
         ax.set_xlabel("target outward of the shoulder (m)")
         ax.grid(alpha=0.3)
         ax.set_aspect("equal")
