@@ -329,7 +329,7 @@ def _net_flags(g, name: str) -> None:
     if name != "intraocular":  # that command runs both, nets and teachers
         from warp_vision.sim.loop import INTRAOCULAR
 
-        default = "analytic" if name == "intercept" else "nets"
+        default = "analytic" if name in ("intercept", "search") else "nets"
         g.add_argument("--intraocular", choices=INTRAOCULAR, default=default,
                        help=f"nets{' (default)' if default == 'nets' else ''}: each eye's pupil and lens nets command "
                             "its iris and lens from the ONV (trained into runs/pupil/<eye> and runs/lens/<eye> if "

@@ -56,6 +56,9 @@ MINUTES = {("foveation", "default"): 15.0, ("foveation", "quick"): 2.0,
            ("arm", "default"): 6.0, ("arm", "quick"): 1.5, ("limb", "default"): 11.0, ("limb", "quick"): 2.0,
            ("verify", "default"): 12.0, ("verify", "quick"): 3.0}
 
+#: A net's kind in words, where its name is not one (``NetSpec.what``).
+_WORDS = {"limb": "limb vision", "verify": "foveal verification"}
+
 #: Training commands whose side flag is ``--side`` (the arm's) rather than ``--eye``.
 _SIDE_FLAG = {"arm": "--side"}
 
@@ -96,7 +99,7 @@ class NetSpec:
         """The net in words: "left eye's foveation net", "left eye's limb vision net", "left arm's motor nets"."""
         if self.kind == "arm":
             return f"{self.eye} arm's motor nets"
-        return f"{self.eye} eye's {'limb vision' if self.kind == 'limb' else self.kind} net"
+        return f"{self.eye} eye's {_WORDS.get(self.kind, self.kind)} net"
 
     def minutes(self) -> float:
         return MINUTES.get((self.kind, self.preset), MINUTES[(self.kind, "default")])
