@@ -236,10 +236,10 @@ def test_verify_training_writes_per_class_false_accepts_and_its_threshold(tmp_pa
     from warp_vision.data.verification import CLASSES
     from warp_vision.sim.search import Verifier
     from warp_vision.train import verify as V
-    from warp_vision.train.config_verify import VerifyTrainConfig
+    from warp_vision.train.config_verify import VERIFY_PRESETS, VerifyTrainConfig
 
     out = tmp_path / "verify_left"
-    cfg = VerifyTrainConfig(preset="smoke", out=str(out), data_dir=str(tmp_path / "data"))
+    cfg = VerifyTrainConfig(preset="smoke", **VERIFY_PRESETS["smoke"], out=str(out), data_dir=str(tmp_path / "data"))
     V.run(cfg, progress=False, log=lambda _m: None)
     s = json.loads((out / "summary.json").read_text())
     assert s["task"] == "verify" and set(s["heldout"]["false_accepts"]) <= set(CLASSES[1:])
