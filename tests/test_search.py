@@ -311,3 +311,24 @@ def test_the_trials_are_seeded_disjoint_and_scored(bare_body, tmp_path):
     lines = R.report_lines(report)
     assert any("active search" in ln and "1/1 trials" in ln for ln in lines), lines
     body.reset()
+
+
+def test_a_trial_whose_physics_fails_counts_as_a_miss_with_its_error(monkeypatch):
+    """run_all scores a trial that raises SimulationError as not found, names the error, and goes on."""
+    from warp_vision.body import SimulationError
+    from warp_vision.sim import search_report as R
+    from warp_vision.sim import search_trials as T
+
+    def boom(*_a, **_k):
+        raise SimulationError("t=0.2 s: contact penetration 22.0 mm (limit 20 mm)")
+
+    monkeypatch.setattr(T, "run_trial", boom)
+    monkeypatch.setattr(R, "_trial_scene", lambda *_a: None)
+
+    class _Loop:
+        body = None
+
+    report = R.run_all(_Loop(), [T.sample_trial(T.trial_seeds(1)[0])], None, progress=False)
+    s = report["modes"]["search"]["summary"]
+    assert s["found"] == 0 and s["simulation_errors"] == 1
+    assert "penetration" in report["modes"]["nets"]["trials"][0]["error"]

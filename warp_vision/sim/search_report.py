@@ -26,6 +26,7 @@ def summarise(results: list[dict]) -> dict:
     found, the median saccades per trial, and the share found per look-alike present."""
     found = [r for r in results if r["found"]]
     out = {"trials": len(results), "found": len(found), "found_share": len(found) / max(len(results), 1),
+           "simulation_errors": sum("error" in r for r in results),
            "median_time_to_hold_s": float(np.median([r["held_from_s"] for r in found])) if found else None,
            "median_saccades": float(np.median([r["saccades"] for r in results])) if results else None,
            "by_look_alike": {}}
@@ -53,6 +54,7 @@ def run_all(loop, trials: list, verifiers: dict | None, baseline: bool = True, p
     first ``scanpaths`` trials into ``out/figures``."""
     from tqdm import tqdm
 
+    from warp_vision.body import SimulationError
     from warp_vision.sim.search import ActiveSearch
     from warp_vision.sim.search_trials import run_trial
 
@@ -69,14 +71,17 @@ def run_all(loop, trials: list, verifiers: dict | None, baseline: bool = True, p
             path = [] if (m == "search" and k < scanpaths) else None
             record = (lambda lp, path=path: path.append(_mean_gaze_point(lp.body))) if path is not None else None
             t0 = time.perf_counter()
-            r = run_trial(loop, trial, scene, m, search, record=record)
+            try:
+                r = run_trial(loop, trial, scene, m, search, record=record)
+            except SimulationError as e:  # the body's physics failed its checks: the trial counts as a miss
+                r = _failed_trial(trial, m, e)
             wall[m] += time.perf_counter() - t0
             sim_s[m] += len(r["errors_deg"]) * 0.01
             results[m].append(r)
             if search is not None:
                 for key in added:
                     added[key] += search.timing[key]
-            if path is not None and out:
+            if path is not None and out and "error" not in r:
                 scanpath_figure(loop, trial, scene, r, path, os.path.join(out, "figures", f"scanpath_{trial.seed}.png"))
     frames = max(added["frames"], 1)
     per_frame = {k: 1e3 * added[k] / frames for k in ("candidates", "pairs", "verify")}
@@ -135,6 +140,16 @@ def run_cannon(loop, shots: list, rooms: list, verifiers: dict | None, baseline:
             for m, r in out.items()}
 
 
+def _failed_trial(trial, perception: str, error: Exception) -> dict:
+    """A trial the simulation could not finish, scored as not found (its gaze errors infinite), with the error."""
+    from warp_vision.sim.search_trials import TRIAL_S, look_alikes
+
+    periods = int(round(TRIAL_S / 0.01))
+    return {"seed": trial.seed, "perception": perception, "ball_in_sight": None, "look_alikes": look_alikes(trial),
+            "ball": list(trial.ball), "found": False, "held_from_s": None, "final_error_deg": [float("inf")] * 2,
+            "saccades": 0, "events": [], "errors_deg": [[float("inf")] * 2] * periods, "error": str(error)}
+
+
 def _mean_gaze_point(body) -> np.ndarray:
     mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
     axis = body.eye_pose("left")[:3, 2] + body.eye_pose("right")[:3, 2]
@@ -147,11 +162,12 @@ def scanpath_figure(loop, trial, scene, result: dict, path: list, file: str) -> 
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import mujoco
 
     from warp_vision.frames import look_at
     from warp_vision.kernels.render import render_camera
     from warp_vision.sim.loop import set_eye_view, sync_scene
-    from warp_vision.sim.search_trials import ball_point, look_alikes
+    from warp_vision.sim.search_trials import ball_point, hand_posture, look_alikes, pin, place_look_alikes
     from warp_vision.sim.video import project
     from warp_vision.viz import tone_map
 
@@ -160,6 +176,9 @@ def scanpath_figure(loop, trial, scene, result: dict, path: list, file: str) -> 
     loop.reset(settle_s=0.2)
     point = ball_point(body, trial)
     body.set_ball(point)
+    pin(body, hand_posture(body, trial))  # the raised hand, as in the trial
+    mujoco.mj_forward(body.model, body.data)
+    place_look_alikes(scene, body, trial)
     mid = 0.5 * (body.eye_pose("left")[:3, 3] + body.eye_pose("right")[:3, 3])
     cam = look_at(mid, mid + body.head_pose()[:3, 2])
     sync_scene(scene, body)

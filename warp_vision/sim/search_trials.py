@@ -35,6 +35,9 @@ BY_S = 1.0  # the ball must be held from this time at the latest
 WITHIN_DEG = 1.0
 LOOK_ALIKES = ("muzzle", "decoy", "lamp", "hand")
 LAMP_PANEL = (0.3, 0.3)  # m
+#: m: a raised arm's posture is drawn again while any contact of the body lies deeper than this (an arm through
+#: the torso would be pushed out by MuJoCo, or fail its penetration check)
+POSTURE_DEPTH_M = 0.005
 
 
 @dataclass
@@ -158,7 +161,8 @@ def place_look_alikes(scene, body, trial: Trial) -> None:
 
 def hand_posture(body, trial: Trial) -> dict | None:
     """{qpos address: value} of the trial's raised arm: its joints drawn (from the trial's seed) until the hand
-    is within 30 degrees of straight ahead, 0.3 to 0.7 m from the eyes; None without a hand."""
+    is within 30 degrees of straight ahead, 0.3 to 0.7 m from the eyes, and no contact of the body is deeper
+    than POSTURE_DEPTH_M; None without a hand."""
     import mujoco
 
     from warp_vision.data.foveation_scenes import _ARM_JOINTS, _apply_joint_couplings
@@ -178,10 +182,11 @@ def hand_posture(body, trial: Trial) -> dict | None:
             lo, hi = m.jnt_range[jid]
             d.qpos[m.jnt_qposadr[jid]] = rng.uniform(lo, hi)
         _apply_joint_couplings(m, d)
-        mujoco.mj_kinematics(m, d)
+        mujoco.mj_forward(m, d)
         v = d.xpos[m.body(f"lunate_{side}").id] - head[:3, 3]
         dist = np.linalg.norm(v)
-        if 0.3 <= dist <= 0.7 and v @ head[:3, 2] > np.cos(np.radians(30)) * dist:
+        deepest = min((float(d.contact[i].dist) for i in range(d.ncon)), default=0.0)
+        if 0.3 <= dist <= 0.7 and v @ head[:3, 2] > np.cos(np.radians(30)) * dist and deepest > -POSTURE_DEPTH_M:
             return {int(a): float(d.qpos[a]) for a in adrs}
     return None
 
