@@ -123,9 +123,12 @@ class Foveator:
         dirs[0], scores[0] = best, 1.0
         if not hasattr(self.model, "candidates"):
             return dirs, scores
+        t0 = time.perf_counter()
         with torch.no_grad():
             d, sc = self.model.candidates(net_input(onv[:1], self.norm, self.device, self.onv_dtype), k + 1,
                                           min_sep_deg)
+        #: wall seconds spent on candidates beyond the single answer (the heat map's further peaks)
+        self.extra_seconds = getattr(self, "extra_seconds", 0.0) + time.perf_counter() - t0
         d, sc = d[0].cpu().numpy().astype(np.float64), sc[0].cpu().numpy().astype(np.float64)
         cos_sep = np.cos(np.radians(min_sep_deg))
         best_dir = gaze_direction(*best)

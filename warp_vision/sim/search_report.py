@@ -63,7 +63,7 @@ def run_all(loop, trials: list, verifiers: dict | None, baseline: bool = True, p
     cache: dict = {}
     wall = {m: 0.0 for m in modes}
     sim_s = {m: 0.0 for m in modes}
-    added = {"candidates": 0.0, "pairs": 0.0, "verify": 0.0, "frames": 0}
+    added = {"candidates": 0.0, "single_answer": 0.0, "pairs": 0.0, "verify": 0.0, "frames": 0}
     for k, trial in enumerate(tqdm(trials, desc="search trials", disable=not progress)):
         scene = _trial_scene(loop.body, trial.room_seed, cache)
         for m in modes:
@@ -89,6 +89,7 @@ def run_all(loop, trials: list, verifiers: dict | None, baseline: bool = True, p
     return {"modes": {m: {"summary": summarise(results[m]), "real_time_factor": sim_s[m] / max(wall[m], 1e-9),
                           "trials": results[m]} for m in modes},
             "search_cost": {"ms_per_frame": per_frame, "frame_ms": frame_ms,
+                            "single_answer_ms": 1e3 * added["single_answer"] / frames,
                             "share_of_frame": sum(per_frame.values()) / max(frame_ms, 1e-9)}}
 
 
