@@ -355,7 +355,7 @@ def test_an_abbreviated_option_is_refused_not_matched_to_a_longer_one(command, a
 
 @pytest.mark.parametrize("argv, says", [
     (["evalute", "runs/foveation"], "'evalute' is not a task or command (did you mean 'evaluate'?): expected one of "
-                                    "faces, oculomotor, arm, limb, pupil, lens, evaluate, compare"),
+                                    "faces, oculomotor, arm, limb, pupil, lens, verify, evaluate, compare"),
     (["occulomotor", "--eye", "left"], "(did you mean 'oculomotor'?)"),
     (["runs/foveation"], "'runs/foveation' is not a task or command: expected"),
 ])
@@ -373,7 +373,7 @@ def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys)
     # each was argparse's: "the following arguments are required: cmd" (the parser's field), "argument command:
     # invalid choice: 'experiment' (choose from ...)", "unrecognized arguments: --photoreceptor 100"
     ("scene", [], "expected a command: one of demo (python -m warp_vision.scene COMMAND --help says more)"),
-    ("sim", [], "expected a command: one of demo, experiments, intraocular, oculomotor, intercept"),
+    ("sim", [], "expected a command: one of demo, experiments, intraocular, oculomotor, intercept, search"),
     ("sim", ["experiment"], "'experiment' is not a command (did you mean 'experiments'?): expected one of demo, "),
     ("bench", ["lnet"], "'lnet' is not a command (did you mean 'linet'?)"),
     ("data", ["fovea"], "'fovea' is not a command (did you mean 'foveation'?): expected one of foveation, faces"),
@@ -383,17 +383,17 @@ def test_a_mistyped_task_is_named_with_the_nearest(argv, says, tmp_path, capsys)
     ("data", ["faces", "--samples", "10"], "(--samples is an option of foveation)"),
     # train's tasks, evaluate and compare are separate parsers, not subcommands: a flag of another was unnamed
     ("train", ["faces", "--preset", "smoke", "--samples", "5"], "unrecognized arguments: --samples 5 (--samples is "
-                                                                "an option of the foveation task, limb, pupil, lens "
-                                                                "and evaluate)"),
+                                                                "an option of the foveation task, limb, pupil, lens, "
+                                                                "verify and evaluate)"),
     ("train", ["--preset", "smoke", "--conditions"],
      "unrecognized arguments: --conditions (--conditions is an option of evaluate)"),
     ("train", ["compare", "r", "--out", "c.png", "--split", "val"], "(--split is an option of evaluate)"),
     ("train", ["evaluate", "r", "--lr", "0.1"], "(--lr is an option of the foveation task, faces, oculomotor, arm, "
-                                                "limb, pupil and lens)"),
+                                                "limb, pupil, lens and verify)"),
     # a flag near another task's (not its own) was unnamed
     ("train", ["oculomotor", "--photoreceptor", "5"], "unrecognized arguments: --photoreceptor 5 (did you mean "
                                                       "--photoreceptors, an option of the foveation task, faces, limb, "
-                                                      "pupil and lens?)"),
+                                                      "pupil, lens and verify?)"),
     ("sim", ["demo", "--shot", "5"], "(did you mean --shots, an option of intercept?)"),
     # a command's option given before the command: "unrecognized arguments: --quick (--quick is an option of
     # experiments, ...)", as if demo lacked it; "'quick' is not a command", its value taken for the command

@@ -331,7 +331,7 @@ def test_bad_settings_are_refused_before_any_training(tmp_path, monkeypatch, cap
     assert not (tmp_path / "runs").exists()  # nothing was trained
 
 
-@pytest.mark.parametrize("command", ["demo", "experiments", "intraocular", "oculomotor", "intercept"])
+@pytest.mark.parametrize("command", ["demo", "experiments", "intraocular", "oculomotor", "intercept", "search"])
 def test_the_simulations_help_reads_by_section_and_states_each_default(command, capsys):
     """``sim demo --help`` listed its 24 flags in the order they were written (--no-progress between two
     nets' directories, --seed among the video's), and --seed, --duration, --flight, --stop, --width, --height
@@ -350,6 +350,9 @@ def test_the_simulations_help_reads_by_section_and_states_each_default(command, 
     if command == "demo":
         sections["the scene"] += ["--no-arms", "--duration", "--flight", "--stop"]
         sections["the output"] += ["--width", "--height", "--video-every", "--slow-motion", "--gif", "--viewer"]
+    if command == "search":  # a fixed ball and frame rate: the trials set them
+        sections["the nets"].append("--verify")
+        sections["the scene"] = ["--seed", "--trials", "--split", "--scanpaths", "--no-baseline", "--cannon"]
     if command == "intercept":
         sections["the nets"] += ["--perception", "--arm", "--limb"]
         sections["the scene"] += ["--side", "--shots", "--shot-seed", "--perception-error-cm"]

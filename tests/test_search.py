@@ -53,7 +53,7 @@ class _OracleVerifier:
 
 
 def _holding_oculomotor(body):
-    from tests.test_loop import _HoldingOculomotor
+    from test_loop import _HoldingOculomotor
 
     return {s: _HoldingOculomotor(body, s) for s in SIDES}
 

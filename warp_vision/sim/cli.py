@@ -377,7 +377,7 @@ def _scene_flags(g, name: str) -> None:
                             "foveation nets' single answer")
         g.add_argument("--seed", type=integer(SEED), default=0,
                        help="the first trial: seed 1,000,000 + --seed of the held-out split, or --seed of the training "
-                            "split")
+                            "split (default 0)")
         g.add_argument("--split", choices=("heldout", "train"), default="heldout",
                        help="held-out trials (default: rooms, balls and look-alikes never used to tune the search) or "
                             "training ones")
