@@ -214,8 +214,8 @@ def test_every_tasks_config_refuses_counts_too_small_for_its_splits(task, overri
      "--samples: expected an integer, got '1.5' (python -m warp_vision.scene demo --help says more)"),
     # ours, as before, on a line of their own
     ("sim", ["experiment"], "'experiment' is not a command (did you mean 'experiments'?): expected one of demo, "
-                            "experiments, intraocular, oculomotor, intercept, search (python -m warp_vision.sim --help says "
-                            "more)"),
+                            "experiments, intraocular, oculomotor, intercept, search (python -m warp_vision.sim --help "
+                            "says more)"),
     ("scene", [], "expected a command: one of demo (python -m warp_vision.scene COMMAND --help says more)"),
     ("sim", ["--quick", "demo"], "--quick goes after the command: python -m warp_vision.sim demo --quick"),
 ])
