@@ -98,7 +98,7 @@ def test_the_training_presets_use_v9():
 
 
 def test_flight_error_summary():
-    from warp_vision.sim.cli import flight_error_summary
+    from warp_vision.sim.demo import flight_error_summary
 
     t = np.linspace(0, 0.8, 81)
     err = np.where(t < 0.3, 20.0, 1.0)

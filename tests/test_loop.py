@@ -404,7 +404,7 @@ def test_a_run_directory_given_that_holds_no_run_is_refused_before_any_training(
 
 
 def test_the_viewer_is_skipped_with_one_line_where_there_is_no_display(monkeypatch, capsys):
-    from warp_vision.sim.cli import _Viewer
+    from warp_vision.sim.demo import _Viewer
 
     for var in ("DISPLAY", "WAYLAND_DISPLAY"):
         monkeypatch.delenv(var, raising=False)
@@ -464,7 +464,7 @@ def test_experiments_measure_and_draw_every_scenario(bare_body, tmp_path):
 
 
 def test_the_demo_prints_the_gaze_error_and_what_it_wrote():
-    from warp_vision.sim.cli import demo_lines
+    from warp_vision.sim.demo import demo_lines
 
     eye = {"median": 2.5, "share_over_5deg": 0.25, "at_0.1_s": 7.0, "at_0.5_s": 1.25}
     result = {"gaze_error_deg": {"left": eye, "right": {**eye, "median": 3.0}},

@@ -7,6 +7,7 @@ and test commands are the ones .ci/run runs."""
 
 from __future__ import annotations
 
+import functools
 import re
 import shlex
 import subprocess
@@ -92,6 +93,7 @@ def _help_argv(argv: list[str]) -> list[str]:
     return [sys.executable, "-m", module, *sub, "--help"]
 
 
+@functools.lru_cache(maxsize=1)
 def _by_help() -> dict[str, list[list[str]]]:
     """The docs' command lines grouped by the --help that checks them (one subprocess per (sub)command)."""
     groups: dict[str, list[list[str]]] = {}

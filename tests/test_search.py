@@ -1,6 +1,8 @@
 """Active search (warp_vision.sim.search): inhibition of return in the world, both eyes agreeing, the search
 cycle on a scripted trial, the candidates of the retina CNN, and the foveal verification net's interface."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -307,7 +309,7 @@ def test_the_trials_are_seeded_disjoint_and_scored(bare_body, tmp_path):
     assert not n["trials"][0]["found"] and n["summary"]["found_share"] == 0.0
     assert "decoy" in s["trials"][0]["look_alikes"] and report["search_cost"]["frame_ms"] > 0
     assert (tmp_path / "figures" / f"scanpath_{trial.seed}.png").exists()
-    assert R.summary_figure(report, str(tmp_path / "figures" / "search.png"))
+    assert Path(R.summary_figure(report, str(tmp_path / "figures" / "search.png"))).stat().st_size > 0
     lines = R.report_lines(report)
     assert any("active search" in ln and "1/1 trials" in ln for ln in lines), lines
     body.reset()

@@ -124,10 +124,7 @@ class ArmKit:
         for _ in range(50):
             d.qpos[:] = m.qpos0
             for side in ("r", "l"):
-                for j in _ARM_JOINTS:
-                    jid = m.joint(f"{j}_{side}").id
-                    lo, hi = m.jnt_range[jid]
-                    d.qpos[m.jnt_qposadr[jid]] = rng.uniform(lo, hi)
+                draw_arm_joints(m, d, side, rng)
             _apply_joint_couplings(m, d)
             mujoco.mj_kinematics(m, d)
             centre = b.eye_pose(eye)[:3, 3]
@@ -139,6 +136,15 @@ class ArmKit:
             if np.dot(v, fwd) > np.cos(np.radians(70)) * np.linalg.norm(v):
                 return {n: b.pose(a) if a else np.eye(4) for n, a in self.anchors.items()}, centre, target
         return None
+
+
+def draw_arm_joints(m, d, side: str, rng: np.random.Generator) -> None:
+    """Each independent joint of arm ``side`` ("r" or "l") drawn uniformly in its range, into ``d.qpos`` (the
+    coupled joints follow with :func:`_apply_joint_couplings`)."""
+    for j in _ARM_JOINTS:
+        jid = m.joint(f"{j}_{side}").id
+        lo, hi = m.jnt_range[jid]
+        d.qpos[m.jnt_qposadr[jid]] = rng.uniform(lo, hi)
 
 
 def _apply_joint_couplings(m, d) -> None:

@@ -27,6 +27,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from warp_vision.data.foveation_scenes import _unit_perp
+from warp_vision.data.intraocular import central_photoreceptors
 from warp_vision.errors import require_positive, require_seeds
 
 VERIFY_DATA_VERSION = 1
@@ -101,11 +103,6 @@ class VerifyDataConfig:
                                    "samples": samples or max(200, self.samples // 6)})
 
 
-def central_photoreceptors(retina, central_deg: float) -> np.ndarray:
-    """Indices of the photoreceptors within ``central_deg`` of the fovea (ascending)."""
-    return np.nonzero(np.degrees(np.asarray(retina.rho)) <= central_deg)[0]
-
-
 def verify_fields(n_central: int) -> dict:
     return {"onv": ((3 * n_central,), "float16"), "label": ((), "float32"), "offset": ((2,), "float32"),
             "cls": ((), "int64"), "ball_ecc_deg": ((), "float32"), "ball_radius_deg": ((), "float32")}
@@ -115,12 +112,6 @@ def dataset_fields(cfg: VerifyDataConfig) -> dict:
     from warp_vision.data.foveation import make_retina
 
     return verify_fields(len(central_photoreceptors(make_retina(cfg.scene_config()), cfg.central_deg)))
-
-
-def _unit_perp(v, rng) -> np.ndarray:
-    a = rng.normal(size=3)
-    a -= (a @ v) * v
-    return a / np.linalg.norm(a)
 
 
 def _first_hit(scene, origin, point, batch: int, device: str):

@@ -98,8 +98,6 @@ def setup_loop(args):
         search = ActiveSearch({s: Verifier(runs["verify", s], eye=s) for s in SIDES})
     loop = VisuomotorLoop(body, fov, load_oculomotor(ocu_root), seed=args.seed, frame_every=args.frame_every,
                           ball=args.ball, pupil_nets=pupil, lens_nets=lens, perception=perception, search=search)
-    #: the verification runs the search reads (``sim search`` builds its own searches from them)
-    loop.verify_runs = {s: runs["verify", s] for s in SIDES} if ("verify", "left") in runs else None
     os.makedirs(args.out, exist_ok=True)  # recorded once every net has loaded: a failed start leaves the last record
     write_json(os.path.join(args.out, "nets.json"), manifest(specs))
     return body, loop

@@ -104,6 +104,8 @@ class Foveator:
         self.norm = ck["norm"]
         self.device = device
         self.onv_dtype = onv_dtype(ck["net"])
+        #: wall seconds spent in :meth:`candidates` beyond the single answer (the heat map's further peaks)
+        self.extra_seconds = 0.0
 
     def __call__(self, onv: torch.Tensor) -> np.ndarray:
         from warp_vision.nn.trained import predict_targets
@@ -127,8 +129,7 @@ class Foveator:
         with torch.no_grad():
             d, sc = self.model.candidates(net_input(onv[:1], self.norm, self.device, self.onv_dtype), k + 1,
                                           min_sep_deg)
-        #: wall seconds spent on candidates beyond the single answer (the heat map's further peaks)
-        self.extra_seconds = getattr(self, "extra_seconds", 0.0) + time.perf_counter() - t0
+        self.extra_seconds += time.perf_counter() - t0
         d, sc = d[0].cpu().numpy().astype(np.float64), sc[0].cpu().numpy().astype(np.float64)
         cos_sep = np.cos(np.radians(min_sep_deg))
         best_dir = gaze_direction(*best)

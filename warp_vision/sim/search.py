@@ -42,6 +42,7 @@ import torch
 
 from warp_vision.body import SIDES
 from warp_vision.frames import gaze_direction, line_crossing
+from warp_vision.sim.gaze import CONTROL_DT
 
 CANDIDATES = 4
 MIN_SEP_DEG = 4.0
@@ -56,7 +57,6 @@ VERIFY_TIMEOUT_S = 0.3
 REVERIFY_S = 0.2
 LOST_FRAMES = 4
 VELOCITY_SMOOTHING = 0.5
-STATES = ("search", "verify", "track")
 
 
 @dataclass
@@ -202,7 +202,7 @@ class ActiveSearch:
     def frame(self, loop, onv: dict) -> dict | None:
         """One visual frame: each eye's retinal error (yaw, pitch) rad of the target, or None (hold)."""
         body, now = loop.body, loop.body.time
-        extra0 = sum(getattr(loop.fov[s], "extra_seconds", 0.0) for s in SIDES)
+        extra0 = sum(getattr(loop.fov[s], "extra_seconds", 0.0) for s in SIDES)  # (a stand-in net may keep none)
         t0 = time.perf_counter()
         cands = {s: loop.fov[s].candidates(onv[s], self.k, MIN_SEP_DEG) for s in SIDES}
         t1 = time.perf_counter()
@@ -266,7 +266,7 @@ class ActiveSearch:
 
     def _track(self, loop, onv: dict, found: list[Pair], now: float) -> None:
         st, body = self.s, loop.body
-        dt = loop.frame_every * 0.01
+        dt = loop.frame_every * CONTROL_DT
         predicted = st.target + st.velocity * dt
         gated = [q for q in found if all(_angle_deg(q.point - body.eye_pose(s)[:3, 3],
                                                     predicted - body.eye_pose(s)[:3, 3])

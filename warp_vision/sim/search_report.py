@@ -16,6 +16,7 @@ import time
 import numpy as np
 
 from warp_vision.body import SIDES
+from warp_vision.sim.gaze import CONTROL_DT
 
 SCANPATH_FOV_DEG = 90.0
 SCANPATH_SIZE = (560, 420)
@@ -76,7 +77,7 @@ def run_all(loop, trials: list, verifiers: dict | None, baseline: bool = True, p
             except SimulationError as e:  # the body's physics failed its checks: the trial counts as a miss
                 r = _failed_trial(trial, m, e)
             wall[m] += time.perf_counter() - t0
-            sim_s[m] += len(r["errors_deg"]) * 0.01
+            sim_s[m] += len(r["errors_deg"]) * CONTROL_DT
             results[m].append(r)
             if search is not None:
                 for key in added:
@@ -145,7 +146,7 @@ def _failed_trial(trial, perception: str, error: Exception) -> dict:
     """A trial the simulation could not finish, scored as not found (its gaze errors infinite), with the error."""
     from warp_vision.sim.search_trials import TRIAL_S, look_alikes
 
-    periods = int(round(TRIAL_S / 0.01))
+    periods = int(round(TRIAL_S / CONTROL_DT))
     return {"seed": trial.seed, "perception": perception, "ball_in_sight": None, "look_alikes": look_alikes(trial),
             "ball": list(trial.ball), "found": False, "held_from_s": None, "final_error_deg": [float("inf")] * 2,
             "saccades": 0, "events": [], "errors_deg": [[float("inf")] * 2] * periods, "error": str(error)}
@@ -231,7 +232,7 @@ def summary_figure(report: dict, file: str) -> str:
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     for m, d in report["modes"].items():
         err = np.array([r["errors_deg"] for r in d["trials"]])  # [trials, periods, 2]
-        t = (np.arange(err.shape[1]) + 1) * 0.01
+        t = (np.arange(err.shape[1]) + 1) * CONTROL_DT
         ax[0].plot(t, (err.max(2) <= 1.0).mean(0), label=f"{m} ({100 * d['summary']['found_share']:.0f}% found)")
         kinds = list(d["summary"]["by_look_alike"])
         ax[1].bar(np.arange(len(kinds)) + (0.2 if m == "nets" else -0.2),
@@ -278,13 +279,14 @@ def search_command(args) -> dict:
     """``sim search``: provide the nets, run the trials, write search.json and the figures."""
     from warp_vision.fileio import write_json
     from warp_vision.provenance import software
-    from warp_vision.sim.build import setup_loop
+    from warp_vision.sim.build import net_specs, setup_loop
     from warp_vision.sim.search import Verifier
     from warp_vision.sim.search_trials import sample_trial, trial_seeds
 
     seeds = trial_seeds(args.trials, args.seed, args.split)
     body, loop = setup_loop(args)
-    verifiers = {s: Verifier(loop.verify_runs[s], eye=s) for s in SIDES}
+    verify_runs = {spec.eye: spec.run for spec in net_specs(args) if spec.kind == "verify"}
+    verifiers = {s: Verifier(verify_runs[s], eye=s) for s in SIDES}
     trials = [sample_trial(s, args.split) for s in seeds]
     report = run_all(loop, trials, verifiers, baseline=not args.no_baseline, progress=not args.no_progress,
                      scanpaths=args.scanpaths, out=args.out)
@@ -295,7 +297,7 @@ def search_command(args) -> dict:
         report["cannon"] = run_cannon(loop, shots, sorted({t.room_seed for t in trials}), verifiers,
                                       not args.no_baseline, not args.no_progress)
     report["settings"] = {"trials": args.trials, "cannon_shots": args.cannon, "seed": args.seed, "split": args.split,
-                          "verify": loop.verify_runs, "foveation": {s: loop.fov[s].run_dir for s in SIDES}}
+                          "verify": verify_runs, "foveation": {s: loop.fov[s].run_dir for s in SIDES}}
     write_json(os.path.join(args.out, "search.json"), {**report, "software": software()})
     summary_figure(report, os.path.join(args.out, "figures", "search.png"))
     return report

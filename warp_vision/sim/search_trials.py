@@ -20,7 +20,7 @@ search; "nets": the foveation nets' single answer) and scores it: the first time
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -49,7 +49,6 @@ class Trial:
     decoy: dict | None = None  # {"name", "ecc", "polar", "distance", "end_on"}
     lamp: dict | None = None  # {"ecc", "polar", "distance", "emission"}
     hand: dict | None = None  # {"side", "qpos": {joint: value}}
-    extra: dict = field(default_factory=dict)
 
 
 def trial_seeds(n: int, seed: int = 0, split: str = "heldout") -> list[int]:
@@ -165,7 +164,7 @@ def hand_posture(body, trial: Trial) -> dict | None:
     than POSTURE_DEPTH_M; None without a hand."""
     import mujoco
 
-    from warp_vision.data.foveation_scenes import _ARM_JOINTS, _apply_joint_couplings
+    from warp_vision.data.foveation_scenes import _apply_joint_couplings, draw_arm_joints
 
     m = body.model
     side = trial.hand["side"] if trial.hand is not None else "r"
@@ -177,10 +176,7 @@ def hand_posture(body, trial: Trial) -> dict | None:
     head = body.head_pose()
     adrs = [m.jnt_qposadr[j] for j in range(m.njnt) if m.joint(j).name.endswith(f"_{side}")]
     for _ in range(500):
-        for j in _ARM_JOINTS:
-            jid = m.joint(f"{j}_{side}").id
-            lo, hi = m.jnt_range[jid]
-            d.qpos[m.jnt_qposadr[jid]] = rng.uniform(lo, hi)
+        draw_arm_joints(m, d, side, rng)
         _apply_joint_couplings(m, d)
         mujoco.mj_forward(m, d)
         v = d.xpos[m.body(f"lunate_{side}").id] - head[:3, 3]
@@ -270,4 +266,4 @@ def run_trial(loop, trial: Trial, scene, perception: str, search=None, record=No
             "ball": list(trial.ball), "found": held_from is not None and held_from <= BY_S, "held_from_s": held_from,
             "final_error_deg": err[-1].tolist(), "saccades": int(max(saccades.values())),
             "events": [(tm - t0, kind, p.tolist()) for tm, kind, p in (search.log if search is not None else [])],
-            "errors_deg": err.round(3).tolist(), "start": t0}
+            "errors_deg": err.round(3).tolist()}

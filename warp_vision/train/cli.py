@@ -6,7 +6,8 @@
     faces --resume RUN_DIR [--epochs N]                               continue a stopped AFR run
     oculomotor --eye left|right [--preset smoke|quick|default]        an eye's oculomotor net
     arm --side left|right [--preset smoke|quick|default]              an arm's motor nets
-    limb|pupil|lens --eye left|right [--preset ...]                   an eye's limb vision, pupil or lens net
+    limb|pupil|lens|verify --eye left|right [--preset ...]            an eye's limb vision, pupil, lens or
+                                                                      foveal verification net
     evaluate RUN_DIR [--split test|val|train]                         re-evaluate a run (any task)
     evaluate RUN_DIR --misses                                         where a foveation net's misses lie
     evaluate RUN_DIR --misses --signal                                ... and how much of each ball the ONV holds
@@ -73,8 +74,8 @@ def _train_parser() -> argparse.ArgumentParser:
             "pitch) that foveates the ball, evaluate, and "
             "write config, checkpoints, metrics and figures to --out. "
             "Also: 'python -m warp_vision.train faces ...' (active face recognition), 'oculomotor --eye left|right' "
-            "(an eye's oculomotor net), 'arm --side left|right' (an arm's motor nets), 'limb|pupil|lens --eye "
-            "left|right' (an eye's limb vision, pupil or lens net), 'evaluate RUN_DIR' and "
+            "(an eye's oculomotor net), 'arm --side left|right' (an arm's motor nets), 'limb|pupil|lens|verify --eye "
+            "left|right' (an eye's limb vision, pupil, lens or foveal verification net), 'evaluate RUN_DIR' and "
             "'compare RUN_DIR ... --out FIG'. Runs under torchrun unchanged."
         ),
     )
@@ -136,7 +137,7 @@ TASKS = {
                "generator-v9 scenes fixating the ball or a look-alike (a decoy's face, the muzzle end-on, a hand, a "
                "bright object, a lamp's patch, the ball's shadow, furniture), 0-2 deg off; train the net (default "
                "the CNN; --model linet: the paper's liNet) to say whether the ball is at the fovea and how far off; "
-               "fit the threshold that rejects 1%% of the balls; measure false accepts per look-alike class on rooms "
+               "fit the threshold that rejects 1% of the balls; measure false accepts per look-alike class on rooms "
                "training never saw, and write config, checkpoints, metrics, summary and the ROC figure to --out "
                "(default runs/verify/<eye>)."),
 }

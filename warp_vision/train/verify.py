@@ -33,18 +33,14 @@ AUGMENT_GROUPS = 4
 
 
 def roc_auc(score: np.ndarray, label: np.ndarray) -> float:
-    """The area under the ROC curve: the chance a ball sample scores above a look-alike (ties half)."""
+    """The area under the ROC curve: the chance a ball sample scores above a look-alike (ties half), by the
+    Mann-Whitney rank sum."""
+    from scipy.stats import rankdata
+
     pos, neg = score[label > 0.5], score[label <= 0.5]
     if not len(pos) or not len(neg):
         return float("nan")
-    order = np.argsort(np.concatenate([pos, neg]), kind="stable")
-    ranks = np.empty(len(order))
-    ranks[order] = np.arange(1, len(order) + 1)
-    allv = np.concatenate([pos, neg])
-    for v in np.unique(allv):  # average ranks over ties
-        m = allv == v
-        if m.sum() > 1:
-            ranks[m] = ranks[m].mean()
+    ranks = rankdata(np.concatenate([pos, neg]))  # ties take their mean rank
     return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
 
 
